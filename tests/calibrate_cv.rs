@@ -129,6 +129,26 @@ fn cross_validation_reports_mean_and_spread_and_resumes_from_cache() {
     // Three different models: the folds do not all agree.
     assert!(cells.iter().any(|c| c["std"].as_f64().unwrap() > 0.0));
     assert!(result["computed_steps"].as_u64().unwrap() > 0);
+    // Each fold's model is selected on its own held-out fold.
+    let out = scanloc(&[
+        "registry",
+        "sql",
+        "SELECT m.name, m.spec, d.key FROM artefacts m JOIN artefacts d \
+         ON d.name = replace(replace(m.name, 'cnn-', 'train-'), 'of3', 'of3-held-out') \
+         WHERE m.kind = 'model' ORDER BY m.name",
+        "--json",
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let models: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    let models = models.as_array().unwrap();
+    assert_eq!(models.len(), 3, "{models:?}");
+    for model in models {
+        let spec: serde_json::Value =
+            serde_json::from_str(model["spec"].as_str().unwrap()).unwrap();
+        assert_eq!(spec["validation"], model["key"], "{}", model["name"]);
+    }
     let out = scanloc(&first);
     let again: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
     assert_eq!(

@@ -354,3 +354,66 @@ fn all_zero_and_huge_count_frames_give_finite_scores() {
             .all(|p| p.x.is_finite() && p.y.is_finite() && p.score.is_finite())
     );
 }
+
+#[test]
+fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
+    let training = dataset(40.0, 120, 71);
+    let validation = dataset(40.0, 50, 72);
+    let model = cnn::train_selecting_on(
+        &tiny_architecture(),
+        &tiny_settings(3),
+        &training,
+        &validation,
+        None,
+        8,
+        &hidden(),
+    )
+    .unwrap();
+    // Nothing of the training set is held out (validation_fraction unused).
+    assert_eq!(model.record.training_frames, 120);
+    assert_eq!(model.record.validation_frames, 50);
+    let means: Vec<f64> = model
+        .record
+        .epochs
+        .iter()
+        .map(|e| e.validation_mean_auc.unwrap())
+        .collect();
+    let best = means.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let first_best = means.iter().position(|&m| m == best).unwrap() + 1;
+    assert_eq!(model.record.best_epoch, first_best, "{means:?}");
+    // The kept weights are the ones scored on the validation set: scoring
+    // them again there gives the recorded AUC exactly.
+    let predictions = model.locate(&validation.frames, &hidden()).unwrap();
+    let score = scanloc::metrics::score(
+        &predictions,
+        &validation.truth,
+        validation.frames.n,
+        &scanloc::metrics::PAPER_EPS_PX,
+        false,
+    )
+    .unwrap();
+    let mean = score.per_eps.iter().map(|e| e.auc).sum::<f64>() / 3.0;
+    assert_eq!(mean, best);
+
+    let other_size = sim::simulate(
+        &SimParams {
+            height: 30,
+            ..params(40.0)
+        },
+        73,
+        0..5,
+        &hidden(),
+    )
+    .unwrap();
+    let error = cnn::train_selecting_on(
+        &tiny_architecture(),
+        &tiny_settings(1),
+        &training,
+        &other_size,
+        None,
+        8,
+        &hidden(),
+    )
+    .unwrap_err();
+    assert!(is_input_error(&error), "{error:#}");
+}

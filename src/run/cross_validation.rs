@@ -6,8 +6,9 @@
 //! artefact of its own, so an interrupted sweep resumes where it stopped),
 //! scored on its held-out fold and on every test set the manifest evaluates
 //! the detector on. The table reports mean ± standard deviation over folds.
-//! The detector keeps its own validation split (inside the k − 1 folds) for
-//! checkpoint selection.
+//! Each fold's model is selected on its held-out fold (the epoch with the
+//! best mean AUC there) and trains on all of the other k − 1 folds: the
+//! detector's `validation_fraction` is not used.
 
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -143,7 +144,7 @@ pub fn cross_validate(
             name: name.clone(),
             spec: entry.spec.clone(),
         };
-        let model = plan.add_training(&fold_entry, train_subset)?;
+        let model = plan.add_training(&fold_entry, train_subset, Some(held_out_subset))?;
         for (dataset_step, diffusion) in std::iter::once((held_out_subset, None)).chain(
             test_steps
                 .iter()

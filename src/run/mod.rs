@@ -484,23 +484,43 @@ fn compute(
             let source = input(registry, plan, *source, loaded)?;
             Artefact::Dataset(Arc::new(subset(source.dataset()?, frames)?))
         }
-        Action::Train { detector, training } => {
+        Action::Train {
+            detector,
+            training,
+            validation,
+        } => {
             let training_set = input(registry, plan, *training, loaded)?;
             let training_set = training_set.dataset()?;
+            let validation_set = match validation {
+                Some(v) => Some(input(registry, plan, *v, loaded)?),
+                None => None,
+            };
             match &detector.spec {
                 DetectorSpec::CrockerGrier(_) => {
                     anyhow::bail!("{}: crocker_grier is not a trained detector", detector.name)
                 }
                 DetectorSpec::Cnn(spec) => {
                     let progress = crate::progress::bar(0, &format!("train {}", detector.name));
-                    let model = crate::detect::cnn::train(
-                        &spec.architecture,
-                        &spec.training,
-                        training_set,
-                        root_dataset(plan, *training).map(|d| &d.params),
-                        detector.seed,
-                        &progress,
-                    )
+                    let fresh_frames = root_dataset(plan, *training).map(|d| &d.params);
+                    let model = match &validation_set {
+                        Some(validation_set) => crate::detect::cnn::train_selecting_on(
+                            &spec.architecture,
+                            &spec.training,
+                            training_set,
+                            validation_set.dataset()?,
+                            fresh_frames,
+                            detector.seed,
+                            &progress,
+                        ),
+                        None => crate::detect::cnn::train(
+                            &spec.architecture,
+                            &spec.training,
+                            training_set,
+                            fresh_frames,
+                            detector.seed,
+                            &progress,
+                        ),
+                    }
                     .with_context(|| format!("training {}", detector.name))?;
                     progress.finish_and_clear();
                     Artefact::Model(Arc::new(model.to_bytes()?))
@@ -637,7 +657,12 @@ fn details(plan: &Plan, index: usize, artefact: &Artefact) -> ArtefactDetails {
                 params_json: step.spec.clone(),
             }
         }
-        (Action::Train { detector, training }, _) => ArtefactDetails::Model {
+        (
+            Action::Train {
+                detector, training, ..
+            },
+            _,
+        ) => ArtefactDetails::Model {
             detector: detector.name.clone(),
             detector_kind: detector.spec.kind().to_string(),
             training_dataset_key: plan.steps[*training].key.clone(),

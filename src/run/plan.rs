@@ -43,10 +43,13 @@ pub enum Action {
         source: usize,
         frames: Arc<Vec<usize>>,
     },
-    /// Train a detector on the dataset made by step `training`.
+    /// Train a detector on the dataset made by step `training`, selecting
+    /// its epoch on the dataset made by step `validation` if given (else on
+    /// a split of the training set).
     Train {
         detector: DetectorEntry,
         training: usize,
+        validation: Option<usize>,
     },
     /// Run a detector on the dataset made by step `dataset`, with the model
     /// made by step `model` if it is trained.
@@ -92,7 +95,11 @@ impl Step {
         match &self.action {
             Action::Simulate { .. } => Vec::new(),
             Action::Subset { source, .. } => vec![*source],
-            Action::Train { training, .. } => vec![*training],
+            Action::Train {
+                training,
+                validation,
+                ..
+            } => std::iter::once(*training).chain(*validation).collect(),
             Action::Locate { dataset, model, .. } => {
                 let mut inputs = vec![*dataset];
                 inputs.extend(model);
@@ -216,20 +223,27 @@ impl Plan {
     }
 
     /// Adds the step that trains `detector` on the dataset of step
-    /// `training`.
+    /// `training`, selecting its epoch on the dataset of step `validation`
+    /// when given (a cross-validation's held-out fold).
     pub fn add_training(
         &mut self,
         detector: &DetectorEntry,
         training: usize,
+        validation: Option<usize>,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.code_version());
-        let description = json!({
+        let mut description = json!({
             "kind": "model",
             "code": code_version,
             "detector": detector.spec,
             "training": self.steps[training].key,
             "seed": detector.seed,
         });
+        // Only present when given, so that models selected on a split of
+        // their training set keep the keys they always had.
+        if let Some(validation) = validation {
+            description["validation"] = json!(self.steps[validation].key);
+        }
         let step = make_step(
             format!("model/{}", detector.name),
             ArtefactKind::Model,
@@ -240,6 +254,7 @@ impl Plan {
             Action::Train {
                 detector: detector.clone(),
                 training,
+                validation,
             },
         )?;
         Ok(self.push(step))
@@ -331,7 +346,9 @@ impl Plan {
                 .detector(&evaluation.detector)
                 .expect("the manifest checked its references");
             let model = match detector.spec.training_dataset() {
-                Some(training) => Some(plan.add_training(detector, dataset_steps[training])?),
+                Some(training) => {
+                    Some(plan.add_training(detector, dataset_steps[training], None)?)
+                }
                 None => None,
             };
             let dataset_step = dataset_steps[&evaluation.dataset];

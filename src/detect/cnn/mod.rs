@@ -33,7 +33,7 @@ use burn::store::ModuleRecord;
 use serde::{Deserialize, Serialize};
 
 use crate::error::input_error;
-pub use training::train;
+pub use training::{train, train_selecting_on};
 
 /// The network's shape. Serialised with the model; every field has a
 /// default (the best setting measured on the paper task).
@@ -248,8 +248,10 @@ pub struct EpochRecord {
 pub struct TrainingRecord {
     /// The seed the run was given.
     pub seed: u64,
-    /// Frames of the fixed dataset used for training and for validation.
+    /// Frames of the fixed dataset trained on.
     pub training_frames: usize,
+    /// Frames validated on after each epoch: split off the training set, or
+    /// a validation set of their own (a cross-validation's held-out fold).
     pub validation_frames: usize,
     pub epochs: Vec<EpochRecord>,
     /// The 1-based epoch whose weights were kept (best validation mean

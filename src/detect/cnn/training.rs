@@ -190,6 +190,57 @@ pub fn train(
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<TrainedCnn> {
+    train_and_select(arch, settings, training, None, fresh_frames, seed, progress)
+}
+
+/// Trains a localiser on every frame of `training` and keeps the epoch with
+/// the best mean AUC on `validation`, a dataset of its own (e.g. the
+/// held-out fold of a cross-validation). `settings.validation_fraction` is
+/// not used: nothing of `training` is held out. Otherwise as [`train`].
+pub fn train_selecting_on(
+    arch: &CnnArchitecture,
+    settings: &TrainingSettings,
+    training: &Dataset,
+    validation: &Dataset,
+    fresh_frames: Option<&SimParams>,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<TrainedCnn> {
+    if validation.frames.n > 0
+        && training.frames.n > 0
+        && (validation.frames.height, validation.frames.width)
+            != (training.frames.height, training.frames.width)
+    {
+        crate::bail_input!(
+            "training: validation frames are {}×{} but the training frames are {}×{}",
+            validation.frames.height,
+            validation.frames.width,
+            training.frames.height,
+            training.frames.width
+        );
+    }
+    train_and_select(
+        arch,
+        settings,
+        training,
+        Some(validation),
+        fresh_frames,
+        seed,
+        progress,
+    )
+}
+
+/// The training loop behind [`train`] (validation split off `training`) and
+/// [`train_selecting_on`] (`external_validation` given).
+fn train_and_select(
+    arch: &CnnArchitecture,
+    settings: &TrainingSettings,
+    training: &Dataset,
+    external_validation: Option<&Dataset>,
+    fresh_frames: Option<&SimParams>,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<TrainedCnn> {
     arch.validate()?;
     settings.validate()?;
     let fresh_params = match (settings.fresh_frames_per_epoch, fresh_frames) {
@@ -206,19 +257,25 @@ pub fn train(
     let n = training.frames.n;
     let emitters = truth_by_frame(&training.truth, n)?;
 
-    // Seeded split into training and validation frames.
+    // Seeded split into training and validation frames (none held out when
+    // the validation frames are given).
     let mut order: Vec<usize> = (0..n).collect();
     shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
-    let n_validation = ((n as f64) * settings.validation_fraction).round() as usize;
-    let mut validation_indices = order[..n_validation].to_vec();
+    let n_split_off = match external_validation {
+        Some(_) => 0,
+        None => ((n as f64) * settings.validation_fraction).round() as usize,
+    };
+    let mut validation_indices = order[..n_split_off].to_vec();
     validation_indices.sort_unstable();
-    let training_indices = order[n_validation..].to_vec();
-    let validation = subset(training, &validation_indices)?;
+    let training_indices = order[n_split_off..].to_vec();
+    let split_off = subset(training, &validation_indices)?;
+    let validation = external_validation.unwrap_or(&split_off);
+    let n_validation = validation.frames.n;
 
     let samples_per_epoch = training_indices.len() + settings.fresh_frames_per_epoch;
     if samples_per_epoch == 0 {
         crate::bail_input!(
-            "training: no frames to train on ({n} given, {n_validation} held out for validation, no fresh frames)"
+            "training: no frames to train on ({n} given, {n_split_off} held out for validation, no fresh frames)"
         );
     }
     if let Some(params) = fresh_params
@@ -295,7 +352,7 @@ pub fn train(
         }
         let batches = steps_per_epoch as f64;
         let valid_net = net.valid();
-        let validation_auc = validate(&valid_net, arch, settings, &validation)?;
+        let validation_auc = validate(&valid_net, arch, settings, validation)?;
         let validation_mean_auc = (!validation_auc.is_empty())
             .then(|| validation_auc.iter().sum::<f64>() / validation_auc.len() as f64);
         let record = EpochRecord {
