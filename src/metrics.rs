@@ -77,19 +77,13 @@ fn ranking(a: &Prediction, b: &Prediction) -> Ordering {
         .then(a.y.total_cmp(&b.y))
 }
 
-/// Scores `predictions` against `truth` for a test set of `frames` frames
-/// (frame indices `0..frames`). `keep_curve` keeps every curve point.
-///
-/// Refuses non-finite coordinates or scores, predictions or truth on
-/// frames outside the set, non-positive ε, and a set with no ground truth
-/// (recall, and so the AUC, would be undefined).
-pub fn score(
+/// Checks predictions and truth (finite, on frames `0..frames`, some truth)
+/// and groups the truth by frame.
+fn checked_truth_by_frame(
     predictions: &[Prediction],
     truth: &[TruthRow],
     frames: usize,
-    eps_px: &[f64],
-    keep_curve: bool,
-) -> anyhow::Result<Score> {
+) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     for p in predictions {
         if !(p.x.is_finite() && p.y.is_finite() && p.score.is_finite()) {
             return Err(input_error(format!(
@@ -127,6 +121,76 @@ pub fn score(
             "the test set has no ground truth, so recall and AUC are undefined",
         ));
     }
+    Ok(truth_by_frame)
+}
+
+/// For each frame, the squared distance from its top prediction (the first
+/// met in ranking order) to the nearest ground truth of that frame; None
+/// if the frame has no prediction or no truth.
+fn top_squared_errors(
+    ranked: &[Prediction],
+    truth_by_frame: &[Vec<(f64, f64)>],
+) -> Vec<Option<f64>> {
+    let mut top: Vec<Option<&Prediction>> = vec![None; truth_by_frame.len()];
+    for p in ranked {
+        top[p.frame].get_or_insert(p);
+    }
+    truth_by_frame
+        .iter()
+        .zip(&top)
+        .map(|(frame_truth, top)| match (top, frame_truth.is_empty()) {
+            (Some(p), false) => Some(
+                frame_truth
+                    .iter()
+                    .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
+                    .fold(f64::INFINITY, f64::min),
+            ),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Frames of `0..frames` without any prediction.
+fn count_frames_without_prediction(ranked: &[Prediction], frames: usize) -> usize {
+    let mut has_prediction = vec![false; frames];
+    for p in ranked {
+        has_prediction[p.frame] = true;
+    }
+    has_prediction.iter().filter(|&&has| !has).count()
+}
+
+/// Distance (px) from each frame's top-scoring prediction to the nearest
+/// ground truth of that frame (None: the frame has no prediction or no
+/// truth): the errors whose root mean square is [`Score::rmse_top_px`].
+/// Refuses the inputs [`score`] refuses.
+pub fn top_prediction_errors(
+    predictions: &[Prediction],
+    truth: &[TruthRow],
+    frames: usize,
+) -> anyhow::Result<Vec<Option<f64>>> {
+    let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
+    let mut ranked: Vec<Prediction> = predictions.to_vec();
+    ranked.sort_by(ranking);
+    Ok(top_squared_errors(&ranked, &truth_by_frame)
+        .into_iter()
+        .map(|squared| squared.map(f64::sqrt))
+        .collect())
+}
+
+/// Scores `predictions` against `truth` for a test set of `frames` frames
+/// (frame indices `0..frames`). `keep_curve` keeps every curve point.
+///
+/// Refuses non-finite coordinates or scores, predictions or truth on
+/// frames outside the set, non-positive ε, and a set with no ground truth
+/// (recall, and so the AUC, would be undefined).
+pub fn score(
+    predictions: &[Prediction],
+    truth: &[TruthRow],
+    frames: usize,
+    eps_px: &[f64],
+    keep_curve: bool,
+) -> anyhow::Result<Score> {
+    let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
     for &eps in eps_px {
         if !(eps.is_finite() && eps > 0.0) {
             return Err(input_error(format!(
@@ -144,24 +208,14 @@ pub fn score(
         .map(|&eps| walk(&ranked, &truth_by_frame, ground_truths, eps, keep_curve))
         .collect();
 
-    // Top prediction per frame: the first one met in ranking order.
-    let mut top: Vec<Option<&Prediction>> = vec![None; frames];
-    for p in &ranked {
-        top[p.frame].get_or_insert(p);
-    }
+    let top = top_squared_errors(&ranked, &truth_by_frame);
     let mut squared_sum = 0.0;
     let mut counted = 0usize;
-    for (frame_truth, top) in truth_by_frame.iter().zip(&top) {
-        if let (Some(p), false) = (top, frame_truth.is_empty()) {
-            let nearest = frame_truth
-                .iter()
-                .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
-                .fold(f64::INFINITY, f64::min);
-            squared_sum += nearest;
-            counted += 1;
-        }
+    for squared in top.iter().flatten() {
+        squared_sum += squared;
+        counted += 1;
     }
-    let frames_without_prediction = top.iter().filter(|t| t.is_none()).count();
+    let frames_without_prediction = count_frames_without_prediction(&ranked, frames);
     Ok(Score {
         per_eps,
         rmse_top_px: (counted > 0).then(|| (squared_sum / counted as f64).sqrt()),

@@ -173,3 +173,25 @@ fn a_perfect_detector_scores_one_and_a_random_one_scores_little() {
     let result = score(&off, &truths, 100, &[1.0], false).unwrap();
     assert_eq!(result.per_eps[0].auc, 0.0);
 }
+
+#[test]
+fn top_prediction_errors_are_per_frame_and_root_mean_square_to_the_rmse() {
+    use scanloc::metrics::top_prediction_errors;
+    let truths = [truth(0, 0.0, 0.0), truth(1, 10.0, 10.0), truth(2, 5.0, 5.0)];
+    let predictions = [
+        prediction(0, 3.0, 4.0, 0.9), // top of frame 0: 5 px
+        prediction(0, 0.0, 0.0, 0.1), // exact but ranked lower: ignored
+        prediction(1, 10.0, 11.0, 0.5),
+        // frame 2: nothing
+    ];
+    let errors = top_prediction_errors(&predictions, &truths, 3).unwrap();
+    assert_eq!(errors, vec![Some(5.0), Some(1.0), None]);
+    let result = score(&predictions, &truths, 3, &[1.0], false).unwrap();
+    assert!(close(result.rmse_top_px.unwrap(), (26.0f64 / 2.0).sqrt()));
+    assert_eq!(result.frames_without_prediction, 1);
+    // The same refusals as the score.
+    let nan = [prediction(0, f64::NAN, 0.0, 1.0)];
+    assert!(top_prediction_errors(&nan, &truths, 3).is_err());
+    assert!(top_prediction_errors(&predictions, &[], 3).is_err());
+    assert!(top_prediction_errors(&predictions, &truths, 1).is_err());
+}

@@ -9,8 +9,8 @@ use serde::Serialize;
 use crate::detect::crocker_grier::{self, CrockerGrierParams};
 use crate::metrics;
 use crate::progress::hidden;
-use crate::report::figures::{Curve, line_chart};
-use crate::sim::{self, Distribution, SimParams};
+use crate::report::figures::{TradeoffChart, tradeoff_chart};
+use crate::sim::{self, Dataset, Distribution, SimParams};
 
 /// One setting of a sweep: its speed and its error.
 #[derive(Debug, Clone, Serialize)]
@@ -24,20 +24,140 @@ pub struct TradeoffPoint {
     pub pareto: bool,
 }
 
+/// For each point, whether no other point is at least as good in both
+/// coordinates and better in one (lower is better in both). A point with a
+/// non-finite coordinate (e.g. a locator that found nothing: RMSE ∞) is
+/// never on the front.
+pub fn pareto_flags(points: &[(f64, f64)]) -> Vec<bool> {
+    points
+        .iter()
+        .map(|&(cost, error)| {
+            cost.is_finite()
+                && error.is_finite()
+                && !points.iter().any(|&(other_cost, other_error)| {
+                    other_cost <= cost
+                        && other_error <= error
+                        && (other_cost < cost || other_error < error)
+                })
+        })
+        .collect()
+}
+
 /// Marks the points no other point beats in both speed and error.
 pub fn mark_pareto_front(points: &mut [TradeoffPoint]) {
-    let snapshot: Vec<(f64, f64)> = points
-        .iter()
-        .map(|p| (p.frames_per_second, p.error))
-        .collect();
-    for (i, point) in points.iter_mut().enumerate() {
-        point.pareto = !snapshot.iter().enumerate().any(|(j, &(fps, error))| {
-            j != i
-                && fps >= snapshot[i].0
-                && error <= snapshot[i].1
-                && (fps > snapshot[i].0 || error < snapshot[i].1)
-        });
+    let flags = pareto_flags(
+        &points
+            .iter()
+            .map(|p| (-p.frames_per_second, p.error))
+            .collect::<Vec<_>>(),
+    );
+    for (point, flag) in points.iter_mut().zip(flags) {
+        point.pareto = flag;
     }
+}
+
+/// The value of extra `name` of `point` (NaN if it has none).
+pub fn extra(point: &TradeoffPoint, name: &str) -> f64 {
+    point
+        .extra
+        .iter()
+        .find(|(key, _)| key == name)
+        .map_or(f64::NAN, |(_, value)| *value)
+}
+
+/// The paper's microscope at N_qd `brightness`, margin 4 px, fixed D.
+fn test_params(brightness: f64, diffusion: f64) -> SimParams {
+    SimParams {
+        diffusion_um2_s: Distribution::Fixed(diffusion),
+        margin_px: 4.0,
+        brightness,
+        ..SimParams::default()
+    }
+}
+
+/// The test sets every locator sweep is scored on: D = 1 µm²/s (`frames`
+/// frames, the error axis) and a static QD, D = 0 (`static_frames`, for
+/// the distance to the Cramér–Rao floor).
+pub struct TestSets {
+    pub moving: Dataset,
+    pub still: Dataset,
+}
+
+impl TestSets {
+    pub fn simulate(frames: usize, static_frames: usize, brightness: f64) -> anyhow::Result<Self> {
+        Ok(Self {
+            moving: sim::simulate(&test_params(brightness, 1.0), 3, 0..frames, &hidden())?,
+            still: sim::simulate(
+                &test_params(brightness, 0.0),
+                4,
+                0..static_frames,
+                &hidden(),
+            )?,
+        })
+    }
+}
+
+/// Scores `predictions` of `dataset`: (RMSE of the top prediction, extras
+/// named with `prefix`: AUC per ε and the fraction of frames without one).
+fn score_extras(
+    predictions: &[crate::detect::Prediction],
+    dataset: &Dataset,
+) -> anyhow::Result<(f64, Vec<(String, f64)>)> {
+    let score = metrics::score(
+        predictions,
+        &dataset.truth,
+        dataset.frames.n,
+        &metrics::PAPER_EPS_PX,
+        false,
+    )?;
+    let extras = score
+        .per_eps
+        .iter()
+        .map(|e| (format!("auc_eps{}", e.eps_px), e.auc))
+        .chain([(
+            "fraction_without_prediction".to_string(),
+            score.fraction_without_prediction,
+        )])
+        .collect();
+    Ok((score.rmse_top_px.unwrap_or(f64::INFINITY), extras))
+}
+
+/// Radius (px) within which a static-set top prediction counts as the QD
+/// found, for [`static_extras`]' precision: the largest ε of the metric.
+pub const FOUND_RADIUS_PX: f64 = 3.0;
+
+/// The static-QD (D = 0) errors of `predictions`, as extras:
+/// `rmse_static_px` (every frame's top prediction; ∞ if none has one),
+/// `precision_static_px` (RMSE over the frames whose top prediction lies
+/// within [`FOUND_RADIUS_PX`] of the QD: the localisation precision the
+/// Cramér–Rao bound speaks of, free of the wrong-spot outliers that dominate
+/// the RMSE) and `found_static` (the fraction of frames counted there).
+fn static_extras(
+    predictions: &[crate::detect::Prediction],
+    still: &Dataset,
+) -> anyhow::Result<Vec<(String, f64)>> {
+    let errors = metrics::top_prediction_errors(predictions, &still.truth, still.frames.n)?;
+    let root_mean_square = |values: &[f64]| {
+        if values.is_empty() {
+            f64::INFINITY
+        } else {
+            (values.iter().map(|e| e * e).sum::<f64>() / values.len() as f64).sqrt()
+        }
+    };
+    let located: Vec<f64> = errors.iter().flatten().copied().collect();
+    let found: Vec<f64> = located
+        .iter()
+        .copied()
+        .filter(|&e| e <= FOUND_RADIUS_PX)
+        .collect();
+    Ok(vec![
+        ("rmse_static_px".into(), root_mean_square(&located)),
+        ("precision_static_px".into(), root_mean_square(&found)),
+        (
+            "found_static".into(),
+            found.len() as f64 / still.frames.n.max(1) as f64,
+        ),
+    ])
 }
 
 /// Simulator: substeps 1…16 and PSF cut-off (none … 2σ). Speed: frames/s
@@ -101,17 +221,12 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
     Ok(points)
 }
 
-/// Crocker–Grier: diameter and preprocessing. Speed: frames/s on a
-/// paper test set (D = 1 µm²/s, N_qd as given, margin 4). Error: RMSE (px)
-/// of each frame's top prediction; AUC per ε as extras.
-pub fn crocker_grier_sweep(frames: usize, brightness: f64) -> anyhow::Result<Vec<TradeoffPoint>> {
-    let params = SimParams {
-        diffusion_um2_s: Distribution::Fixed(1.0),
-        margin_px: 4.0,
-        brightness,
-        ..SimParams::default()
-    };
-    let dataset = sim::simulate(&params, 3, 0..frames, &hidden())?;
+/// Crocker–Grier: diameter and preprocessing. Speed: frames/s on the
+/// D = 1 µm²/s test set. Error: RMSE (px) of each frame's top prediction
+/// there; AUC per ε, the fraction of frames without a prediction and the
+/// static-set errors of [`static_extras`] as extras.
+pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint>> {
+    let frames = tests.moving.frames.n;
     let mut points = Vec::new();
     for diameter in [3usize, 5, 7, 9, 11] {
         for preprocess in [true, false] {
@@ -122,34 +237,136 @@ pub fn crocker_grier_sweep(frames: usize, brightness: f64) -> anyhow::Result<Vec
                 ..Default::default()
             };
             let start = Instant::now();
-            let features = crocker_grier::locate_stack(&dataset.frames, &detector, &hidden())?;
+            let features = crocker_grier::locate_stack(&tests.moving.frames, &detector, &hidden())?;
             let fps = frames as f64 / start.elapsed().as_secs_f64();
             let predictions = crocker_grier::to_predictions(&features);
-            let score = metrics::score(
-                &predictions,
-                &dataset.truth,
-                frames,
-                &metrics::PAPER_EPS_PX,
-                false,
-            )?;
+            let (rmse, mut extras) = score_extras(&predictions, &tests.moving)?;
+            let still = crocker_grier::to_predictions(&crocker_grier::locate_stack(
+                &tests.still.frames,
+                &detector,
+                &hidden(),
+            )?);
+            extras.extend(static_extras(&still, &tests.still)?);
             points.push(TradeoffPoint {
                 setting: format!("diameter {diameter}, preprocess {preprocess}"),
                 frames_per_second: fps,
-                error: score.rmse_top_px.unwrap_or(f64::INFINITY),
-                extra: score
-                    .per_eps
-                    .iter()
-                    .map(|e| (format!("auc_eps{}", e.eps_px), e.auc))
-                    .chain([(
-                        "fraction_without_prediction".to_string(),
-                        score.fraction_without_prediction,
-                    )])
-                    .collect(),
+                error: rmse,
+                extra: extras,
                 pareto: false,
             });
         }
     }
     mark_pareto_front(&mut points);
+    Ok(points)
+}
+
+/// What the CNN sweep trains and scores.
+#[derive(Debug, Clone)]
+pub struct CnnSweep {
+    /// Frames of the fixed training set (D uniform in [0.75, 1.75]).
+    pub train_frames: usize,
+    /// Hidden conv channels to try.
+    pub channels: Vec<usize>,
+    /// Numbers of hidden conv layers to try (see [`dilations_for_depth`]).
+    pub depths: Vec<usize>,
+    /// Epoch counts to try (each its own training run, cosine schedule
+    /// stretched over its epochs).
+    pub epochs: Vec<usize>,
+    /// N_qd of the training frames.
+    pub brightness: f64,
+}
+
+/// The dilations of a network with `depth` hidden layers: rising then
+/// falling, so that the receptive field grows with depth (6 is the
+/// library's default).
+pub fn dilations_for_depth(depth: usize) -> anyhow::Result<Vec<usize>> {
+    Ok(match depth {
+        2 => vec![1, 2],
+        3 => vec![1, 2, 1],
+        4 => vec![1, 2, 4, 1],
+        5 => vec![1, 1, 2, 4, 1],
+        6 => vec![1, 1, 2, 4, 2, 1],
+        7 => vec![1, 1, 2, 4, 4, 2, 1],
+        8 => vec![1, 1, 2, 4, 8, 4, 2, 1],
+        other => crate::bail_input!("--cnn-depths: each must be in 2..=8, got {other}"),
+    })
+}
+
+/// CNN: width, depth and epochs. Each setting is trained from the same
+/// seed on the same frames (no validation split: the last epoch is kept)
+/// and timed. Speed: inference frames/s on the D = 1 test set. Error: RMSE
+/// of the top prediction there. Extras: `training_seconds`, AUC per ε, the
+/// fraction without a prediction, the static-set errors of
+/// [`static_extras`], and `pareto_training`
+/// (1 if no setting trains at least as fast with at most the error).
+/// `progress` counts settings.
+pub fn cnn_sweep(
+    sweep: &CnnSweep,
+    tests: &TestSets,
+    progress: &indicatif::ProgressBar,
+) -> anyhow::Result<Vec<TradeoffPoint>> {
+    use crate::detect::cnn::{self, CnnArchitecture, TrainingSettings};
+    let training_params = SimParams {
+        diffusion_um2_s: Distribution::Random(sim::RandomDistribution::Uniform([0.75, 1.75])),
+        margin_px: 4.0,
+        brightness: sweep.brightness,
+        ..SimParams::default()
+    };
+    let training = sim::simulate(&training_params, 5, 0..sweep.train_frames, &hidden())?;
+    let settings_count = sweep.channels.len() * sweep.depths.len() * sweep.epochs.len();
+    progress.set_length(settings_count as u64);
+    let mut points = Vec::with_capacity(settings_count);
+    for &depth in &sweep.depths {
+        let dilations = dilations_for_depth(depth)?;
+        for &channels in &sweep.channels {
+            for &epochs in &sweep.epochs {
+                let architecture = CnnArchitecture {
+                    channels,
+                    dilations: dilations.clone(),
+                    ..CnnArchitecture::default()
+                };
+                let settings = TrainingSettings {
+                    epochs,
+                    validation_fraction: 0.0,
+                    ..TrainingSettings::default()
+                };
+                let start = Instant::now();
+                let model = cnn::train(&architecture, &settings, &training, None, 6, &hidden())?;
+                let training_seconds = start.elapsed().as_secs_f64();
+                let start = Instant::now();
+                let predictions = model.locate(&tests.moving.frames, &hidden())?;
+                let fps = tests.moving.frames.n as f64 / start.elapsed().as_secs_f64();
+                let (rmse, mut extras) = score_extras(&predictions, &tests.moving)?;
+                let still = model.locate(&tests.still.frames, &hidden())?;
+                extras.extend(static_extras(&still, &tests.still)?);
+                extras.insert(0, ("training_seconds".into(), training_seconds));
+                let setting = format!("{channels} ch × {depth} layers, {epochs} epochs");
+                progress.println(format!(
+                    "{setting}: trained in {training_seconds:.1} s, {fps:.0} frames/s, RMSE {rmse:.3} px"
+                ));
+                progress.inc(1);
+                points.push(TradeoffPoint {
+                    setting,
+                    frames_per_second: fps,
+                    error: rmse,
+                    extra: extras,
+                    pareto: false,
+                });
+            }
+        }
+    }
+    mark_pareto_front(&mut points);
+    let by_training = pareto_flags(
+        &points
+            .iter()
+            .map(|p| (extra(p, "training_seconds"), p.error))
+            .collect::<Vec<_>>(),
+    );
+    for (point, flag) in points.iter_mut().zip(by_training) {
+        point
+            .extra
+            .push(("pareto_training".into(), f64::from(u8::from(flag))));
+    }
     Ok(points)
 }
 
@@ -206,8 +423,11 @@ pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
     }
 }
 
-/// Writes a sweep as `NAME.csv` and a speed-against-error plot
-/// `NAME.png`/`NAME.svg` with the Pareto front drawn as a line.
+/// Writes a sweep as `NAME.csv` (every point with its extras) and a
+/// frames/s-against-error plot `NAME.png`/`NAME.svg` with the Pareto front
+/// drawn as a line. With `floor` (the Cramér–Rao bound, which holds for a
+/// static QD) the plot also shows each setting's `precision_static_px`, so
+/// the distance to the floor can be read off.
 pub fn write_sweep(
     dir: &Path,
     name: &str,
@@ -241,49 +461,77 @@ pub fn write_sweep(
         csv.flush()?;
         Ok(())
     })?;
-    let finite: Vec<&TradeoffPoint> = points.iter().filter(|p| p.error.is_finite()).collect();
-    let max_fps = finite
+    let flags: Vec<bool> = points.iter().map(|p| p.pareto).collect();
+    plot_sweep(
+        &dir.join(name),
+        &format!("{name}: speed against error"),
+        ("frames per second", error_label),
+        points,
+        |p| p.frames_per_second,
+        &flags,
+        floor,
+    )
+}
+
+/// Plots a CNN sweep's training time against its error as
+/// `NAME_training.png`/`.svg`, with the front of `pareto_training`.
+pub fn write_training_plot(
+    dir: &Path,
+    name: &str,
+    error_label: &str,
+    points: &[TradeoffPoint],
+    floor: Option<f64>,
+) -> anyhow::Result<()> {
+    let flags: Vec<bool> = points
         .iter()
-        .map(|p| p.frames_per_second)
-        .fold(1.0f64, f64::max)
-        * 1.1;
-    let max_error = finite
+        .map(|p| extra(p, "pareto_training") == 1.0)
+        .collect();
+    plot_sweep(
+        &dir.join(format!("{name}_training")),
+        &format!("{name}: training time against error"),
+        ("training time (s)", error_label),
+        points,
+        |p| extra(p, "training_seconds"),
+        &flags,
+        floor,
+    )
+}
+
+fn plot_sweep(
+    base: &Path,
+    title: &str,
+    (x_label, y_label): (&str, &str),
+    points: &[TradeoffPoint],
+    x: impl Fn(&TradeoffPoint) -> f64,
+    front_flags: &[bool],
+    floor: Option<f64>,
+) -> anyhow::Result<()> {
+    let mut front: Vec<(f64, f64)> = points
         .iter()
-        .map(|p| p.error)
-        .chain(floor)
-        .fold(1e-9f64, f64::max)
-        * 1.1;
-    let mut front: Vec<(f64, f64)> = finite
-        .iter()
-        .filter(|p| p.pareto)
-        .map(|p| (p.frames_per_second, p.error))
+        .zip(front_flags)
+        .filter(|(_, on_front)| **on_front)
+        .map(|(p, _)| (x(p), p.error))
         .collect();
     front.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let mut curves = vec![
-        Curve {
-            label: "all settings".into(),
-            points: finite
-                .iter()
-                .map(|p| (p.frames_per_second, p.error))
-                .collect(),
+    let static_points = match floor {
+        Some(_) => points
+            .iter()
+            .map(|p| (x(p), extra(p, "precision_static_px")))
+            .filter(|(_, e)| e.is_finite())
+            .collect(),
+        None => Vec::new(),
+    };
+    tradeoff_chart(
+        base,
+        &TradeoffChart {
+            title: title.to_string(),
+            x_label: x_label.to_string(),
+            y_label: y_label.to_string(),
+            points: points.iter().map(|p| (x(p), p.error)).collect(),
+            front,
+            static_points,
+            floor: floor.map(|f| ("Cramér–Rao floor (D = 0)".to_string(), f)),
         },
-        Curve {
-            label: "Pareto front".into(),
-            points: front,
-        },
-    ];
-    if let Some(floor) = floor {
-        curves.push(Curve {
-            label: "Cramér–Rao floor (D = 0)".into(),
-            points: vec![(0.0, floor), (max_fps, floor)],
-        });
-    }
-    line_chart(
-        &dir.join(name),
-        name,
-        ("frames per second", error_label),
-        ((0.0, max_fps), (0.0, max_error)),
-        &curves,
     )
 }
 
@@ -309,6 +557,12 @@ mod tests {
         mark_pareto_front(&mut points);
         let front: Vec<bool> = points.iter().map(|p| p.pareto).collect();
         assert_eq!(front, vec![true, true, false, false]);
+    }
+
+    #[test]
+    fn settings_that_locate_nothing_are_never_on_the_front() {
+        let flags = pareto_flags(&[(1.0, f64::INFINITY), (2.0, 3.0), (f64::NAN, 1.0)]);
+        assert_eq!(flags, vec![false, true, false]);
     }
 
     #[test]

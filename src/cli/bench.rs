@@ -22,9 +22,10 @@ enum BenchCommand {
     /// Crocker–Grier frames/s against TrackPy 0.7 on the same frames (paper
     /// microscope, D = 1 µm²/s, N_qd 7, margin 4; diameter 7, minmass 0).
     Locate(LocateBench),
-    /// Run time against error for the simulator (substeps, PSF cut-off) and
-    /// Crocker–Grier (diameter, preprocessing), with the Cramér–Rao floor;
-    /// tables on stdout, CSV and plots in --out.
+    /// Run time against error for the simulator (substeps, PSF cut-off),
+    /// Crocker–Grier (diameter, preprocessing) and the CNN (width, depth,
+    /// epochs), with the Cramér–Rao floor; tables on stdout, CSV and plots
+    /// (Pareto front marked) in --out.
     Tradeoffs(TradeoffArgs),
     /// CNN training samples/s and inference frames/s on paper-sized frames.
     Train(super::bench_cnn::BenchTrainArgs),
@@ -32,17 +33,84 @@ enum BenchCommand {
     CnnLocate(super::bench_cnn::BenchLocateArgs),
 }
 
+/// A stage of `scanloc bench tradeoffs`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Stage {
+    /// Substeps 1…16 × PSF cut-off none…2σ: frames/s against the largest
+    /// expected-image error.
+    Simulator,
+    /// Diameter 3…11 × preprocessing: frames/s against RMSE (and AUC).
+    CrockerGrier,
+    /// Width × depth × epochs: training time and frames/s against RMSE (and
+    /// AUC). The slow one: minutes.
+    Cnn,
+}
+
 #[derive(Debug, Args)]
 struct TradeoffArgs {
     /// Folder for the CSV tables and plots.
     #[arg(long, default_value = "reports/bench")]
     out: PathBuf,
-    /// Frames per timing / test set.
+    /// Stages to sweep, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Stage::Simulator, Stage::CrockerGrier, Stage::Cnn])]
+    stages: Vec<Stage>,
+    /// Frames per simulator timing and of the D = 1 µm²/s test set.
     #[arg(long, default_value_t = 2410)]
     frames: usize,
-    /// N_qd of the Crocker–Grier test set and the Cramér–Rao bound.
+    /// Frames of the static-QD (D = 0) test set scored against the
+    /// Cramér–Rao floor.
+    #[arg(long, default_value_t = 1000)]
+    static_frames: usize,
+    /// N_qd of the test and training sets and of the Cramér–Rao bound.
     #[arg(long, default_value_t = 7.0)]
     brightness: f64,
+    /// CNN: frames of the training set (D uniform in [0.75, 1.75]).
+    #[arg(long, default_value_t = 3000)]
+    cnn_train_frames: usize,
+    /// CNN: hidden conv channels to try, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "8,16,32")]
+    cnn_channels: Vec<usize>,
+    /// CNN: hidden layer counts to try (2…8; 6 is the default network).
+    #[arg(long, value_delimiter = ',', default_value = "3,6,8")]
+    cnn_depths: Vec<usize>,
+    /// CNN: epoch counts to try (each a training run of its own).
+    #[arg(long, value_delimiter = ',', default_value = "1,3")]
+    cnn_epochs: Vec<usize>,
+}
+
+impl TradeoffArgs {
+    /// Refuses settings that would make an empty or meaningless sweep.
+    fn validate(&self) -> anyhow::Result<()> {
+        use scanloc::error::input_error;
+        if self.frames == 0 {
+            return Err(input_error("--frames: must be ≥ 1"));
+        }
+        if !(self.brightness.is_finite() && self.brightness > 0.0) {
+            return Err(input_error(format!(
+                "--brightness: must be a finite number > 0, got {}",
+                self.brightness
+            )));
+        }
+        if self.stages.contains(&Stage::Cnn) {
+            if self.cnn_train_frames == 0 {
+                return Err(input_error("--cnn-train-frames: must be ≥ 1"));
+            }
+            if self.cnn_epochs.contains(&0) {
+                return Err(input_error("--cnn-epochs: each must be ≥ 1"));
+            }
+            for &depth in &self.cnn_depths {
+                bench::tradeoff::dilations_for_depth(depth)?;
+            }
+            for &channels in &self.cnn_channels {
+                if !(1..=1024).contains(&channels) {
+                    return Err(input_error(format!(
+                        "--cnn-channels: each must be in 1..=1024, got {channels}"
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 #[derive(Debug, Args)]
@@ -176,46 +244,112 @@ fn print_sweep(title: &str, error_label: &str, points: &[bench::tradeoff::Tradeo
     }
 }
 
+/// The best (smallest) finite value of `values`, with the setting it came from.
+fn best(
+    points: &[bench::tradeoff::TradeoffPoint],
+    value: impl Fn(&bench::tradeoff::TradeoffPoint) -> f64,
+) -> Option<(String, f64)> {
+    points
+        .iter()
+        .map(|p| (p.setting.clone(), value(p)))
+        .filter(|(_, v)| v.is_finite())
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
 fn tradeoffs(args: TradeoffArgs) -> anyhow::Result<ExitCode> {
+    use bench::tradeoff::{self, extra};
+    args.validate()?;
     let floor_params = SimParams {
         brightness: args.brightness,
         ..SimParams::default()
     };
-    let floor = bench::tradeoff::cramer_rao_rmse_px(&floor_params, 5);
+    let floor = tradeoff::cramer_rao_rmse_px(&floor_params, 5);
     println!(
         "Cramér–Rao floor (static QD, N_qd {}, Poisson): RMSE {floor:.4} px",
         args.brightness
     );
-    let simulator = bench::tradeoff::simulator_sweep(args.frames)?;
-    print_sweep("simulator (* = Pareto front)", "max |Δμ| (ph)", &simulator);
-    bench::tradeoff::write_sweep(
-        &args.out,
-        "simulator",
-        "max expected-image error (photons)",
-        &simulator,
-        None,
-    )?;
-    let locator = bench::tradeoff::crocker_grier_sweep(args.frames, args.brightness)?;
-    print_sweep(
-        "crocker-grier at D = 1 (* = Pareto front)",
-        "RMSE (px)",
-        &locator,
-    );
-    bench::tradeoff::write_sweep(
-        &args.out,
-        "crocker_grier",
-        "RMSE of top prediction (px)",
-        &locator,
-        Some(floor),
-    )?;
-    let best = locator
-        .iter()
-        .map(|p| p.error)
-        .fold(f64::INFINITY, f64::min);
-    println!(
-        "best crocker-grier RMSE {best:.3} px = {:.1}× the Cramér–Rao floor (which holds for D = 0)",
-        best / floor
-    );
+    if args.stages.contains(&Stage::Simulator) {
+        let simulator = tradeoff::simulator_sweep(args.frames)?;
+        print_sweep("simulator (* = Pareto front)", "max |Δμ| (ph)", &simulator);
+        tradeoff::write_sweep(
+            &args.out,
+            "simulator",
+            "max expected-image error (photons)",
+            &simulator,
+            None,
+        )?;
+    }
+    let locators = args.stages.contains(&Stage::CrockerGrier) || args.stages.contains(&Stage::Cnn);
+    let tests = if locators {
+        Some(tradeoff::TestSets::simulate(
+            args.frames,
+            args.static_frames,
+            args.brightness,
+        )?)
+    } else {
+        None
+    };
+    let mut closest = Vec::new();
+    if let (true, Some(tests)) = (args.stages.contains(&Stage::CrockerGrier), &tests) {
+        let locator = tradeoff::crocker_grier_sweep(tests)?;
+        print_sweep(
+            "crocker-grier, RMSE at D = 1 (* = Pareto front)",
+            "RMSE (px)",
+            &locator,
+        );
+        tradeoff::write_sweep(
+            &args.out,
+            "crocker_grier",
+            "RMSE of top prediction, D = 1 (px)",
+            &locator,
+            Some(floor),
+        )?;
+        closest.push((
+            "crocker-grier",
+            best(&locator, |p| extra(p, "precision_static_px")),
+        ));
+    }
+    if let (true, Some(tests)) = (args.stages.contains(&Stage::Cnn), &tests) {
+        let sweep = tradeoff::CnnSweep {
+            train_frames: args.cnn_train_frames,
+            channels: args.cnn_channels.clone(),
+            depths: args.cnn_depths.clone(),
+            epochs: args.cnn_epochs.clone(),
+            brightness: args.brightness,
+        };
+        let progress = scanloc::progress::bar(0, "cnn sweep");
+        let cnn = tradeoff::cnn_sweep(&sweep, tests, &progress)?;
+        progress.finish_and_clear();
+        print_sweep(
+            "cnn, RMSE at D = 1 (* = Pareto front of inference frames/s; training time and its front in the extras)",
+            "RMSE (px)",
+            &cnn,
+        );
+        tradeoff::write_sweep(
+            &args.out,
+            "cnn",
+            "RMSE of top prediction, D = 1 (px)",
+            &cnn,
+            Some(floor),
+        )?;
+        tradeoff::write_training_plot(
+            &args.out,
+            "cnn",
+            "RMSE of top prediction, D = 1 (px)",
+            &cnn,
+            Some(floor),
+        )?;
+        closest.push(("cnn", best(&cnn, |p| extra(p, "precision_static_px"))));
+    }
+    for (method, best) in closest {
+        match best {
+            Some((setting, rmse)) => println!(
+                "closest to the floor, {method}: precision {rmse:.3} px on a static QD ({setting}; RMSE of the top predictions within 3 px) = {:.2}× the Cramér–Rao floor",
+                rmse / floor
+            ),
+            None => println!("{method}: no setting located anything in the static set"),
+        }
+    }
     println!("tables and plots in {}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -9,6 +9,7 @@ use std::sync::OnceLock;
 
 use anyhow::Context;
 use plotters::coord::Shift;
+use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::prelude::*;
 
 use crate::error::input_error;
@@ -286,6 +287,203 @@ fn draw_line_chart<DB: DrawingBackend>(
     }
     chart
         .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 12))
+        .draw()
+        .map_err(plot_error)?;
+    Ok(())
+}
+
+/// A run-time-against-error chart: every setting as a circle, the Pareto
+/// front as a line through its settings, an optional floor (e.g. the
+/// Cramér–Rao bound) as a horizontal line. Both axes are logarithmic, since
+/// settings differ by orders of magnitude in speed and in error; values
+/// must be positive (others are left out).
+#[derive(Debug, Clone)]
+pub struct TradeoffChart {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    /// Every setting, (cost or speed, error).
+    pub points: Vec<(f64, f64)>,
+    /// The Pareto front, in the order to join it.
+    pub front: Vec<(f64, f64)>,
+    /// The same settings' error on a static QD (D = 0), drawn as triangles
+    /// to compare with the floor (empty: none drawn).
+    pub static_points: Vec<(f64, f64)>,
+    /// A labelled horizontal line.
+    pub floor: Option<(String, f64)>,
+}
+
+/// Draws `chart` as `base.png`/`base.svg`.
+pub fn tradeoff_chart(base: &Path, chart: &TradeoffChart) -> anyhow::Result<()> {
+    write_figure(
+        base,
+        (720, 520),
+        |root| draw_tradeoff_chart(root, chart),
+        |root| draw_tradeoff_chart(root, chart),
+    )
+}
+
+/// A positive axis range holding `values` (finite, > 0) with some room
+/// either side: at least a factor 10 wide, so a logarithmic axis has labels.
+fn log_range(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (low, high) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !low.is_finite() {
+        return (0.1, 10.0);
+    }
+    let (low, high) = if high / low < 10.0 {
+        let middle = (low * high).sqrt();
+        (middle / 3.2, middle * 3.2)
+    } else {
+        (low, high)
+    };
+    (low / 1.3, high * 1.3)
+}
+
+/// A tick label with at most three significant digits and no trailing
+/// zeros (`0.0025`, `1.5`, `12000`).
+fn compact_number(value: &f64) -> String {
+    if *value == 0.0 || !value.is_finite() {
+        return format!("{value}");
+    }
+    let digits = (2 - value.abs().log10().floor() as i32).max(0) as usize;
+    let text = format!("{value:.digits$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    }
+}
+
+/// Speeds and costs that span more than this factor get a logarithmic axis.
+const LOG_AXIS_SPAN: f64 = 20.0;
+
+fn draw_tradeoff_chart<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    chart: &TradeoffChart,
+) -> anyhow::Result<()> {
+    let (low, high) = log_range(chart.points.iter().map(|p| p.0));
+    if high / low > LOG_AXIS_SPAN * 1.69 {
+        draw_tradeoff_chart_on(root, chart, (low..high).log_scale())
+    } else {
+        let top = chart
+            .points
+            .iter()
+            .map(|p| p.0)
+            .filter(|x| x.is_finite())
+            .fold(0.0f64, f64::max);
+        draw_tradeoff_chart_on(root, chart, 0.0..(top * 1.1).max(1e-9))
+    }
+}
+
+fn draw_tradeoff_chart_on<DB, X>(
+    root: &DrawingArea<DB, Shift>,
+    chart: &TradeoffChart,
+    x_range: X,
+) -> anyhow::Result<()>
+where
+    DB: DrawingBackend,
+    X: AsRangedCoord<Value = f64>,
+    X::CoordDescType: ValueFormatter<f64>,
+{
+    let positive = |&(x, y): &(f64, f64)| x.is_finite() && y.is_finite() && x > 0.0 && y > 0.0;
+    let points: Vec<(f64, f64)> = chart.points.iter().copied().filter(positive).collect();
+    let front: Vec<(f64, f64)> = chart.front.iter().copied().filter(positive).collect();
+    let static_points: Vec<(f64, f64)> = chart
+        .static_points
+        .iter()
+        .copied()
+        .filter(positive)
+        .collect();
+    let (y0, y1) = log_range(
+        points
+            .iter()
+            .chain(&static_points)
+            .map(|p| p.1)
+            .chain(chart.floor.as_ref().map(|f| f.1)),
+    );
+    // Headroom above the data for the legend.
+    let y1 = y1 * (y1 / y0).powf(0.35);
+    let mut plot = ChartBuilder::on(root)
+        .caption(&chart.title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(x_range, (y0..y1).log_scale())
+        .map_err(plot_error)?;
+    let (x0, x1) = {
+        let range = plot.x_range();
+        (range.start, range.end)
+    };
+    plot.configure_mesh()
+        .x_desc(chart.x_label.as_str())
+        .y_desc(chart.y_label.as_str())
+        .x_labels(8)
+        .y_labels(12)
+        .x_label_formatter(&compact_number)
+        .y_label_formatter(&compact_number)
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(plot_error)?;
+    let grey = RGBColor(120, 120, 120);
+    plot.draw_series(
+        points
+            .iter()
+            .map(|&p| Circle::new(p, 4, grey.stroke_width(1))),
+    )
+    .map_err(plot_error)?
+    .label("setting")
+    .legend(move |(x, y)| Circle::new((x + 9, y), 4, grey.stroke_width(1)));
+    let front_colour = PALETTE[3];
+    plot.draw_series(LineSeries::new(
+        front.iter().copied(),
+        front_colour.stroke_width(2),
+    ))
+    .map_err(plot_error)?
+    .label("Pareto front")
+    .legend(move |(x, y)| {
+        PathElement::new(vec![(x, y), (x + 18, y)], front_colour.stroke_width(2))
+    });
+    plot.draw_series(
+        front
+            .iter()
+            .map(|&p| Circle::new(p, 4, front_colour.filled())),
+    )
+    .map_err(plot_error)?;
+    if !static_points.is_empty() {
+        let static_colour = PALETTE[0];
+        plot.draw_series(
+            static_points
+                .iter()
+                .map(|&p| TriangleMarker::new(p, 5, static_colour.stroke_width(1))),
+        )
+        .map_err(plot_error)?
+        .label("setting, precision on a static QD (D = 0)")
+        .legend(move |(x, y)| TriangleMarker::new((x + 9, y), 5, static_colour.stroke_width(1)));
+    }
+    if let Some((label, floor)) = &chart.floor
+        && *floor > 0.0
+        && floor.is_finite()
+    {
+        let floor_colour = PALETTE[2];
+        plot.draw_series(LineSeries::new(
+            [(x0.max(f64::MIN_POSITIVE), *floor), (x1, *floor)],
+            floor_colour.stroke_width(2),
+        ))
+        .map_err(plot_error)?
+        .label(label.clone())
+        .legend(move |(x, y)| {
+            PathElement::new(vec![(x, y), (x + 18, y)], floor_colour.stroke_width(2))
+        });
+    }
+    plot.configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font(("sans-serif", 12))
