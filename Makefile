@@ -5,7 +5,7 @@ CARGO   ?= cargo
 BIN     := target/release/scanloc
 MANIFEST ?= experiments/paper.yaml
 
-.PHONY: all build test lint fmt reproduce-paper cv calibrate bench bench-registry clean
+.PHONY: all build test lint fmt reproduce-paper cv calibrate bench bench-registry fuzz clean
 
 all: build
 
@@ -34,9 +34,11 @@ reproduce-paper: build
 	$(BIN) report latest --out reports/paper
 	@echo "report: reports/paper/report.md; audit with '$(BIN) registry runs', re-execute with '$(BIN) reproduce RUN'"
 
-# Five-fold cross-validation of the paper's CNN (five trainings: long).
+# Five-fold cross-validation of the paper's CNN (the manifest's
+# cross_validation block; five trainings, about an hour here). Resumes
+# where an interrupted sweep stopped.
 cv: build
-	$(BIN) cv $(MANIFEST) --detector cnn --folds 5
+	$(BIN) cv $(MANIFEST)
 
 # The brightness sweep of DESIGN §6 alone.
 calibrate: build
@@ -56,6 +58,14 @@ bench-registry: build
 	$(BIN) run $(MANIFEST) --registry target/bench-registry > /dev/null
 	@for i in 1 2 3; do /usr/bin/env time -f "cached run: %e s wall, %M KB max RSS" \
 		$(BIN) run $(MANIFEST) --registry target/bench-registry --json > /dev/null; done
+
+# Fuzzing: the manifest loader on arbitrary, YAML-like and mutated text, and
+# the .npy/.tif readers on damaged and random files, FUZZ_CASES cases per
+# property (proptest; `make test` runs a few hundred to a few thousand).
+FUZZ_CASES ?= 300000
+fuzz:
+	SCANLOC_FUZZ_CASES=$(FUZZ_CASES) $(CARGO) test --release --locked \
+		--test manifest_fuzz --test stress -- never_panic refused_cleanly
 
 clean:
 	$(CARGO) clean

@@ -34,8 +34,16 @@ fn main() {
 
     let commit = git(&["rev-parse", "HEAD"]).unwrap_or_else(|| "unknown".to_string());
     // Tracked files only: untracked scratch files (registries, reports) do
-    // not change what is compiled.
-    let dirty = match git(&["status", "--porcelain", "--untracked-files=no"]) {
+    // not change what is compiled. `--no-optional-locks` stops `git status`
+    // from refreshing (rewriting) the index it is watched through above:
+    // otherwise every build would leave the index newer than itself and the
+    // next `make` would recompile the crate for nothing (35 s, measured).
+    let dirty = match git(&[
+        "--no-optional-locks",
+        "status",
+        "--porcelain",
+        "--untracked-files=no",
+    ]) {
         Some(status) => {
             if status.is_empty() {
                 "false"

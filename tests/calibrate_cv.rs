@@ -129,6 +129,32 @@ fn cross_validation_reports_mean_and_spread_and_resumes_from_cache() {
     // Three different models: the folds do not all agree.
     assert!(cells.iter().any(|c| c["std"].as_f64().unwrap() > 0.0));
     assert!(result["computed_steps"].as_u64().unwrap() > 0);
+    // The report of the cv run has the mean ± sd table.
+    let report_dir = dir.path().join("report");
+    let out = scanloc(&[
+        "report",
+        result["run"].as_str().unwrap(),
+        "--out",
+        report_dir.to_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let report = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
+    assert!(
+        report.contains("3-fold cross-validation of cnn"),
+        "{report}"
+    );
+    let first_test_cell = cells
+        .iter()
+        .find(|c| c["dataset"] == "test-0.75" && c["eps_px"] == 1.0)
+        .unwrap();
+    let expected_cell = format!(
+        "| test-0.75 (D = 0.75) | 1 | {:.3} ± {:.3} |",
+        first_test_cell["mean"].as_f64().unwrap(),
+        first_test_cell["std"].as_f64().unwrap()
+    );
+    assert!(report.contains(&expected_cell), "{expected_cell}\n{report}");
     // Each fold's model is selected on its own held-out fold.
     let out = scanloc(&[
         "registry",

@@ -1,5 +1,8 @@
 //! The manifest loader on arbitrary and mutated text: it never panics, and
-//! every refusal is bad input (exit code 2) naming the file.
+//! every refusal is bad input (exit code 2) naming the file. A fuzzing test:
+//! `make fuzz` runs it with `SCANLOC_FUZZ_CASES` cases per property.
+
+mod common;
 
 use proptest::prelude::*;
 use scanloc::error::exit_code;
@@ -24,7 +27,7 @@ fn check(text: &str) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 1500, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::fuzz_cases(1500), ..ProptestConfig::default() })]
 
     #[test]
     fn arbitrary_text_never_panics(text in "\\PC{0,300}") {

@@ -1,6 +1,10 @@
 //! Numerical stress: the simulator and the noise model from degenerate to
 //! extreme parameters, and the frame readers on damaged files. Nothing may
-//! panic; results are finite or refused with a clear input error.
+//! panic; results are finite or refused with a clear input error. The
+//! reader tests are fuzzing tests: `make fuzz` runs them with
+//! `SCANLOC_FUZZ_CASES` cases each.
+
+mod common;
 
 use proptest::prelude::*;
 use rand::SeedableRng;
@@ -134,7 +138,7 @@ fn valid_file(dir: &std::path::Path, name: &str) -> Vec<u8> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::fuzz_cases(256), ..ProptestConfig::default() })]
 
     /// A fuzzing test of the readers: valid files with random bytes
     /// overwritten, truncated or extended must read or be refused with an

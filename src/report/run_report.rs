@@ -15,9 +15,9 @@ use crate::error::input_error;
 use crate::manifest::Reference;
 use crate::metrics::Score;
 use crate::progress::hidden;
-use crate::registry::Registry;
 use crate::registry::query::query;
-use crate::run::load_artefact;
+use crate::registry::{AucRow, Registry};
+use crate::run::{cross_validation, load_artefact};
 use crate::sim::{self, Dataset, Distribution, SimParams};
 
 /// One scored (detector, dataset) pair of the run.
@@ -71,6 +71,9 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     )?;
 
     write_auc_table(&mut markdown, &evaluations, reference.as_ref())?;
+    if record["kind"].as_str() == Some("cv") {
+        write_cross_validation_table(&mut markdown, &record, reference.as_ref())?;
+    }
     write_quality_table(&mut markdown, &evaluations)?;
 
     writeln!(markdown, "\n## Figures\n")?;
@@ -151,6 +154,58 @@ fn load_evaluations(registry: &Registry, record: &Value) -> anyhow::Result<Vec<E
         });
     }
     Ok(evaluations)
+}
+
+/// A cross-validation run's table: per dataset and ε, the mean ± sample
+/// standard deviation of the fold models' AUC, the reference beside it.
+fn write_cross_validation_table(
+    markdown: &mut String,
+    record: &Value,
+    reference: Option<&Reference>,
+) -> anyhow::Result<()> {
+    let auc: Vec<AucRow> =
+        serde_json::from_value(record["auc"].clone()).context("reading the run's AUC rows")?;
+    let Some((detector, folds)) = cross_validation::detector_and_folds(&auc) else {
+        return Ok(());
+    };
+    let cells = cross_validation::summarise(&auc, &detector, folds);
+    writeln!(
+        markdown,
+        "\n## {folds}-fold cross-validation of {detector}\n\n\
+         Each fold's model is trained on the other {} folds of the training set and keeps the epoch \
+         with the best mean AUC on its held-out fold. Cells: mean ± standard deviation over the \
+         {folds} models (reference), then the per-fold values.\n",
+        folds - 1
+    )?;
+    writeln!(
+        markdown,
+        "| dataset | ε (px) | AUC mean ± sd | reference | per fold |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|")?;
+    for cell in &cells {
+        let label = match cell.diffusion {
+            Some(d) => format!("{} (D = {d})", cell.dataset),
+            None => cell.dataset.clone(),
+        };
+        let theirs = reference
+            .and_then(|r| r.rows.iter().find(|row| row.detector == detector))
+            .and_then(|row| {
+                row.cells
+                    .iter()
+                    .find(|c| c.dataset == cell.dataset && c.eps_px == cell.eps_px)
+            })
+            .map_or("—".to_string(), |c| format!("{:.2}", c.auc));
+        let per_fold: Vec<String> = cell.per_fold.iter().map(|a| format!("{a:.3}")).collect();
+        writeln!(
+            markdown,
+            "| {label} | {} | {:.3} ± {:.3} | {theirs} | {} |",
+            cell.eps_px,
+            cell.mean,
+            cell.std,
+            per_fold.join(", ")
+        )?;
+    }
+    Ok(())
 }
 
 /// The AUC table in the paper's layout: rows detectors, columns D × ε, each

@@ -19,7 +19,7 @@ use serde_json::json;
 use super::{RunOptions, RunOutcome, execute, plan::Plan};
 use crate::error::input_error;
 use crate::manifest::{DatasetSpec, DetectorEntry, Manifest, derive_seed};
-use crate::registry::Registry;
+use crate::registry::{AucRow, Registry};
 
 /// Mean and spread of one (dataset, ε) cell over the folds.
 #[derive(Debug, Clone, Serialize)]
@@ -171,12 +171,28 @@ pub fn cross_validate(
         },
     )?;
 
-    let mut cells = Vec::new();
+    let cells = summarise(&run.auc, detector, folds);
+    Ok(CrossValidationOutcome {
+        detector: detector.to_string(),
+        folds,
+        run,
+        cells,
+    })
+}
+
+/// Label of the held-out folds' column.
+const HELD_OUT_LABEL: &str = "held-out fold";
+
+/// The cells of a cross-validation table from the AUC rows of its run: for
+/// each (dataset, ε), the AUCs of `detector`'s `folds` fold models (named
+/// `DETECTOR-cvKofN`) with their mean and sample standard deviation. Each
+/// fold's own held-out subset is one column, "held-out fold".
+pub fn summarise(auc: &[AucRow], detector: &str, folds: usize) -> Vec<CvCell> {
+    let is_held_out = |row: &AucRow| row.dataset.contains("-held-out");
     let mut columns: Vec<(String, Option<f64>, f64)> = Vec::new();
-    let held_out_label = "held-out fold".to_string();
-    for row in &run.auc {
-        let dataset = if row.dataset.contains("-held-out") {
-            held_out_label.clone()
+    for row in auc {
+        let dataset = if is_held_out(row) {
+            HELD_OUT_LABEL.to_string()
         } else {
             row.dataset.clone()
         };
@@ -187,19 +203,22 @@ pub fn cross_validate(
             columns.push((dataset, row.diffusion, row.eps_px));
         }
     }
+    let mut cells = Vec::new();
     for (dataset, diffusion, eps_px) in columns {
         let per_fold: Vec<f64> = (0..folds)
             .filter_map(|fold| {
                 let name = fold_detector_name(detector, fold, folds);
-                run.auc.iter().find(|r| {
+                auc.iter().find(|r| {
                     r.detector == name
                         && r.eps_px == eps_px
-                        && (r.dataset == dataset
-                            || (dataset == held_out_label && r.dataset.contains("-held-out")))
+                        && (r.dataset == dataset || (dataset == HELD_OUT_LABEL && is_held_out(r)))
                 })
             })
             .map(|r| r.auc)
             .collect();
+        if per_fold.is_empty() {
+            continue;
+        }
         let n = per_fold.len() as f64;
         let mean = per_fold.iter().sum::<f64>() / n;
         let std = if per_fold.len() > 1 {
@@ -216,11 +235,16 @@ pub fn cross_validate(
             per_fold,
         });
     }
-    Ok(CrossValidationOutcome {
-        detector: detector.to_string(),
-        folds,
-        run,
-        cells,
+    cells
+}
+
+/// The detector and fold count of a cross-validation run, read off its fold
+/// models' names (`DETECTOR-cvKofN`).
+pub fn detector_and_folds(auc: &[AucRow]) -> Option<(String, usize)> {
+    auc.iter().find_map(|row| {
+        let (detector, fold) = row.detector.rsplit_once("-cv")?;
+        let (_, folds) = fold.split_once("of")?;
+        Some((detector.to_string(), folds.parse().ok()?))
     })
 }
 

@@ -108,3 +108,12 @@ pub fn flip_a_byte(path: &Path) {
 pub fn blob_path(dir: &Path, sha256: &str) -> PathBuf {
     dir.join("blobs").join(&sha256[..2]).join(sha256)
 }
+
+/// Cases per fuzzing property test: `default` in `make test`, or the
+/// number in `SCANLOC_FUZZ_CASES` for a long run (`make fuzz`).
+pub fn fuzz_cases(default: u32) -> u32 {
+    std::env::var("SCANLOC_FUZZ_CASES")
+        .ok()
+        .and_then(|cases| cases.parse().ok())
+        .unwrap_or(default)
+}
