@@ -545,3 +545,93 @@ fn reproduce_compares_the_numbers_inside_an_altered_evaluation() {
         "{report}"
     );
 }
+
+/// The content keys of the paper manifest's 17 steps, as the cold
+/// `make reproduce-paper` of commit a12a08c recorded them. A change that
+/// alters any of them makes every user's cached paper run recompute (about
+/// ten minutes), and a change to what an artefact holds that leaves its key
+/// alone would serve stale results: so a key may only change together with a
+/// deliberate version bump (`GENERATOR_VERSION`, a detector's
+/// `CODE_VERSION`, `FORMAT_VERSION`, …) or a manifest edit, and then this
+/// list is updated with it.
+#[test]
+fn the_paper_manifests_content_keys_are_stable() {
+    let manifest = scanloc::manifest::load(std::path::Path::new("experiments/paper.yaml")).unwrap();
+    let plan = scanloc::run::Plan::from_manifest(&manifest).unwrap();
+    let planned: Vec<(&str, &str)> = plan
+        .steps
+        .iter()
+        .map(|step| (step.id.as_str(), step.key.as_str()))
+        .collect();
+    let recorded = [
+        (
+            "dataset/train",
+            "e22b5ad1e85c493f4eb599145c56c5b09e1e3b65738b0d3da01d45a38f241b29",
+        ),
+        (
+            "dataset/test-0.75",
+            "2ebe6cf2fe29e8681ca4cfed7d82bd22f3792318bf8eaa352c0c5bb9cf101780",
+        ),
+        (
+            "dataset/test-1.00",
+            "dc163b5bcb4dbeed8fdab36151d5ccadaf24f77e50016c6f58f183a7385a1aae",
+        ),
+        (
+            "dataset/test-1.75",
+            "a37883d89501d8f8e318bd821b97f967430bef4e18e7514e45517601f201d90e",
+        ),
+        (
+            "predictions/trackpy@test-0.75",
+            "92399a461264e27b73acef50736a6f06ef9ac7529dcb9279cd412d27524baa7d",
+        ),
+        (
+            "evaluation/trackpy@test-0.75",
+            "8ea0504bf4e3f44890f79230c4efed00d03d4bea1a900973e939a2e93b4ceef6",
+        ),
+        (
+            "predictions/trackpy@test-1.00",
+            "00325b8eb1b2c2a893bc59d7720f25b3540b966647a611f6a9ffe6eea522a6db",
+        ),
+        (
+            "evaluation/trackpy@test-1.00",
+            "ddde6d6be1366977361e6c8c937f40836c320383d83c1240d4c80702626a3015",
+        ),
+        (
+            "predictions/trackpy@test-1.75",
+            "3b93dd673047df9a06978ed83388c7362042617026e020f54f5e73f3b5c94c10",
+        ),
+        (
+            "evaluation/trackpy@test-1.75",
+            "ab1258152849d0e5f16da0fc4f84438659704ad53cb271d996d2e2ff4668d948",
+        ),
+        (
+            "model/cnn",
+            "d703b579a4eaf091fb3e0bfcd8604dd416abb42f9ebc6f469066634e703b4b9a",
+        ),
+        (
+            "predictions/cnn@test-0.75",
+            "36e5624f3eab4558854f62c6c43778c8fe5894d11d2b64e2cb69b204a31f1479",
+        ),
+        (
+            "evaluation/cnn@test-0.75",
+            "36e4cba866d7040176f3619fd549c703cb80d57f240ee75b00d1ebdacdf263aa",
+        ),
+        (
+            "predictions/cnn@test-1.00",
+            "6e1177667223e108862ed44fa247231a01cde441e032799165eb499e17dc281f",
+        ),
+        (
+            "evaluation/cnn@test-1.00",
+            "d6e3594facd7eab1d2378cd8e6f79e8dc87729af0b6737d6982123a592709aa7",
+        ),
+        (
+            "predictions/cnn@test-1.75",
+            "46150b04a50ee12c4a15fab61e3f0ca40d90129d0e567c145b9dedfb22f29adc",
+        ),
+        (
+            "evaluation/cnn@test-1.75",
+            "5ffe16d44f310a88d9b526b6722acc885d78d4e1a8b560f634861983975e09a7",
+        ),
+    ];
+    assert_eq!(planned, recorded);
+}

@@ -153,10 +153,6 @@ pub struct CnnSpec {
     pub training: crate::detect::cnn::TrainingSettings,
 }
 
-/// Version of the Crocker–Grier locator's output, part of the key of every
-/// prediction it makes: bump it when a change alters any feature.
-pub const CROCKER_GRIER_VERSION: &str = "scanloc-crocker-grier/1";
-
 impl DetectorSpec {
     /// The name of the kind as written in manifests.
     pub fn kind(&self) -> &'static str {
@@ -189,10 +185,8 @@ impl DetectorSpec {
     /// outputs; part of the content key of everything it makes.
     pub fn code_version(&self) -> &'static str {
         match self {
-            DetectorSpec::CrockerGrier(_) => CROCKER_GRIER_VERSION,
-            // The CNN's training and inference are versioned by its model
-            // format (bumped whenever weights or predictions would change).
-            DetectorSpec::Cnn(_) => crate::detect::cnn::FORMAT,
+            DetectorSpec::CrockerGrier(_) => crate::detect::crocker_grier::CODE_VERSION,
+            DetectorSpec::Cnn(_) => crate::detect::cnn::CODE_VERSION,
         }
     }
 }

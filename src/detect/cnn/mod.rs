@@ -290,6 +290,13 @@ struct SavedConfig {
 
 /// Names the serialisation format; bump on any incompatible change.
 pub const FORMAT: &str = "scanloc-cnn/1";
+/// Version of the training and inference code, part of the content key of
+/// every model and prediction in the registry: bump it whenever a change
+/// would alter trained weights (initialisation, batching, loss, optimiser,
+/// data augmentation, selection) or the predictions made from them
+/// (decoding, peak suppression), so cached models made by the old code are
+/// not reused. Kept apart from [`FORMAT`], which only names the encoding.
+pub const CODE_VERSION: &str = "scanloc-cnn/1";
 /// First bytes of a [`TrainedCnn::to_bytes`] blob.
 const MAGIC: &[u8] = b"SCANLOC-CNN\n";
 /// File names inside a saved model folder.

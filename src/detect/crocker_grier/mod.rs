@@ -26,6 +26,12 @@
 
 mod filters;
 
+/// Version of the locator's output, part of the content key of every
+/// prediction it makes in the registry: bump it whenever a change alters any
+/// feature (a position, mass or any other column), so cached predictions
+/// made by the old code are not reused.
+pub const CODE_VERSION: &str = "scanloc-crocker-grier/1";
+
 use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
