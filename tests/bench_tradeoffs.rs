@@ -85,6 +85,25 @@ fn every_stage_writes_a_table_and_plots_with_its_pareto_front() {
                 .all(|row| number(row, "frames_per_second") > 0.0)
         );
     }
+    // Timing ratios are against each stage's reference setting, timed in
+    // the same run: the simulator's default and the paper's TrackPy.
+    for (table, reference) in [
+        (&simulator, "substeps 1, cut-off 6σ"),
+        (&crocker_grier, "diameter 7, preprocess true"),
+    ] {
+        let reference_fps = number(
+            table
+                .iter()
+                .find(|row| row["setting"] == reference)
+                .unwrap(),
+            "frames_per_second",
+        );
+        for row in table {
+            let expected = number(row, "frames_per_second") / reference_fps;
+            let ratio = number(row, "speed_vs_reference");
+            assert!((ratio - expected).abs() <= 1e-9 * expected, "{row:?}");
+        }
+    }
     // The exact image is approached as substeps grow with no cut-off.
     let error = |setting: &str| {
         number(

@@ -22,6 +22,37 @@ pub struct TradeoffPoint {
     /// Further numbers of the point (e.g. AUC per ε).
     pub extra: Vec<(String, f64)>,
     pub pareto: bool,
+    /// Whether this is the sweep's reference setting (scanloc's default),
+    /// against which [`add_speed_ratios`] expresses every point's speed.
+    pub reference: bool,
+}
+
+/// Adds the timing ratios against the sweep's reference point (the one
+/// with [`TradeoffPoint::reference`], timed in the same process run, so the
+/// machine's load and speed cancel): `speed_vs_reference` (frames/s over
+/// the reference's; above 1 is faster) and, when the points have a
+/// `training_seconds` extra, `training_time_vs_reference` (below 1 is
+/// faster). Without a reference point nothing is added.
+pub fn add_speed_ratios(points: &mut [TradeoffPoint]) {
+    let Some(reference) = points.iter().find(|p| p.reference).cloned() else {
+        return;
+    };
+    let reference_training = extra(&reference, "training_seconds");
+    for point in points.iter_mut() {
+        let training_ratio = extra(point, "training_seconds") / reference_training;
+        point.extra.insert(
+            0,
+            (
+                "speed_vs_reference".into(),
+                point.frames_per_second / reference.frames_per_second,
+            ),
+        );
+        if !reference_training.is_nan() {
+            point
+                .extra
+                .insert(1, ("training_time_vs_reference".into(), training_ratio));
+        }
+    }
 }
 
 /// For each point, whether no other point is at least as good in both
@@ -165,7 +196,8 @@ fn static_extras(
 /// per-pixel difference, in expected photons, between the setting's expected
 /// image and the exact one (no cut-off, 64 substeps) of a static QD (D = 0,
 /// so both see the same QD; the random walk does not depend on these
-/// settings except through the path's sampling), over 200 frames.
+/// settings except through the path's sampling), over 200 frames. Speed
+/// ratios are against the simulator's default (1 substep, 6σ cut-off).
 pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
     let base = SimParams {
         margin_px: 4.0,
@@ -208,21 +240,29 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
                 })
                 .fold(0.0f64, f64::max);
             let cutoff_label = cutoff.map_or("none".to_string(), |c| format!("{c}σ"));
+            let default = SimParams::default();
             points.push(TradeoffPoint {
                 setting: format!("substeps {substeps}, cut-off {cutoff_label}"),
                 frames_per_second: fps,
                 error,
                 extra: vec![],
                 pareto: false,
+                reference: substeps == default.substeps && cutoff == default.psf_cutoff_sigma,
             });
         }
     }
     mark_pareto_front(&mut points);
+    add_speed_ratios(&mut points);
     Ok(points)
 }
 
+/// TrackPy's diameter in the paper experiment (`experiments/paper.yaml`):
+/// the Crocker–Grier sweep's reference setting, with preprocessing.
+const PAPER_DIAMETER: usize = 7;
+
 /// Crocker–Grier: diameter and preprocessing. Speed: frames/s on the
-/// D = 1 µm²/s test set. Error: RMSE (px) of each frame's top prediction
+/// D = 1 µm²/s test set; ratios against the paper's setting (diameter 7,
+/// preprocessing on). Error: RMSE (px) of each frame's top prediction
 /// there; AUC per ε, the fraction of frames without a prediction and the
 /// static-set errors of [`static_extras`] as extras.
 pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint>> {
@@ -253,10 +293,12 @@ pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint
                 error: rmse,
                 extra: extras,
                 pareto: false,
+                reference: diameter == PAPER_DIAMETER && preprocess,
             });
         }
     }
     mark_pareto_front(&mut points);
+    add_speed_ratios(&mut points);
     Ok(points)
 }
 
@@ -345,12 +387,18 @@ pub fn cnn_sweep(
                     "{setting}: trained in {training_seconds:.1} s, {fps:.0} frames/s, RMSE {rmse:.3} px"
                 ));
                 progress.inc(1);
+                let default = CnnArchitecture::default();
                 points.push(TradeoffPoint {
                     setting,
                     frames_per_second: fps,
                     error: rmse,
                     extra: extras,
                     pareto: false,
+                    // The library's default network at the longest training
+                    // swept.
+                    reference: channels == default.channels
+                        && dilations == default.dilations
+                        && Some(&epochs) == sweep.epochs.iter().max(),
                 });
             }
         }
@@ -367,6 +415,7 @@ pub fn cnn_sweep(
             .extra
             .push(("pareto_training".into(), f64::from(u8::from(flag))));
     }
+    add_speed_ratios(&mut points);
     Ok(points)
 }
 
@@ -547,6 +596,7 @@ mod tests {
             error,
             extra: vec![],
             pareto: false,
+            reference: false,
         };
         let mut points = vec![
             point(10.0, 1.0),
@@ -557,6 +607,44 @@ mod tests {
         mark_pareto_front(&mut points);
         let front: Vec<bool> = points.iter().map(|p| p.pareto).collect();
         assert_eq!(front, vec![true, true, false, false]);
+    }
+
+    #[test]
+    fn speed_ratios_are_against_the_reference_point() {
+        let point = |fps: f64, training: f64, reference: bool| TradeoffPoint {
+            setting: String::new(),
+            frames_per_second: fps,
+            error: 1.0,
+            extra: vec![("training_seconds".into(), training)],
+            pareto: false,
+            reference,
+        };
+        let mut points = vec![
+            point(300.0, 5.0, false),
+            point(100.0, 20.0, true),
+            point(50.0, 40.0, false),
+        ];
+        add_speed_ratios(&mut points);
+        let ratios: Vec<(f64, f64)> = points
+            .iter()
+            .map(|p| {
+                (
+                    extra(p, "speed_vs_reference"),
+                    extra(p, "training_time_vs_reference"),
+                )
+            })
+            .collect();
+        assert_eq!(ratios, [(3.0, 0.25), (1.0, 1.0), (0.5, 2.0)]);
+        // Without training times only the speed ratio is added.
+        let mut untrained = vec![TradeoffPoint {
+            extra: vec![],
+            ..point(10.0, 0.0, true)
+        }];
+        add_speed_ratios(&mut untrained);
+        assert_eq!(
+            untrained[0].extra,
+            [("speed_vs_reference".to_string(), 1.0)]
+        );
     }
 
     #[test]

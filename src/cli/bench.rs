@@ -243,6 +243,12 @@ fn print_sweep(title: &str, error_label: &str, points: &[bench::tradeoff::Tradeo
             extra.join(" ")
         );
     }
+    if let Some(reference) = points.iter().find(|p| p.reference) {
+        println!(
+            "(*_vs_reference: ratios against '{}', timed in this run)",
+            reference.setting
+        );
+    }
 }
 
 /// The best (smallest) finite value of `values`, with the setting it came from.
