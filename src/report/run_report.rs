@@ -173,8 +173,9 @@ fn write_cross_validation_table(
         markdown,
         "\n## {folds}-fold cross-validation of {detector}\n\n\
          Each fold's model is trained on the other {} folds of the training set and keeps the epoch \
-         with the best mean AUC on its held-out fold. Cells: mean ± standard deviation over the \
-         {folds} models (reference), then the per-fold values.\n",
+         with the best mean AUC on its held-out fold. Cells: mean ± sample standard deviation \
+         (n − 1) over the {folds} models, the reference's value where it has one, then each \
+         fold's value.\n",
         folds - 1
     )?;
     writeln!(
