@@ -184,6 +184,44 @@ fn cross_validation_reports_mean_and_spread_and_resumes_from_cache() {
     );
     assert_eq!(again["cells"], result["cells"]);
 
+    // One fold alone, recomputed: the same artefacts as in the sweep, so
+    // --force finds them identical and its scores are that fold's column.
+    let mut second_fold = args(&["--fold", "2", "--force"]);
+    second_fold.extend(["--registry", registry.to_str().unwrap()]);
+    let out = scanloc(&second_fold);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let alone: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    assert!(alone["computed_steps"].as_u64().unwrap() > 0);
+    let alone_cells = alone["cells"].as_array().unwrap();
+    assert_eq!(alone_cells.len(), cells.len());
+    for (alone_cell, cell) in alone_cells.iter().zip(cells) {
+        assert_eq!(
+            alone_cell["per_fold"],
+            serde_json::json!([cell["per_fold"][1]])
+        );
+        assert!(alone_cell["std"].is_null(), "no spread from one fold");
+    }
+    let mut no_such_fold = args(&["--fold", "4"]);
+    no_such_fold.extend(["--registry", registry.to_str().unwrap()]);
+    let out = scanloc(&no_such_fold);
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    assert!(stderr(&out).contains("fold"), "{}", stderr(&out));
+
+    // The whole sweep re-executes from scratch, bit for bit.
+    let out = scanloc(&[
+        "reproduce",
+        result["run"].as_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}{}", stdout(&out), stderr(&out));
+    assert!(stdout(&out).contains("IDENTICAL"), "{}", stdout(&out));
+    assert!(
+        stdout(&out).contains("model/cnn-cv3of3"),
+        "the fold models are among the compared steps: {}",
+        stdout(&out)
+    );
+
     let out = scanloc(&[
         "cv",
         "experiments/smoke.yaml",

@@ -13,7 +13,8 @@ use scanloc::run::cross_validation;
 /// by a recorded seeded permutation, k models each trained on k − 1 folds,
 /// each scored on its held-out fold and on every test set; the AUC table as
 /// mean ± standard deviation. Each fold's data and model are artefacts of
-/// their own, so an interrupted sweep resumes where it stopped.
+/// their own, so an interrupted sweep resumes where it stopped and one fold
+/// can be rerun alone (--fold K --force checks it against the stored one).
 #[derive(Debug, Args)]
 pub struct CvArgs {
     /// The experiment manifest.
@@ -24,6 +25,11 @@ pub struct CvArgs {
     /// The detector [default: the manifest's cross_validation.detector].
     #[arg(long)]
     detector: Option<String>,
+    /// Only this fold (1 … folds): its subsets, model and scores, under the
+    /// same keys as in the whole sweep. With --force, reproduces that one
+    /// fold of a recorded sweep and checks it against the stored results.
+    #[arg(long)]
+    fold: Option<usize>,
     /// Recompute every step and check the results equal the stored ones.
     #[arg(long)]
     force: bool,
@@ -49,8 +55,14 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
         })?;
     let folds = args.folds.or(block.map(|b| b.folds)).unwrap_or(5);
     let mut registry = Registry::open(&args.registry)?;
-    let outcome =
-        cross_validation::cross_validate(&mut registry, &manifest, &detector, folds, args.force)?;
+    let outcome = cross_validation::cross_validate(
+        &mut registry,
+        &manifest,
+        &detector,
+        folds,
+        args.fold,
+        args.force,
+    )?;
     if args.json {
         println!(
             "{}",

@@ -199,10 +199,10 @@ fn write_cross_validation_table(
         let per_fold: Vec<String> = cell.per_fold.iter().map(|a| format!("{a:.3}")).collect();
         writeln!(
             markdown,
-            "| {label} | {} | {:.3} ± {:.3} | {theirs} | {} |",
+            "| {label} | {} | {:.3} ± {} | {theirs} | {} |",
             cell.eps_px,
             cell.mean,
-            cell.std,
+            cross_validation::format_std(cell.std),
             per_fold.join(", ")
         )?;
     }

@@ -28,8 +28,9 @@ pub struct CvCell {
     pub diffusion: Option<f64>,
     pub eps_px: f64,
     pub mean: f64,
-    /// Sample standard deviation over folds (n − 1).
-    pub std: f64,
+    /// Sample standard deviation over folds (n − 1); none with a single
+    /// fold (`scanloc cv --fold`).
+    pub std: Option<f64>,
     pub per_fold: Vec<f64>,
 }
 
@@ -62,14 +63,49 @@ fn fold_detector_name(detector: &str, fold: usize, folds: usize) -> String {
 }
 
 /// Runs k-fold cross-validation of `detector` (which must be trained on a
-/// manifest dataset) and records it as a run of kind `cv`.
+/// manifest dataset) and records it as a run of kind `cv`. With
+/// `only_fold` (1-based) just that fold's steps run: the same artefacts,
+/// under the same keys, as in the whole sweep, so with `force` one fold of a
+/// recorded sweep is recomputed and checked against the stored results.
 pub fn cross_validate(
     registry: &mut Registry,
     manifest: &Manifest,
     detector: &str,
     folds: usize,
+    only_fold: Option<usize>,
     force: bool,
 ) -> anyhow::Result<CrossValidationOutcome> {
+    let plan = plan(manifest, detector, folds, only_fold)?;
+    let run = execute(
+        registry,
+        manifest,
+        &plan,
+        &RunOptions {
+            force,
+            kind: Some("cv".to_string()),
+            parent_run: None,
+        },
+    )?;
+
+    let cells = summarise(&run.auc, detector, folds);
+    Ok(CrossValidationOutcome {
+        detector: detector.to_string(),
+        folds,
+        run,
+        cells,
+    })
+}
+
+/// The steps of a k-fold cross-validation of `detector` (all folds, or
+/// only fold `only_fold`, 1-based): the training and test datasets, each
+/// fold's training and held-out subsets, its model, and its predictions and
+/// scores on the held-out fold and on every test set.
+pub fn plan(
+    manifest: &Manifest,
+    detector: &str,
+    folds: usize,
+    only_fold: Option<usize>,
+) -> anyhow::Result<Plan> {
     let entry = manifest.detector(detector).ok_or_else(|| {
         input_error(format!(
             "{}: detectors.{detector}: no such detector",
@@ -94,6 +130,13 @@ pub fn cross_validate(
             training.frames
         )));
     }
+    if let Some(fold) = only_fold
+        && !(1..=folds).contains(&fold)
+    {
+        return Err(input_error(format!(
+            "fold: must be between 1 and the {folds} folds, got {fold}"
+        )));
+    }
     let permutation_seed = derive_seed(manifest.seed, "cv-permutation", detector);
     let parts = fold_frames(training.frames, folds, permutation_seed);
 
@@ -110,6 +153,9 @@ pub fn cross_validate(
         .map(|d| plan.add_dataset(d).map(|step| (step, *d)))
         .collect::<anyhow::Result<_>>()?;
     for (fold, held_out) in parts.iter().enumerate() {
+        if only_fold.is_some_and(|only| only != fold + 1) {
+            continue;
+        }
         let train_frames: Vec<usize> = parts
             .iter()
             .enumerate()
@@ -160,24 +206,7 @@ pub fn cross_validate(
             )?;
         }
     }
-    let run = execute(
-        registry,
-        manifest,
-        &plan,
-        &RunOptions {
-            force,
-            kind: Some("cv".to_string()),
-            parent_run: None,
-        },
-    )?;
-
-    let cells = summarise(&run.auc, detector, folds);
-    Ok(CrossValidationOutcome {
-        detector: detector.to_string(),
-        folds,
-        run,
-        cells,
-    })
+    Ok(plan)
 }
 
 /// Label of the held-out folds' column.
@@ -221,11 +250,8 @@ pub fn summarise(auc: &[AucRow], detector: &str, folds: usize) -> Vec<CvCell> {
         }
         let n = per_fold.len() as f64;
         let mean = per_fold.iter().sum::<f64>() / n;
-        let std = if per_fold.len() > 1 {
-            (per_fold.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
-        } else {
-            0.0
-        };
+        let std = (per_fold.len() > 1)
+            .then(|| (per_fold.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt());
         cells.push(CvCell {
             dataset,
             diffusion,
@@ -246,6 +272,12 @@ pub fn detector_and_folds(auc: &[AucRow]) -> Option<(String, usize)> {
         let (_, folds) = fold.split_once("of")?;
         Some((detector.to_string(), folds.parse().ok()?))
     })
+}
+
+/// A standard deviation for a table: three decimals, `—` when there is
+/// none (a single fold).
+pub fn format_std(std: Option<f64>) -> String {
+    std.map_or("—".to_string(), |std| format!("{std:.3}"))
 }
 
 /// The cross-validation table as text: one line per dataset, `mean ± std`
@@ -269,8 +301,10 @@ pub fn render(outcome: &CrossValidationOutcome) -> String {
         out.push_str(&format!("{label:<28}"));
         for cell in outcome.cells.iter().filter(|c| c.dataset == dataset) {
             out.push_str(&format!(
-                "  ε={}: {:.3} ± {:.3}",
-                cell.eps_px, cell.mean, cell.std
+                "  ε={}: {:.3} ± {}",
+                cell.eps_px,
+                cell.mean,
+                format_std(cell.std)
             ));
         }
         out.push('\n');

@@ -247,10 +247,12 @@ pub fn reproduce(
             scratch.display()
         )));
     }
+    let plan = recorded_plan(&record, &manifest, run_id)?;
     let mut fresh = Registry::open(scratch)?;
-    let outcome = super::run_manifest(
+    let outcome = super::execute(
         &mut fresh,
         &manifest,
+        &plan,
         &RunOptions {
             kind: Some("reproduce".into()),
             parent_run: Some(run_id.to_string()),
@@ -430,6 +432,28 @@ pub fn reproduce(
         auc,
         notes,
     })
+}
+
+/// The plan a recorded run executed: its manifest's, or for a run of kind
+/// `cv` the cross-validation's, whose detector and fold count are read off
+/// the fold models' names in the recorded AUC rows.
+fn recorded_plan(
+    record: &serde_json::Value,
+    manifest: &manifest::Manifest,
+    run_id: &str,
+) -> anyhow::Result<super::Plan> {
+    if record["kind"].as_str() != Some("cv") {
+        return super::Plan::from_manifest(manifest);
+    }
+    let auc: Vec<crate::registry::AucRow> =
+        serde_json::from_value(record["auc"].clone()).unwrap_or_default();
+    let (detector, folds) = super::cross_validation::detector_and_folds(&auc).ok_or_else(|| {
+        CheckFailed(format!(
+            "run {run_id} is a cross-validation that recorded no fold scores: \
+             rerun it with `scanloc cv` (it resumes), then reproduce that run"
+        ))
+    })?;
+    super::cross_validation::plan(manifest, &detector, folds, None)
 }
 
 /// A scratch folder for a reproduction: `dir` if given, else a new
