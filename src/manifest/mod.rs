@@ -264,6 +264,27 @@ pub struct ReferenceCell {
     pub auc: f64,
 }
 
+impl Reference {
+    /// The published AUC of `detector` on `dataset` at `eps_px`, from the
+    /// first row that compares with `detector`.
+    pub fn auc(&self, detector: &str, dataset: &str, eps_px: f64) -> Option<f64> {
+        self.rows
+            .iter()
+            .find(|row| row.detector == detector)
+            .and_then(|row| row.auc(dataset, eps_px))
+    }
+}
+
+impl ReferenceRow {
+    /// This row's AUC on `dataset` at `eps_px`.
+    pub fn auc(&self, dataset: &str, eps_px: f64) -> Option<f64> {
+        self.cells
+            .iter()
+            .find(|c| c.dataset == dataset && c.eps_px == eps_px)
+            .map(|c| c.auc)
+    }
+}
+
 impl Manifest {
     /// The dataset named `name`.
     pub fn dataset(&self, name: &str) -> Option<&DatasetSpec> {

@@ -189,13 +189,8 @@ fn write_cross_validation_table(
             None => cell.dataset.clone(),
         };
         let theirs = reference
-            .and_then(|r| r.rows.iter().find(|row| row.detector == detector))
-            .and_then(|row| {
-                row.cells
-                    .iter()
-                    .find(|c| c.dataset == cell.dataset && c.eps_px == cell.eps_px)
-            })
-            .map_or("—".to_string(), |c| format!("{:.2}", c.auc));
+            .and_then(|r| r.auc(&detector, &cell.dataset, cell.eps_px))
+            .map_or("—".to_string(), |auc| format!("{auc:.2}"));
         let per_fold: Vec<String> = cell.per_fold.iter().map(|a| format!("{a:.3}")).collect();
         writeln!(
             markdown,
@@ -263,17 +258,7 @@ fn write_auc_table(
                     .iter()
                     .find(|x| x.detector == *detector && x.dataset == *dataset)
                     .and_then(|x| x.score.auc(*e));
-                let theirs = reference.and_then(|r| {
-                    r.rows
-                        .iter()
-                        .find(|row| row.detector == *detector)
-                        .and_then(|row| {
-                            row.cells
-                                .iter()
-                                .find(|c| c.dataset == *dataset && c.eps_px == *e)
-                        })
-                        .map(|c| c.auc)
-                });
+                let theirs = reference.and_then(|r| r.auc(detector, dataset, *e));
                 match (ours, theirs) {
                     (Some(o), Some(t)) => write!(line, " {o:.2} ({t:.2}, {:+.2}) |", o - t)?,
                     (Some(o), None) => write!(line, " {o:.2} |")?,
@@ -288,12 +273,8 @@ fn write_auc_table(
             let mut line = format!("| {} (reference) |", row.label);
             for (dataset, _) in &datasets {
                 for e in &eps {
-                    match row
-                        .cells
-                        .iter()
-                        .find(|c| c.dataset == *dataset && c.eps_px == *e)
-                    {
-                        Some(c) => write!(line, " {:.2} |", c.auc)?,
+                    match row.auc(dataset, *e) {
+                        Some(auc) => write!(line, " {auc:.2} |")?,
                         None => line.push_str(" — |"),
                     }
                 }

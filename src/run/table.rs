@@ -77,10 +77,7 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
         if let Some(reference) = reference {
             for row in reference.rows.iter().filter(|r| r.detector == *detector) {
                 out.push_str(&line(&format!("  paper: {}", row.label), &|dataset, e| {
-                    row.cells
-                        .iter()
-                        .find(|c| c.dataset == dataset && c.eps_px == e)
-                        .map(|c| c.auc)
+                    row.auc(dataset, e)
                 }));
             }
         }
