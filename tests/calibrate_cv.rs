@@ -221,6 +221,24 @@ fn cross_validation_reports_mean_and_spread_and_resumes_from_cache() {
         "the fold models are among the compared steps: {}",
         stdout(&out)
     );
+    // A one-fold run re-executes that fold alone.
+    let out = scanloc(&[
+        "reproduce",
+        alone["run"].as_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}{}", stdout(&out), stderr(&out));
+    assert!(
+        stdout(&out).contains("model/cnn-cv2of3"),
+        "{}",
+        stdout(&out)
+    );
+    assert!(
+        !stdout(&out).contains("model/cnn-cv1of3"),
+        "{}",
+        stdout(&out)
+    );
 
     let out = scanloc(&[
         "cv",

@@ -264,14 +264,33 @@ pub fn summarise(auc: &[AucRow], detector: &str, folds: usize) -> Vec<CvCell> {
     cells
 }
 
+/// The detector, fold (1-based) and fold count a fold model's name
+/// (`DETECTOR-cvKofN`, see [`fold_detector_name`]) stands for.
+fn parse_fold_detector_name(name: &str) -> Option<(&str, usize, usize)> {
+    let (detector, fold) = name.rsplit_once("-cv")?;
+    let (fold, folds) = fold.split_once("of")?;
+    Some((detector, fold.parse().ok()?, folds.parse().ok()?))
+}
+
 /// The detector and fold count of a cross-validation run, read off its fold
 /// models' names (`DETECTOR-cvKofN`).
 pub fn detector_and_folds(auc: &[AucRow]) -> Option<(String, usize)> {
     auc.iter().find_map(|row| {
-        let (detector, fold) = row.detector.rsplit_once("-cv")?;
-        let (_, folds) = fold.split_once("of")?;
-        Some((detector.to_string(), folds.parse().ok()?))
+        let (detector, _, folds) = parse_fold_detector_name(&row.detector)?;
+        Some((detector.to_string(), folds))
     })
+}
+
+/// The folds (1-based, ascending) that have scores among `auc`: all of
+/// them for a whole sweep, one for `scanloc cv --fold K`.
+pub fn scored_folds(auc: &[AucRow]) -> Vec<usize> {
+    let mut folds: Vec<usize> = auc
+        .iter()
+        .filter_map(|row| parse_fold_detector_name(&row.detector).map(|(_, fold, _)| fold))
+        .collect();
+    folds.sort_unstable();
+    folds.dedup();
+    folds
 }
 
 /// A standard deviation for a table: three decimals, `—` when there is

@@ -435,25 +435,31 @@ pub fn reproduce(
 }
 
 /// The plan a recorded run executed: its manifest's, or for a run of kind
-/// `cv` the cross-validation's, whose detector and fold count are read off
-/// the fold models' names in the recorded AUC rows.
+/// `cv` the cross-validation's, whose detector, fold count and (for a
+/// `--fold K` run, the only fold scored) single fold are read off the fold
+/// models' names in the recorded AUC rows.
 fn recorded_plan(
     record: &serde_json::Value,
     manifest: &manifest::Manifest,
     run_id: &str,
 ) -> anyhow::Result<super::Plan> {
+    use super::cross_validation;
     if record["kind"].as_str() != Some("cv") {
         return super::Plan::from_manifest(manifest);
     }
-    let auc: Vec<crate::registry::AucRow> =
-        serde_json::from_value(record["auc"].clone()).unwrap_or_default();
-    let (detector, folds) = super::cross_validation::detector_and_folds(&auc).ok_or_else(|| {
+    let auc: Vec<crate::registry::AucRow> = serde_json::from_value(record["auc"].clone())
+        .with_context(|| format!("reading the AUC rows recorded by run {run_id}"))?;
+    let (detector, folds) = cross_validation::detector_and_folds(&auc).ok_or_else(|| {
         CheckFailed(format!(
             "run {run_id} is a cross-validation that recorded no fold scores: \
              rerun it with `scanloc cv` (it resumes), then reproduce that run"
         ))
     })?;
-    super::cross_validation::plan(manifest, &detector, folds, None)
+    let only_fold = match cross_validation::scored_folds(&auc).as_slice() {
+        [fold] => Some(*fold),
+        _ => None,
+    };
+    cross_validation::plan(manifest, &detector, folds, only_fold)
 }
 
 /// A scratch folder for a reproduction: `dir` if given, else a new
