@@ -235,6 +235,7 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
     let exact_images: Vec<Vec<f64>> = (0..200)
         .map(|i| sim::expected_frame(&exact, 1, i).0)
         .collect();
+    let default = SimParams::default();
     let mut points = Vec::new();
     for substeps in [1u32, 2, 4, 8, 16] {
         for cutoff in [None, Some(6.0), Some(5.0), Some(4.0), Some(3.0), Some(2.0)] {
@@ -269,7 +270,6 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
                 })
                 .fold(0.0f64, f64::max);
             let cutoff_label = cutoff.map_or("none".to_string(), |c| format!("{c}σ"));
-            let default = SimParams::default();
             points.push(TradeoffPoint {
                 setting: format!("substeps {substeps}, cut-off {cutoff_label}"),
                 frames_per_second: fps,
@@ -290,8 +290,9 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
 const PAPER_DIAMETER: usize = 7;
 
 /// Crocker–Grier: diameter and preprocessing. Speed: frames/s on the
-/// D = 1 µm²/s test set (fastest of [`TIMING_REPEATS`]); ratios against the paper's setting (diameter 7,
-/// preprocessing on). Error: RMSE (px) of each frame's top prediction
+/// D = 1 µm²/s test set (fastest of [`TIMING_REPEATS`]); ratios against
+/// the paper's setting (diameter 7, preprocessing on). Error: RMSE (px) of
+/// each frame's top prediction
 /// there; AUC per ε, the fraction of frames without a prediction and the
 /// static-set errors of [`static_extras`] as extras.
 pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint>> {
@@ -387,6 +388,8 @@ pub fn cnn_sweep(
     let training = sim::simulate(&training_params, 5, 0..sweep.train_frames, &hidden())?;
     let settings_count = sweep.channels.len() * sweep.depths.len() * sweep.epochs.len();
     progress.set_length(settings_count as u64);
+    let default = CnnArchitecture::default();
+    let longest_epochs = sweep.epochs.iter().max();
     let mut points = Vec::with_capacity(settings_count);
     for &depth in &sweep.depths {
         let dilations = dilations_for_depth(depth)?;
@@ -417,7 +420,6 @@ pub fn cnn_sweep(
                     "{setting}: trained in {training_seconds:.1} s, {fps:.0} frames/s, RMSE {rmse:.3} px"
                 ));
                 progress.inc(1);
-                let default = CnnArchitecture::default();
                 points.push(TradeoffPoint {
                     setting,
                     frames_per_second: fps,
@@ -428,7 +430,7 @@ pub fn cnn_sweep(
                     // swept.
                     reference: channels == default.channels
                         && dilations == default.dilations
-                        && Some(&epochs) == sweep.epochs.iter().max(),
+                        && Some(&epochs) == longest_epochs,
                 });
             }
         }

@@ -26,12 +26,6 @@
 
 mod filters;
 
-/// Version of the locator's output, part of the content key of every
-/// prediction it makes in the registry: bump it whenever a change alters any
-/// feature (a position, mass or any other column), so cached predictions
-/// made by the old code are not reused.
-pub const CODE_VERSION: &str = "scanloc-crocker-grier/1";
-
 use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -39,6 +33,12 @@ use serde::{Deserialize, Serialize};
 use crate::detect::Prediction;
 use crate::error::{input_error, require_finite};
 use crate::frames::FrameStack;
+
+/// Version of the locator's output, part of the content key of every
+/// prediction it makes in the registry: bump it whenever a change alters any
+/// feature (a position, mass or any other column), so cached predictions
+/// made by the old code are not reused.
+pub const CODE_VERSION: &str = "scanloc-crocker-grier/1";
 
 /// TrackPy's `locate` parameters, with its names and defaults
 /// (`diameter` 7 here; TrackPy has no default).
