@@ -112,8 +112,12 @@ pub fn blob_path(dir: &Path, sha256: &str) -> PathBuf {
 /// Cases per fuzzing property test: `default` in `make test`, or the
 /// number in `SCANLOC_FUZZ_CASES` for a long run (`make fuzz`).
 pub fn fuzz_cases(default: u32) -> u32 {
-    std::env::var("SCANLOC_FUZZ_CASES")
-        .ok()
-        .and_then(|cases| cases.parse().ok())
-        .unwrap_or(default)
+    match std::env::var("SCANLOC_FUZZ_CASES") {
+        // A mistyped count must not quietly shrink a long fuzzing run to the
+        // default.
+        Ok(cases) => cases
+            .parse()
+            .unwrap_or_else(|_| panic!("SCANLOC_FUZZ_CASES: not a case count: {cases:?}")),
+        Err(_) => default,
+    }
 }
