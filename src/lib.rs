@@ -12,6 +12,7 @@ pub mod detect;
 pub mod error;
 pub mod frames;
 pub mod io;
+pub mod limits;
 pub mod manifest;
 pub mod metrics;
 pub mod progress;

@@ -27,6 +27,10 @@ pub struct LocateArgs {
     /// Output CSV.
     #[arg(long)]
     out: PathBuf,
+    /// The channel to localise in (0-based), required for a multi-channel
+    /// stack (an ImageJ hyperstack with channels).
+    #[arg(long)]
+    channel: Option<usize>,
     /// With `--method cnn`: the model folder written by `scanloc train`.
     #[arg(long, required_if_eq("method", "cnn"))]
     model: Option<PathBuf>,
@@ -78,6 +82,9 @@ enum Method {
 }
 
 pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
+    let mut inputs = vec![("--input", args.input.as_path())];
+    inputs.extend(args.model.as_deref().map(|model| ("--model", model)));
+    io::refuse_shared_paths(&inputs, &[("--out", &args.out)])?;
     match args.method {
         Method::CrockerGrier => {
             let params = CrockerGrierParams {
@@ -96,7 +103,7 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             params
                 .validate()
                 .map_err(|e| input_error(format!("invalid crocker-grier parameter: {e}")))?;
-            let frames = io::read_frames(&args.input)?;
+            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
             bar.finish_and_clear();
@@ -108,7 +115,7 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
                 .as_deref()
                 .ok_or_else(|| input_error("--model: required with --method cnn"))?;
             let model = scanloc::detect::cnn::TrainedCnn::load(model_dir)?;
-            let frames = io::read_frames(&args.input)?;
+            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let predictions = model.locate(&frames, &bar)?;
             bar.finish_and_clear();

@@ -130,7 +130,13 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
     params
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
+    // The manifest's limits, checked by the same functions.
+    scanloc::limits::check_frame_count("--frames", args.frames as u64)?;
+    scanloc::limits::check_dataset_pixels("--frames", args.frames, args.height, args.width)?;
     io::FrameFormat::from_path(&args.out)?;
+    let mut outputs = vec![("--out", args.out.as_path())];
+    outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));
+    io::refuse_shared_paths(&[], &outputs)?;
     // Open every output before simulating: an unwritable destination fails
     // now, and nothing is renamed into place unless everything succeeded.
     let mut frames_out = PendingFile::create(&args.out)?;

@@ -135,6 +135,19 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     for &d in &args.test_diffusion {
         scanloc::error::require_non_negative("--test-diffusion", d)?;
     }
+    // The manifest's limits, checked by the same functions.
+    scanloc::limits::check_frame_count("--frames", args.frames as u64)?;
+    scanloc::limits::check_dataset_pixels("--frames", args.frames, params.height, params.width)?;
+    if args.test_frames > 0 {
+        scanloc::limits::check_frame_count("--test-frames", args.test_frames as u64)?;
+        scanloc::limits::check_dataset_pixels(
+            "--test-frames",
+            args.test_frames,
+            params.height,
+            params.width,
+        )?;
+    }
+    cnn::check_model_destination(&args.out)?;
 
     let bar = scanloc::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(

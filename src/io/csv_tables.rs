@@ -57,20 +57,21 @@ pub fn write_truth_to<W: Write>(writer: W, truth: &[TruthRow]) -> anyhow::Result
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
     #[derive(Deserialize)]
     struct Row {
+        #[serde(deserialize_with = "frame_number")]
         frame: usize,
         x: f64,
         y: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         x_start: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         y_start: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         x_end: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         y_end: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         z_mean: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         diffusion: f64,
     }
     let rows: Vec<Row> = read_rows(path, &["frame", "x", "y"])?;
@@ -103,32 +104,92 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
 /// Reads the `frame,x,y,score` columns of a localisation file (other
 /// columns are ignored). Non-finite coordinates or scores are refused.
 pub fn read_predictions(path: &Path) -> anyhow::Result<Vec<Prediction>> {
-    #[derive(Deserialize)]
-    struct Row {
-        frame: usize,
-        x: f64,
-        y: f64,
-        score: f64,
-    }
-    let rows: Vec<Row> = read_rows(path, &["frame", "x", "y", "score"])?;
-    rows.into_iter()
-        .enumerate()
-        .map(|(line, r)| {
-            if !(r.x.is_finite() && r.y.is_finite() && r.score.is_finite()) {
-                return Err(input_error(format!(
-                    "{}: row {}: x, y and score must be finite numbers",
-                    path.display(),
-                    line + 1
-                )));
+    read_predictions_scored_by(path, "score")
+}
+
+/// Reads a localisation file whose score is column `score_column` (e.g.
+/// `mass` in TrackPy's own output): columns `frame`, `x`, `y` and
+/// `score_column`, others ignored. Frame numbers may be written as whole
+/// floats (`3.0`, as pandas writes them); non-finite coordinates or scores
+/// are refused, naming the row.
+pub fn read_predictions_scored_by(
+    path: &Path,
+    score_column: &str,
+) -> anyhow::Result<Vec<Prediction>> {
+    let name = path.display();
+    let mut reader = csv::Reader::from_reader(open_input(path)?);
+    let headers = reader
+        .headers()
+        .map_err(|e| input_error(format!("{name}: cannot read the CSV header: {e}")))?
+        .clone();
+    let required = ["frame", "x", "y", score_column];
+    check_columns(&name, &headers, &required)?;
+    let column = |wanted: &str| headers.iter().position(|h| h.trim() == wanted);
+    let [frame_at, x_at, y_at, score_at] = required.map(|c| column(c).unwrap_or_default());
+    let mut predictions = Vec::new();
+    for (index, record) in reader.records().enumerate() {
+        let row = index + 1;
+        let record = record.map_err(|e| input_error(format!("{name}: row {row}: {e}")))?;
+        let cell = |at: usize| record.get(at).unwrap_or("").trim();
+        let number = |at: usize, column: &str| -> anyhow::Result<f64> {
+            let text = cell(at);
+            match text.parse::<f64>() {
+                Ok(value) if value.is_finite() => Ok(value),
+                _ => Err(input_error(format!(
+                    "{name}: row {row}: {column}: expected a finite number, got {text:?}"
+                ))),
             }
-            Ok(Prediction {
-                frame: r.frame,
-                x: r.x,
-                y: r.y,
-                score: r.score,
-            })
-        })
-        .collect()
+        };
+        let frame = parse_frame_number(cell(frame_at))
+            .map_err(|e| input_error(format!("{name}: row {row}: frame: {e}")))?;
+        predictions.push(Prediction {
+            frame,
+            x: number(x_at, "x")?,
+            y: number(y_at, "y")?,
+            score: number(score_at, score_column)?,
+        });
+    }
+    Ok(predictions)
+}
+
+/// A frame number as written by scanloc (`3`) or pandas (`3.0`): a whole
+/// number from 0 to below [`MAX_FRAMES`](crate::limits::MAX_FRAMES), the
+/// limit every frame count has.
+pub fn parse_frame_number(text: &str) -> Result<usize, String> {
+    let text = text.trim();
+    let value = match text.parse::<u64>() {
+        Ok(value) => value,
+        Err(_) => match text.parse::<f64>() {
+            Ok(value) if value.is_finite() && value >= 0.0 && value.fract() == 0.0 => {
+                // Saturates for huge values, which the bound below refuses.
+                value as u64
+            }
+            _ => return Err(format!("expected a whole number ≥ 0, got {text:?}")),
+        },
+    };
+    let limit = crate::limits::MAX_FRAMES;
+    if value >= limit as u64 {
+        return Err(format!("{value} is beyond the limit of {limit} frames"));
+    }
+    Ok(value as usize)
+}
+
+/// serde adapter for [`parse_frame_number`].
+fn frame_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<usize, D::Error> {
+    let text = String::deserialize(deserializer)?;
+    parse_frame_number(&text).map_err(serde::de::Error::custom)
+}
+
+/// serde adapter for an optional number column: an empty cell (as pandas
+/// writes a missing value) is NaN, like an absent column.
+fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    let text = String::deserialize(deserializer)?;
+    let text = text.trim();
+    if text.is_empty() {
+        return Ok(f64::NAN);
+    }
+    text.parse::<f64>()
+        .map_err(|_| serde::de::Error::custom(format!("expected a number, got {text:?}")))
 }
 
 /// Writes predictions as `frame,x,y,score` to `path` atomically.
@@ -165,18 +226,7 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
         .headers()
         .map_err(|e| input_error(format!("{name}: cannot read the CSV header: {e}")))?
         .clone();
-    let missing: Vec<&str> = required
-        .iter()
-        .copied()
-        .filter(|column| !headers.iter().any(|h| h.trim() == *column))
-        .collect();
-    if !missing.is_empty() {
-        return Err(input_error(format!(
-            "{name}: missing column(s) {} (header: {})",
-            missing.join(", "),
-            headers.iter().collect::<Vec<_>>().join(",")
-        )));
-    }
+    check_columns(&name, &headers, required)?;
     reader
         .deserialize()
         .enumerate()
@@ -217,4 +267,25 @@ pub fn write_features(
         csv.flush()?;
         Ok(())
     })
+}
+
+/// Refuses a header without every `required` column, naming the missing ones.
+fn check_columns(
+    name: &impl std::fmt::Display,
+    headers: &csv::StringRecord,
+    required: &[&str],
+) -> anyhow::Result<()> {
+    let missing: Vec<&str> = required
+        .iter()
+        .copied()
+        .filter(|column| !headers.iter().any(|h| h.trim() == *column))
+        .collect();
+    if !missing.is_empty() {
+        return Err(input_error(format!(
+            "{name}: missing column(s) {} (header: {})",
+            missing.join(", "),
+            headers.iter().collect::<Vec<_>>().join(",")
+        )));
+    }
+    Ok(())
 }

@@ -62,6 +62,7 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
             )));
         }
     };
+    crate::limits::check_stack_shape(&name.to_string(), n, height, width)?;
     let dtype = match npy.dtype() {
         npyz::DType::Plain(type_str) => type_str,
         other => {

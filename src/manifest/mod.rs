@@ -53,11 +53,8 @@ use crate::error::input_error;
 use crate::sim::SimParams;
 pub use locate::{LineIndex, Segment, display_path};
 
-/// Largest frame count a dataset may ask for.
-pub const MAX_FRAMES: usize = 10_000_000;
-/// Largest number of pixels (frames × height × width) one dataset may hold:
-/// 2³¹ counts are 8 GiB in memory, more than the machines this runs on have.
-pub const MAX_DATASET_PIXELS: usize = 1 << 31;
+// The size limits are the command line's too: one definition, in `limits`.
+pub use crate::limits::{MAX_DATASET_PIXELS, MAX_FRAMES};
 /// Longest artefact name.
 pub const MAX_NAME_LEN: usize = 64;
 
@@ -638,13 +635,10 @@ fn parse_frames(
     };
     let mut frames_path = path.to_vec();
     frames_path.push(key("frames"));
-    match value.as_u64() {
-        Some(0) | None => Err(context.error(&frames_path, "must be a positive integer")),
-        Some(n) if n > MAX_FRAMES as u64 => Err(context.error(
-            &frames_path,
-            format!("must be at most {MAX_FRAMES}, got {n}"),
-        )),
-        Some(n) => Ok(n as usize),
+    let frames = value.as_u64().unwrap_or(0);
+    match crate::limits::frame_count_problem(frames) {
+        Some(problem) => Err(context.error(&frames_path, problem)),
+        None => Ok(frames as usize),
     }
 }
 
@@ -689,19 +683,12 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
         params.validate().map_err(|e| {
             locate_validation_error(context, e, (&path, Some(entry)), &microscope_path)
         })?;
-        let pixels = frames
-            .checked_mul(params.height)
-            .and_then(|p| p.checked_mul(params.width));
-        if pixels.is_none_or(|p| p > MAX_DATASET_PIXELS) {
+        if let Some(problem) =
+            crate::limits::dataset_pixels_problem(frames, params.height, params.width)
+        {
             let mut frames_path = path.clone();
             frames_path.push(key("frames"));
-            return Err(context.error(
-                &frames_path,
-                format!(
-                    "{frames} frames of {}×{} pixels exceed the limit of {MAX_DATASET_PIXELS} pixels per dataset",
-                    params.height, params.width
-                ),
-            ));
+            return Err(context.error(&frames_path, problem));
         }
         datasets.push(DatasetSpec {
             name: dataset_name.clone(),

@@ -76,6 +76,8 @@ impl Default for CnnArchitecture {
 /// on frames of this kind, low enough to catch typos before allocating.
 const MAX_CHANNELS: usize = 1024;
 const MAX_DILATION: usize = 256;
+/// Most hidden layers (entries of `dilations`).
+const MAX_LAYERS: usize = 64;
 
 impl CnnArchitecture {
     /// Checks every field; the error is an [`InputError`](crate::error::InputError)
@@ -87,8 +89,11 @@ impl CnnArchitecture {
                 self.channels
             );
         }
-        if self.dilations.is_empty() {
-            crate::bail_input!("architecture.dilations: needs at least one layer");
+        if self.dilations.is_empty() || self.dilations.len() > MAX_LAYERS {
+            crate::bail_input!(
+                "architecture.dilations: needs 1 to {MAX_LAYERS} layers, got {}",
+                self.dilations.len()
+            );
         }
         if let Some(bad) = self.dilations.iter().find(|&&d| d == 0 || d > MAX_DILATION) {
             crate::bail_input!(
@@ -178,8 +183,18 @@ impl TrainingSettings {
         if self.epochs == 0 {
             crate::bail_input!("training.epochs: must be ≥ 1, got 0");
         }
-        if self.batch_size == 0 {
-            crate::bail_input!("training.batch_size: must be ≥ 1, got 0");
+        if self.batch_size == 0 || self.batch_size > crate::limits::MAX_FRAMES {
+            crate::bail_input!(
+                "training.batch_size: must be between 1 and {}, got {}",
+                crate::limits::MAX_FRAMES,
+                self.batch_size
+            );
+        }
+        if self.fresh_frames_per_epoch > 0 {
+            crate::limits::check_frame_count(
+                "training.fresh_frames_per_epoch",
+                self.fresh_frames_per_epoch as u64,
+            )?;
         }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
             crate::bail_input!(
@@ -205,6 +220,7 @@ impl TrainingSettings {
                 self.heatmap_sigma_px
             );
         }
+        crate::limits::check_feature_px("training.heatmap_sigma_px", self.heatmap_sigma_px)?;
         if self.offset_radius_px > 16 {
             crate::bail_input!(
                 "training.offset_radius_px: must be in 0..=16, got {}",
@@ -309,6 +325,20 @@ pub fn inference_device() -> Device {
     Device::flex()
 }
 
+/// Checks that a model can be saved at `dir`: a folder or a path that
+/// does not exist yet (not a file, which a model folder would replace).
+/// Checked before training, so a long training does not end in an
+/// unwritable destination.
+pub fn check_model_destination(dir: &Path) -> anyhow::Result<()> {
+    match std::fs::metadata(dir) {
+        Ok(metadata) if !metadata.is_dir() => crate::bail_input!(
+            "{}: exists and is not a folder; a model is saved as a folder (give a new path or a folder)",
+            dir.display()
+        ),
+        _ => Ok(()),
+    }
+}
+
 impl TrainedCnn {
     fn check_format(format: &str, source: &str) -> anyhow::Result<()> {
         if format != FORMAT {
@@ -411,9 +441,12 @@ impl TrainedCnn {
     /// Saves into folder `dir` (created if missing): the weights in burn's
     /// burnpack record format (`model.bpk`), `config.json` (format,
     /// architecture, settings) and `training.json` (the training record).
-    /// Each file is written atomically.
+    /// Each file is written atomically. `dir` must be a folder or a new
+    /// path (see [`check_model_destination`]).
     pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        check_model_destination(dir)?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| input_error(format!("{}: cannot create: {e}", dir.display())))?;
         let config = SavedConfig {
             format: FORMAT.to_string(),
             architecture: self.architecture.clone(),

@@ -33,6 +33,11 @@ use serde::{Deserialize, Serialize};
 use crate::detect::Prediction;
 use crate::error::{input_error, require_finite};
 use crate::frames::FrameStack;
+use crate::limits::check_feature_px;
+
+/// Most centroid refinement steps: each moves the mask by at most a pixel,
+/// so more than a feature's width of steps only repeats an oscillation.
+pub const MAX_ITERATIONS: usize = crate::limits::MAX_FEATURE_PX;
 
 /// Version of the locator's output, part of the content key of every
 /// prediction it makes in the registry: bump it whenever a change alters any
@@ -96,6 +101,13 @@ impl CrockerGrierParams {
                 self.diameter
             )));
         }
+        // Every size in pixels is bounded (the mask, the filters' kernels
+        // and the dilation window grow with them), the same bound wherever
+        // the parameters come from.
+        check_feature_px("diameter", self.diameter as f64)?;
+        if let Some(smoothing_size) = self.smoothing_size {
+            check_feature_px("smoothing_size", smoothing_size as f64)?;
+        }
         if let Some(minmass) = self.minmass {
             // Negative values would let empty (mass 0, size NaN) features through.
             crate::error::require_non_negative("minmass", minmass)?;
@@ -110,6 +122,7 @@ impl CrockerGrierParams {
                     "separation: must be ≥ 0, got {separation}"
                 )));
             }
+            check_feature_px("separation", separation)?;
         }
         require_finite("noise_size", self.noise_size)?;
         if self.noise_size < 0.0 {
@@ -118,6 +131,7 @@ impl CrockerGrierParams {
                 self.noise_size
             )));
         }
+        check_feature_px("noise_size", self.noise_size)?;
         let smoothing = self.smoothing_size();
         if smoothing == 0 || smoothing.is_multiple_of(2) {
             return Err(input_error(format!(
@@ -143,8 +157,11 @@ impl CrockerGrierParams {
         if self.topn == Some(0) {
             return Err(input_error("topn: must be at least 1"));
         }
-        if self.max_iterations == 0 {
-            return Err(input_error("max_iterations: must be at least 1"));
+        if self.max_iterations == 0 || self.max_iterations > MAX_ITERATIONS {
+            return Err(input_error(format!(
+                "max_iterations: must be between 1 and {MAX_ITERATIONS}, got {}",
+                self.max_iterations
+            )));
         }
         Ok(())
     }
@@ -261,6 +278,7 @@ pub fn locate_frame(
     params: &CrockerGrierParams,
 ) -> anyhow::Result<Vec<Feature>> {
     params.validate()?;
+    crate::limits::check_frame_not_empty(height, width)?;
     if frame.len() != height * width {
         return Err(input_error(format!(
             "frame has {} pixels, expected {height} × {width}",
@@ -530,6 +548,7 @@ pub fn locate_stack(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
     params.validate()?;
+    crate::limits::check_frame_not_empty(frames.height, frames.width)?;
     let integer_max = integer_range(frames.max_count());
     let mask = Mask::new(params.radius());
     let per_frame: Vec<Vec<(usize, Feature)>> = (0..frames.n)
