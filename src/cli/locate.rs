@@ -15,6 +15,12 @@ use scanloc::io::{self, csv_tables};
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model DIR` (a model saved by `scanloc train`) the columns are
 /// frame,x,y,score.
+///
+/// Frames are photon counts: integers, or floats whose values are whole
+/// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs
+/// `--channel`. The CNN goes through the frames in batches of at most 2¹⁸
+/// pixels, so its memory beyond the frames themselves does not grow with
+/// the recording.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct LocateArgs {

@@ -15,6 +15,11 @@ use scanloc::metrics;
 /// the RMSE of each frame's top-scoring prediction, and the fraction of
 /// frames without a prediction. The test set's frames are those named in the
 /// truth file (0 to the largest frame index).
+///
+/// Frame numbers may be written as whole floats (`3.0`, as pandas writes
+/// them) and must be below 10,000,000; empty optional cells are missing
+/// values. Localisations none of which is on a frame of the truth file are
+/// refused (exit 2) rather than scored 0.
 #[derive(Debug, Args)]
 pub struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).

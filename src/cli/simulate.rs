@@ -16,7 +16,8 @@ use scanloc::sim::{self, DetectorNoise, Distribution, SimParams};
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct SimulateArgs {
-    /// Number of frames.
+    /// Number of frames (at most 10,000,000, and 2³¹ pixels in all: the
+    /// limits a manifest's datasets have).
     #[arg(long, default_value_t = 100)]
     frames: usize,
     /// Master seed of the dataset.

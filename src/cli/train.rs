@@ -22,6 +22,10 @@ use scanloc::sim::{self, Distribution, SimParams};
 ///
 /// With `--test-frames`, also simulates a test set per `--test-diffusion`
 /// value (seeds distinct from training) and prints the AUC table.
+///
+/// A training that diverges (a non-finite loss or network output, e.g.
+/// from too high a learning rate) stops with exit code 2, naming the epoch
+/// and batch: the settings are at fault, not the program.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
