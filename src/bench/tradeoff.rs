@@ -455,7 +455,7 @@ pub fn cnn_sweep(
 /// QD (D = 0) with this microscope: the inverse Fisher information of the
 /// expected counts under Poisson noise (Mortensen et al., Nat. Methods
 /// 7:377, 2010, for a Poisson detector), `I = Σ_pixels ∇μ ∇μᵀ / μ`, with
-/// `μ` the scanned PSF plus background of DESIGN §1. Averaged (as variance)
+/// `μ` the scanned PSF plus background of `docs/simulator.md`. Averaged (as variance)
 /// over `positions × positions` sub-pixel QD positions near the frame centre.
 pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
     let a = params.pixel_size_um;
