@@ -4,7 +4,8 @@
 //!
 //! A manifest is parsed strictly: unknown fields are refused, every value is
 //! validated, and every default is filled in, so the resolved [`Manifest`]
-//! says everything a run will do. Errors are [`InputError`]s of the form
+//! says everything a run will do. Errors are
+//! [`InputError`](crate::error::InputError)s of the form
 //! `experiments/x.yaml:14: datasets.test-1.00.frames: must be a positive integer`
 //! (file, line, field path, what is wrong).
 //!
