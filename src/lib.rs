@@ -10,7 +10,6 @@
 pub mod bench;
 pub mod detect;
 pub mod error;
-pub mod frames;
 pub mod io;
 pub mod manifest;
 pub mod metrics;
@@ -19,3 +18,4 @@ pub mod registry;
 pub mod report;
 pub mod run;
 pub mod sim;
+pub mod types;

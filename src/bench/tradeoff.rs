@@ -10,7 +10,8 @@ use crate::detect::crocker_grier::{self, CrockerGrierParams};
 use crate::metrics;
 use crate::progress::hidden;
 use crate::report::figures::{TradeoffChart, tradeoff_chart};
-use crate::sim::{self, Dataset, Distribution, SimParams};
+use crate::sim::{self, Distribution, SimParams};
+use crate::types::{Dataset, Prediction};
 
 /// One setting of a sweep: its speed and its error.
 #[derive(Debug, Clone, Serialize)]
@@ -153,7 +154,7 @@ impl TestSets {
 /// Scores `predictions` of `dataset`: (RMSE of the top prediction, extras
 /// named with `prefix`: AUC per ε and the fraction of frames without one).
 fn score_extras(
-    predictions: &[crate::detect::Prediction],
+    predictions: &[Prediction],
     dataset: &Dataset,
 ) -> anyhow::Result<(f64, Vec<(String, f64)>)> {
     let score = metrics::score(
@@ -186,7 +187,7 @@ pub const FOUND_RADIUS_PX: f64 = 3.0;
 /// Cramér–Rao bound speaks of, free of the wrong-spot outliers that dominate
 /// the RMSE) and `found_static` (the fraction of frames counted there).
 fn static_extras(
-    predictions: &[crate::detect::Prediction],
+    predictions: &[Prediction],
     still: &Dataset,
 ) -> anyhow::Result<Vec<(String, f64)>> {
     let errors = metrics::top_prediction_errors(predictions, &still.truth, still.frames.n)?;
@@ -406,7 +407,16 @@ pub fn cnn_sweep(
                     ..TrainingSettings::default()
                 };
                 let start = Instant::now();
-                let model = cnn::train(&architecture, &settings, &training, None, 6, &hidden())?;
+                // No validation frames: the score is never computed.
+                let model = cnn::train(
+                    &architecture,
+                    &settings,
+                    &training,
+                    None,
+                    6,
+                    &metrics::paper_aucs,
+                    &hidden(),
+                )?;
                 let training_seconds = start.elapsed().as_secs_f64();
                 let start = Instant::now();
                 let predictions = model.locate(&tests.moving.frames, &hidden())?;

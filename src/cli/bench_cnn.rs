@@ -1,12 +1,13 @@
 //! CNN benchmarks: `scanloc bench train` (training and inference
 //! throughput) and `scanloc bench cnn-locate` (a saved model's AUC table and
 //! inference speed on fresh test sets). Thin wrappers over
-//! `scanloc::detect::cnn::bench`.
+//! `scanloc::bench::cnn`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Args;
+use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn};
 use scanloc::sim::{Distribution, RandomDistribution, SimParams};
 
@@ -44,7 +45,7 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         ..defaults
     };
     arch.validate()?;
-    let result = cnn::bench::throughput(
+    let result = bench::cnn::throughput(
         &arch,
         args.batch_size,
         args.samples,
@@ -118,8 +119,8 @@ pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
         ..SimParams::default()
     };
     params.validate()?;
-    let rows = cnn::bench::auc_table(&model, &params, &args.diffusion, args.frames, args.seed)?;
-    print!("{}", cnn::bench::format_auc_table(&rows));
+    let rows = bench::cnn::auc_table(&model, &params, &args.diffusion, args.frames, args.seed)?;
+    print!("{}", bench::cnn::format_auc_table(&rows));
     for row in &rows {
         println!(
             "D {:.2}: {:.0} frames/s (batch {})",

@@ -5,8 +5,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Args;
+use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
+use scanloc::metrics;
 use scanloc::sim::{self, Distribution, SimParams};
 
 /// Train the CNN localiser on simulated frames (DESIGN §2) and save it.
@@ -153,6 +155,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         &dataset,
         Some(&params),
         args.seed,
+        &metrics::paper_aucs,
         &bar,
     )?;
     let seconds = started.elapsed().as_secs_f64();
@@ -183,14 +186,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     );
 
     if args.test_frames > 0 {
-        let table = cnn::bench::auc_table(
+        let table = bench::cnn::auc_table(
             &model,
             &params,
             &args.test_diffusion,
             args.test_frames,
             args.seed.wrapping_add(TEST_SEED_OFFSET),
         )?;
-        print!("{}", cnn::bench::format_auc_table(&table));
+        print!("{}", bench::cnn::format_auc_table(&table));
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -14,7 +14,7 @@ use npyz::{NpyFile, Order, TypeChar, WriterBuilder};
 
 use super::open_input;
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::FrameStack;
 
 /// Writes `frames` as a C-order `(n, H, W)` array.
 pub fn write_frames<W: Write>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {

@@ -17,11 +17,9 @@ use std::sync::Arc;
 use anyhow::Context;
 use npyz::{NpyFile, TypeChar};
 
-use crate::detect::Prediction;
-use crate::frames::FrameStack;
 use crate::io::{csv_tables, npy};
 use crate::metrics::Score;
-use crate::sim::{Dataset, TruthRow};
+use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
 
 /// Version of the blob encodings below.
 pub const FORMAT_VERSION: &str = "scanloc-blobs/1";

@@ -28,47 +28,17 @@ use indicatif::ProgressBar;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 pub use params::{DetectorNoise, Distribution, RandomDistribution, SimParams};
 
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::{Dataset, FrameStack, TruthRow};
 use gaussian::standard_normal_from_bits;
 use noise::Detector;
 
 /// Version of the simulator's output for given parameters and seed. Part of
 /// every dataset's content key: bump it whenever a change alters any frame.
 pub const GENERATOR_VERSION: &str = "scanloc-sim/1";
-
-/// Ground truth of one emitter in one frame, in TrackPy pixel coordinates.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct TruthRow {
-    /// Frame index within its dataset.
-    pub frame: usize,
-    /// Trajectory centroid: mean x (column) over every PSF sample.
-    pub x: f64,
-    /// Trajectory centroid: mean y (row) over every PSF sample.
-    pub y: f64,
-    /// Position at the first sample (the beam at pixel (0, 0)).
-    pub x_start: f64,
-    pub y_start: f64,
-    /// Position at the last sample (the beam at the last pixel).
-    pub x_end: f64,
-    pub y_end: f64,
-    /// Mean depth relative to focus, µm.
-    pub z_mean: f64,
-    /// The frame's diffusion coefficient, µm²/s.
-    pub diffusion: f64,
-}
-
-/// Simulated frames and their ground truth (one row per emitter per frame,
-/// ordered by frame then emitter).
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct Dataset {
-    pub frames: FrameStack,
-    pub truth: Vec<TruthRow>,
-}
 
 /// The per-dataset constants of the inner loop, computed once.
 struct Precomputed {

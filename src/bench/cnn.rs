@@ -6,9 +6,10 @@ use std::time::Instant;
 use indicatif::ProgressBar;
 use serde::Serialize;
 
-use super::{CnnArchitecture, TrainedCnn, TrainingSettings};
+use crate::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 use crate::metrics::{self, PAPER_EPS_PX};
 use crate::sim::{self, Distribution, SimParams};
+use crate::types::Dataset;
 
 /// The paper's FCNN row of Table 1 (AUC at ε = 1, 2, 3 px for D = 0.75,
 /// 1.0, 1.75 µm²/s).
@@ -137,14 +138,16 @@ pub fn throughput(
         fresh_frames_per_epoch: train_samples,
         ..TrainingSettings::default()
     };
-    let empty = sim::Dataset::default();
+    let empty = Dataset::default();
     let started = Instant::now();
-    let model = super::train(
+    // No validation frames: the score is never computed.
+    let model = cnn::train(
         arch,
         &settings,
         &empty,
         Some(&params),
         seed,
+        &metrics::paper_aucs,
         &ProgressBar::hidden(),
     )?;
     let train_seconds = started.elapsed().as_secs_f64();
