@@ -69,10 +69,10 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
 /// Score a saved CNN on fresh simulated test sets and time its inference.
 ///
 /// Simulates `--frames` frames per `--diffusion` value (the paper's
-/// microscope with the given brightness and margin; set i uses seed
-/// `--seed` + i) and prints the AUC at ε = 1, 2, 3 px beside the paper's
-/// FCNN row, with frames/s. Inference options may be overridden to compare
-/// post-processing without retraining.
+/// microscope with the given brightness and margin; each set's seed is
+/// derived from `--seed` and its D) and prints the AUC at ε = 1, 2, 3 px
+/// beside the paper's FCNN row, with frames/s. Inference options may be
+/// overridden to compare post-processing without retraining.
 #[derive(Debug, Args)]
 pub struct BenchLocateArgs {
     /// Model folder written by `scanloc train`.

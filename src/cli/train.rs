@@ -8,6 +8,7 @@ use clap::Args;
 use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
+use scanloc::manifest::derive_seed;
 use scanloc::metrics;
 use scanloc::sim::{self, Distribution, SimParams};
 
@@ -92,10 +93,6 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
-/// Seed offsets separating the dataset, training and test streams of the master seed.
-const DATASET_SEED_OFFSET: u64 = 0x5eed_da7a;
-const TEST_SEED_OFFSET: u64 = 0x7e57_0000;
-
 pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     let defaults = CnnArchitecture::default();
     let architecture = CnnArchitecture {
@@ -141,7 +138,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     let bar = scanloc::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(
         &params,
-        args.seed.wrapping_add(DATASET_SEED_OFFSET),
+        derive_seed(args.seed, "dataset", "training"),
         0..args.frames,
         &bar,
     )?;
@@ -191,7 +188,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
             &params,
             &args.test_diffusion,
             args.test_frames,
-            args.seed.wrapping_add(TEST_SEED_OFFSET),
+            derive_seed(args.seed, "dataset", "test"),
         )?;
         print!("{}", bench::cnn::format_auc_table(&table));
     }
