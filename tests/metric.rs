@@ -1,4 +1,4 @@
-//! The Table-1 metric (DESIGN §3) on cases worked out by hand.
+//! The Table-1 metric (docs/metric.md) on cases worked out by hand.
 
 use scanloc::metrics::score;
 use scanloc::types::{Prediction, TruthRow};

@@ -1,4 +1,4 @@
-//! The simulator against the physics of DESIGN §1: statistics with stated
+//! The simulator against the physics of docs/simulator.md: statistics with stated
 //! tolerances, the analytic PSF, the cut-off bound and determinism.
 
 use scanloc::progress::hidden;

@@ -15,6 +15,9 @@ use scanloc::run::cross_validation;
 /// mean ± standard deviation. Each fold's data and model are artefacts of
 /// their own, so an interrupted sweep resumes where it stopped and one fold
 /// can be rerun alone (--fold K --force checks it against the stored one).
+///
+/// The cross_validation block: docs/manifest.md; how folds are stored:
+/// docs/registry.md.
 #[derive(Debug, Args)]
 pub struct CvArgs {
     /// The experiment manifest.

@@ -13,6 +13,8 @@ use scanloc::run::table;
 /// Query the registry: runs, datasets, models, evaluations, one run or
 /// artefact in full, the differences between two runs, blob verification,
 /// garbage collection and read-only SQL.
+///
+/// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct RegistryArgs {
     #[command(subcommand)]

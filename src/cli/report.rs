@@ -10,6 +10,9 @@ use scanloc::registry::Registry;
 /// (the paper's Table 1), localisation quality, precision–recall curves,
 /// example frames with trajectories, localisation panels and error
 /// histograms (PNG and SVG).
+///
+/// The metric and the paper's table: docs/metric.md. Figures are drawn with
+/// the embedded Roboto font, or the TrueType file named by SCANLOC_FONT.
 #[derive(Debug, Args)]
 pub struct ReportArgs {
     /// The run id (a unique prefix is enough), or `latest` for the most

@@ -13,6 +13,8 @@ use scanloc::run::reproduce;
 /// into a scratch registry) and report, artefact by artefact and number by
 /// number, whether everything came out identical. Exit code 1 if anything
 /// differs, including a stored blob that was altered since.
+///
+/// What a run records and what is compared: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct ReproduceArgs {
     /// The run id (or a unique prefix of it), as `scanloc registry runs` lists.

@@ -16,6 +16,8 @@ use serde_json::json;
 /// the registry (and whose blobs re-hash correctly) is skipped and counted
 /// as cached; a damaged blob is reported and rebuilt. Several runs may share
 /// one registry at once.
+///
+/// Manifest format: docs/manifest.md; the registry: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// The manifest (YAML), e.g. experiments/smoke.yaml.

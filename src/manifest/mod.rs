@@ -1,16 +1,18 @@
-//! Experiment manifests (`experiments/*.yaml`, DESIGN §4): what to simulate,
-//! which detectors to run, how to score them.
+//! Experiment manifests (`experiments/*.yaml`): what to simulate, which
+//! detectors to run, how to score them. The format, every field and its
+//! default are documented in `docs/manifest.md`.
 //!
 //! A manifest is parsed strictly: unknown fields are refused, every value is
 //! validated, and every default is filled in, so the resolved [`Manifest`]
-//! says everything a run will do. Errors are [`InputError`]s of the form
+//! says everything a run will do. Errors are
+//! [`InputError`](crate::error::InputError)s of the form
 //! `experiments/x.yaml:14: datasets.test-1.00.frames: must be a positive integer`
 //! (file, line, field path, what is wrong).
 //!
 //! ```yaml
 //! name: smoke                 # free text, recorded with each run
 //! seed: 1234                  # master seed: every artefact's seed derives from it
-//! microscope:                 # DESIGN §1 parameters shared by every dataset
+//! microscope:                 # simulator parameters shared by every dataset
 //!   brightness: 7
 //!   margin_px: 4
 //! datasets:                   # name → frame count + overrides of `microscope`
@@ -200,7 +202,7 @@ pub struct DetectorEntry {
     pub spec: DetectorSpec,
 }
 
-/// How evaluations are scored (DESIGN §3).
+/// How evaluations are scored (the metric: `docs/metric.md`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetricsSpec {

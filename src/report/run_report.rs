@@ -71,6 +71,14 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     )?;
 
     write_auc_table(&mut markdown, &evaluations, reference.as_ref())?;
+    if let Some(reference) = &reference {
+        write_reference_note(
+            &mut markdown,
+            &evaluations,
+            reference,
+            microscope.brightness,
+        )?;
+    }
     if record["kind"].as_str() == Some("cv") {
         write_cross_validation_table(&mut markdown, &record, reference.as_ref())?;
     }
@@ -282,6 +290,55 @@ fn write_auc_table(
             writeln!(markdown, "{line}")?;
         }
     }
+    Ok(())
+}
+
+/// Which reference rows are a test and which were fitted: `scanloc
+/// calibrate` fits the brightness N_qd (which the paper does not print) to
+/// the row of an untrained detector (Crocker–Grier), so that row agrees by
+/// construction; only trained detectors' rows are out-of-sample.
+fn write_reference_note(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+    reference: &Reference,
+    brightness: f64,
+) -> anyhow::Result<()> {
+    let kind_of = |detector: &str| {
+        evaluations
+            .iter()
+            .find(|e| e.detector == detector)
+            .map(|e| e.detector_kind.as_str())
+    };
+    let mut fitted = Vec::new();
+    let mut tested = Vec::new();
+    for row in &reference.rows {
+        let label = format!("{} ({})", row.label, row.detector);
+        match kind_of(&row.detector) {
+            Some("crocker_grier") => fitted.push(label),
+            Some(_) => tested.push(label),
+            None => {}
+        }
+    }
+    if fitted.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        markdown,
+        "\n**Which rows are a test.** The QD brightness N_qd (here {brightness}) is not given \
+         in the paper; it is fitted with `scanloc calibrate`, which picks the N_qd whose \
+         {} row comes closest to the reference (docs/metric.md, \"Calibrating the \
+         brightness\"). That row was fitted: its agreement checks the simulator's trend across \
+         D and ε, not the locator.{}",
+        fitted.join(" and "),
+        if tested.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " Only the {} row is an out-of-sample comparison: nothing was tuned to it.",
+                tested.join(" and ")
+            )
+        }
+    )?;
     Ok(())
 }
 
@@ -514,4 +571,75 @@ fn error_histograms(
         files.push(file);
     }
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::manifest::{ReferenceCell, ReferenceRow};
+
+    fn evaluation(detector: &str, kind: &str) -> Evaluation {
+        Evaluation {
+            detector: detector.to_string(),
+            detector_kind: kind.to_string(),
+            dataset: "test-1.00".to_string(),
+            diffusion: Some(1.0),
+            dataset_key: String::new(),
+            predictions_key: String::new(),
+            score: Score {
+                per_eps: Vec::new(),
+                rmse_top_px: None,
+                frames: 1,
+                frames_without_prediction: 0,
+                fraction_without_prediction: 0.0,
+                predictions: 0,
+                ground_truths: 1,
+            },
+        }
+    }
+
+    fn row(detector: &str, label: &str) -> ReferenceRow {
+        ReferenceRow {
+            detector: detector.to_string(),
+            label: label.to_string(),
+            cells: vec![ReferenceCell {
+                dataset: "test-1.00".to_string(),
+                eps_px: 1.0,
+                auc: 0.5,
+            }],
+        }
+    }
+
+    #[test]
+    fn the_note_says_the_crocker_grier_row_was_fitted_and_the_cnn_row_is_out_of_sample() {
+        let evaluations = [
+            evaluation("trackpy", "crocker_grier"),
+            evaluation("cnn", "cnn"),
+        ];
+        let reference = Reference {
+            source: "Table 1".to_string(),
+            rows: vec![row("trackpy", "TrackPy"), row("cnn", "FCNN")],
+        };
+        let mut markdown = String::new();
+        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        assert!(markdown.contains("N_qd (here 7.5)"), "{markdown}");
+        assert!(
+            markdown.contains("whose TrackPy (trackpy) row comes closest"),
+            "{markdown}"
+        );
+        assert!(markdown.contains("That row was fitted"), "{markdown}");
+        assert!(
+            markdown.contains("Only the FCNN (cnn) row is an out-of-sample comparison"),
+            "{markdown}"
+        );
+
+        // Without an untrained detector's row nothing was fitted: no note.
+        let reference = Reference {
+            source: "Table 1".to_string(),
+            rows: vec![row("cnn", "FCNN")],
+        };
+        let mut markdown = String::new();
+        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        assert!(markdown.is_empty(), "{markdown}");
+    }
 }

@@ -1,4 +1,4 @@
-//! `scanloc calibrate` (DESIGN §6): choose the brightness N_qd for which a
+//! `scanloc calibrate` (`docs/metric.md`): choose the brightness N_qd for which a
 //! detector's AUC row comes closest to its reference row.
 //!
 //! Each grid point is an ordinary recorded run (kind `calibrate`) of the
