@@ -385,10 +385,11 @@ fn audit_commands_list_show_diff_and_query() {
         steps(&first).len()
     );
     assert_eq!(
-        headings[1..],
-        ["manifest", "code", "seeds", counts.as_str(), "AUC"],
+        headings[1..5],
+        ["manifest", "code", "seeds", counts.as_str()],
         "{shown}"
     );
+    assert!(headings[5].starts_with("AUC "), "{shown}");
     for (step, _) in steps(&first) {
         assert!(
             shown

@@ -13,6 +13,35 @@ use serde::{Deserialize, Serialize};
 use super::{ArtefactKind, BlobRef, CodeVersion, Registry, host_name, process_alive};
 use crate::error::input_error;
 
+/// For an enum stored in the database by name: `as_str` (the stored
+/// name), `parse` (its inverse, `None` for an unknown name) and `Display`
+/// (the name, padded as the format asks).
+macro_rules! stored_by_name {
+    ($type:ident { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $type {
+            /// The name stored in the database.
+            pub fn as_str(self) -> &'static str {
+                match self {
+                    $($type::$variant => $name),+
+                }
+            }
+
+            fn parse(text: &str) -> Option<Self> {
+                match text {
+                    $($name => Some($type::$variant),)+
+                    _ => None,
+                }
+            }
+        }
+
+        impl fmt::Display for $type {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.pad(self.as_str())
+            }
+        }
+    };
+}
+
 /// What a run was started by.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -28,34 +57,12 @@ pub enum RunKind {
     Calibrate,
 }
 
-impl RunKind {
-    /// The name stored in `runs.kind`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            RunKind::Run => "run",
-            RunKind::Reproduce => "reproduce",
-            RunKind::Cv => "cv",
-            RunKind::Calibrate => "calibrate",
-        }
-    }
-
-    fn parse(text: &str) -> Option<Self> {
-        [
-            RunKind::Run,
-            RunKind::Reproduce,
-            RunKind::Cv,
-            RunKind::Calibrate,
-        ]
-        .into_iter()
-        .find(|kind| kind.as_str() == text)
-    }
-}
-
-impl fmt::Display for RunKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.pad(self.as_str())
-    }
-}
+stored_by_name!(RunKind {
+    Run => "run",
+    Reproduce => "reproduce",
+    Cv => "cv",
+    Calibrate => "calibrate",
+});
 
 /// How a run ended (or not).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -69,28 +76,14 @@ pub enum RunStatus {
     Unfinished,
 }
 
+stored_by_name!(RunStatus {
+    Running => "running",
+    Done => "done",
+    Failed => "failed",
+    Unfinished => "unfinished",
+});
+
 impl RunStatus {
-    /// The name stored in `runs.status`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            RunStatus::Running => "running",
-            RunStatus::Done => "done",
-            RunStatus::Failed => "failed",
-            RunStatus::Unfinished => "unfinished",
-        }
-    }
-
-    fn parse(text: &str) -> Option<Self> {
-        [
-            RunStatus::Running,
-            RunStatus::Done,
-            RunStatus::Failed,
-            RunStatus::Unfinished,
-        ]
-        .into_iter()
-        .find(|status| status.as_str() == text)
-    }
-
     /// The status a run recorded as `self` by process `pid` on `host` has
     /// in effect: a `running` run of this host whose process is gone was
     /// killed before it could record its end, so it is `unfinished`. The
@@ -106,12 +99,6 @@ impl RunStatus {
     }
 }
 
-impl fmt::Display for RunStatus {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.pad(self.as_str())
-    }
-}
-
 /// What became of one step of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -124,32 +111,11 @@ pub enum StepOutcome {
     Rebuilt,
 }
 
-impl StepOutcome {
-    /// The name stored in `run_steps.outcome`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            StepOutcome::Cached => "cached",
-            StepOutcome::Computed => "computed",
-            StepOutcome::Rebuilt => "rebuilt",
-        }
-    }
-
-    fn parse(text: &str) -> Option<Self> {
-        [
-            StepOutcome::Cached,
-            StepOutcome::Computed,
-            StepOutcome::Rebuilt,
-        ]
-        .into_iter()
-        .find(|outcome| outcome.as_str() == text)
-    }
-}
-
-impl fmt::Display for StepOutcome {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.pad(self.as_str())
-    }
-}
+stored_by_name!(StepOutcome {
+    Cached => "cached",
+    Computed => "computed",
+    Rebuilt => "rebuilt",
+});
 
 /// How many steps of a run had each [`StepOutcome`]. Serialised as
 /// `cached_steps`, `computed_steps`, `rebuilt_steps` (the `runs` columns).
@@ -342,7 +308,41 @@ fn cross_validation_plan(columns: &Columns) -> anyhow::Result<Option<CrossValida
     }))
 }
 
+/// The step counts of a `runs` row.
+fn step_counts(columns: &Columns) -> anyhow::Result<StepCounts> {
+    Ok(StepCounts {
+        cached: columns.count("cached_steps")?,
+        computed: columns.count("computed_steps")?,
+        rebuilt: columns.count("rebuilt_steps")?,
+    })
+}
+
 impl Registry {
+    /// Every row `sql` (with run `id` as `?1`) returns from `table`, each
+    /// read by `read`.
+    fn rows_of_run<T>(
+        &self,
+        table: &'static str,
+        id: &str,
+        sql: &str,
+        read: impl Fn(&Columns) -> anyhow::Result<T>,
+    ) -> anyhow::Result<Vec<T>> {
+        let mut statement = self
+            .conn
+            .prepare(sql)
+            .with_context(|| format!("run {id}: reading table {table}"))?;
+        let mut rows = statement.query([id])?;
+        let mut read_rows = Vec::new();
+        while let Some(row) = rows.next()? {
+            read_rows.push(read(&Columns {
+                row,
+                table,
+                run: id,
+            })?);
+        }
+        Ok(read_rows)
+    }
+
     /// Every run, newest first, with its status in effect.
     pub fn runs(&self) -> anyhow::Result<Vec<RunSummary>> {
         let mut statement = self
@@ -369,11 +369,7 @@ impl Registry {
                 status: recorded.in_effect(&columns.get::<String>("host")?, columns.get("pid")?),
                 started_at: columns.get("started_at")?,
                 ended_at: columns.get("ended_at")?,
-                counts: StepCounts {
-                    cached: columns.count("cached_steps")?,
-                    computed: columns.count("computed_steps")?,
-                    rebuilt: columns.count("rebuilt_steps")?,
-                },
+                counts: step_counts(&columns)?,
                 git_commit: columns.get("git_commit")?,
                 git_dirty: columns.get("git_dirty")?,
                 id,
@@ -392,127 +388,91 @@ impl Registry {
 
     /// Run `id` in full: its record, steps and AUC table.
     pub fn run_record(&self, id: &str) -> anyhow::Result<RunRecord> {
-        let mut statement = self
-            .conn
-            .prepare(
-                "SELECT id, kind, parent_run, manifest_name, manifest_path, manifest_text,
+        let mut records = self.rows_of_run(
+            "runs",
+            id,
+            "SELECT id, kind, parent_run, manifest_name, manifest_path, manifest_text,
                     manifest_sha256, resolved, seeds, crate_version, git_commit, git_dirty, rustc,
                     host, pid, threads, forced, started_at, ended_at, status, error,
                     cached_steps, computed_steps, rebuilt_steps, cv_detector, cv_folds, cv_fold
              FROM runs WHERE id = ?1",
-            )
-            .with_context(|| format!("run {id}: reading its record"))?;
-        let mut rows = statement.query([id])?;
-        let Some(row) = rows.next()? else {
+            |columns| {
+                let host: String = columns.get("host")?;
+                let pid: i64 = columns.get("pid")?;
+                let recorded_status = columns.parse("status", RunStatus::parse)?;
+                Ok(RunRecord {
+                    id: id.to_string(),
+                    kind: columns.parse("kind", RunKind::parse)?,
+                    parent_run: columns.get("parent_run")?,
+                    manifest_name: columns.get("manifest_name")?,
+                    manifest_path: columns.get("manifest_path")?,
+                    manifest_text: columns.get("manifest_text")?,
+                    manifest_sha256: columns.get("manifest_sha256")?,
+                    resolved: columns.json("resolved")?,
+                    seeds: columns.json("seeds")?,
+                    code: CodeVersion {
+                        crate_version: columns.get("crate_version")?,
+                        git_commit: columns.get("git_commit")?,
+                        git_dirty: columns.get("git_dirty")?,
+                        rustc: columns.get("rustc")?,
+                    },
+                    status: recorded_status.in_effect(&host, pid),
+                    pid: u32::try_from(pid).with_context(|| columns.malformed("pid"))?,
+                    host,
+                    threads: columns.count("threads")?,
+                    forced: columns.get("forced")?,
+                    started_at: columns.get("started_at")?,
+                    ended_at: columns.get("ended_at")?,
+                    error: columns.get("error")?,
+                    counts: step_counts(columns)?,
+                    cross_validation: cross_validation_plan(columns)?,
+                    steps: Vec::new(),
+                    auc: Vec::new(),
+                })
+            },
+        )?;
+        let Some(mut record) = records.pop() else {
             return Err(input_error(format!("{id}: no such run")));
         };
-        let columns = Columns {
-            row,
-            table: "runs",
-            run: id,
-        };
-        let host: String = columns.get("host")?;
-        let pid: i64 = columns.get("pid")?;
-        let recorded_status = columns.parse("status", RunStatus::parse)?;
-        let mut record = RunRecord {
-            id: id.to_string(),
-            kind: columns.parse("kind", RunKind::parse)?,
-            parent_run: columns.get("parent_run")?,
-            manifest_name: columns.get("manifest_name")?,
-            manifest_path: columns.get("manifest_path")?,
-            manifest_text: columns.get("manifest_text")?,
-            manifest_sha256: columns.get("manifest_sha256")?,
-            resolved: columns.json("resolved")?,
-            seeds: columns.json("seeds")?,
-            code: CodeVersion {
-                crate_version: columns.get("crate_version")?,
-                git_commit: columns.get("git_commit")?,
-                git_dirty: columns.get("git_dirty")?,
-                rustc: columns.get("rustc")?,
-            },
-            status: recorded_status.in_effect(&host, pid),
-            pid: u32::try_from(pid).with_context(|| columns.malformed("pid"))?,
-            host,
-            threads: columns.count("threads")?,
-            forced: columns.get("forced")?,
-            started_at: columns.get("started_at")?,
-            ended_at: columns.get("ended_at")?,
-            error: columns.get("error")?,
-            counts: StepCounts {
-                cached: columns.count("cached_steps")?,
-                computed: columns.count("computed_steps")?,
-                rebuilt: columns.count("rebuilt_steps")?,
-            },
-            cross_validation: cross_validation_plan(&columns)?,
-            steps: Vec::new(),
-            auc: Vec::new(),
-        };
-        drop(rows);
-        record.steps = self.run_steps(id)?;
-        record.auc = self.run_auc(id)?;
-        Ok(record)
-    }
-
-    fn run_steps(&self, id: &str) -> anyhow::Result<Vec<StepRecord>> {
-        let mut statement = self
-            .conn
-            .prepare(
-                "SELECT ordinal, step, kind, artefact_key, outcome, seconds, blobs, detail
+        record.steps = self.rows_of_run(
+            "run_steps",
+            id,
+            "SELECT ordinal, step, kind, artefact_key, outcome, seconds, blobs, detail
              FROM run_steps WHERE run_id = ?1 ORDER BY ordinal",
-            )
-            .with_context(|| format!("run {id}: reading its steps"))?;
-        let mut rows = statement.query([id])?;
-        let mut steps = Vec::new();
-        while let Some(row) = rows.next()? {
-            let columns = Columns {
-                row,
-                table: "run_steps",
-                run: id,
-            };
-            let blobs: BTreeMap<String, String> = columns.json("blobs")?;
-            steps.push(StepRecord {
-                ordinal: columns.count("ordinal")?,
-                step: columns.get("step")?,
-                kind: columns.parse("kind", |text| ArtefactKind::parse(text).ok())?,
-                artefact_key: columns.get("artefact_key")?,
-                outcome: columns.parse("outcome", StepOutcome::parse)?,
-                seconds: columns.get("seconds")?,
-                blobs: blobs
-                    .into_iter()
-                    .map(|(role, sha256)| BlobRef { role, sha256 })
-                    .collect(),
-                detail: columns.get("detail")?,
-            });
-        }
-        Ok(steps)
-    }
-
-    fn run_auc(&self, id: &str) -> anyhow::Result<Vec<AucRow>> {
-        let mut statement = self
-            .conn
-            .prepare(
-                "SELECT detector, dataset, diffusion, eps_px, auc, evaluation_key
+            |columns| {
+                let blobs: BTreeMap<String, String> = columns.json("blobs")?;
+                Ok(StepRecord {
+                    ordinal: columns.count("ordinal")?,
+                    step: columns.get("step")?,
+                    kind: columns.parse("kind", |text| ArtefactKind::parse(text).ok())?,
+                    artefact_key: columns.get("artefact_key")?,
+                    outcome: columns.parse("outcome", StepOutcome::parse)?,
+                    seconds: columns.get("seconds")?,
+                    blobs: blobs
+                        .into_iter()
+                        .map(|(role, sha256)| BlobRef { role, sha256 })
+                        .collect(),
+                    detail: columns.get("detail")?,
+                })
+            },
+        )?;
+        record.auc = self.rows_of_run(
+            "run_auc",
+            id,
+            "SELECT detector, dataset, diffusion, eps_px, auc, evaluation_key
              FROM run_auc WHERE run_id = ?1 ORDER BY rowid",
-            )
-            .with_context(|| format!("run {id}: reading its AUC table"))?;
-        let mut rows = statement.query([id])?;
-        let mut auc = Vec::new();
-        while let Some(row) = rows.next()? {
-            let columns = Columns {
-                row,
-                table: "run_auc",
-                run: id,
-            };
-            auc.push(AucRow {
-                detector: columns.get("detector")?,
-                dataset: columns.get("dataset")?,
-                diffusion: columns.get("diffusion")?,
-                eps_px: columns.get("eps_px")?,
-                auc: columns.get("auc")?,
-                evaluation_key: columns.get("evaluation_key")?,
-            });
-        }
-        Ok(auc)
+            |columns| {
+                Ok(AucRow {
+                    detector: columns.get("detector")?,
+                    dataset: columns.get("dataset")?,
+                    diffusion: columns.get("diffusion")?,
+                    eps_px: columns.get("eps_px")?,
+                    auc: columns.get("auc")?,
+                    evaluation_key: columns.get("evaluation_key")?,
+                })
+            },
+        )?;
+        Ok(record)
     }
 
     /// Whether a run with exactly this id exists.

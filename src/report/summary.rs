@@ -100,7 +100,7 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
         )?;
     }
 
-    writeln!(out, "AUC")?;
+    // The grid opens with its own `AUC` heading.
     let reference = match RecordedManifest::of(record) {
         Ok(manifest) => manifest.reference,
         Err(e) => {
