@@ -7,14 +7,14 @@ use std::path::{Path, PathBuf};
 
 use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
 use super::recorded::RecordedManifest;
-use crate::detect::Prediction;
 use crate::error::input_error;
 use crate::manifest::Reference;
 use crate::metrics::Score;
 use crate::progress::hidden;
 use crate::registry::{Registry, RunRecord};
 use crate::run::{cross_validation, load_artefact};
-use crate::sim::{self, Dataset, Distribution, SimParams};
+use crate::sim::{self, Distribution, SimParams};
+use crate::types::{Dataset, Prediction};
 
 /// One scored (detector, dataset) pair of the run.
 struct Evaluation {
