@@ -1,7 +1,10 @@
 //! The registry: a SQLite database (`registry.sqlite`) mapping content keys
 //! of artefacts to the hashes of their stored bytes, plus the record of
 //! every run; blobs live beside it (see [`blobs`]). The schema is in
-//! `schema.sql` and documented in `docs/registry.md`.
+//! `schema.sql` and `schema_v2.sql` (a cross-validation run's plan) and
+//! documented in `docs/registry.md`. Writing is here; reading back is in
+//! [`record`] (runs, typed), [`sql`] (listings, artefacts, read-only SQL),
+//! [`verify`], [`gc`] and [`diff`].
 //!
 //! Concurrency: the database is in WAL mode with a long busy timeout and
 //! every write is a short `BEGIN IMMEDIATE` transaction, so several runs can

@@ -173,7 +173,7 @@ fn write_cross_validation_table(
             None => cell.dataset.clone(),
         };
         let theirs = reference
-            .and_then(|r| r.auc(&detector, &cell.dataset, cell.eps_px))
+            .and_then(|r| r.auc(detector, &cell.dataset, cell.eps_px))
             .map_or("—".to_string(), |auc| format!("{auc:.2}"));
         let per_fold: Vec<String> = cell.per_fold.iter().map(|a| format!("{a:.3}")).collect();
         writeln!(
@@ -379,7 +379,7 @@ fn localisation_panels(
                 height: dataset.frames.height,
                 width: dataset.frames.width,
                 counts: dataset.frames.frame(i).to_vec(),
-                trajectory: sim::trajectories(&params, seed, i)
+                trajectory: sim::trajectories(params, seed, i)
                     .into_iter()
                     .next()
                     .unwrap_or_default(),
