@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::manifest;
-use scanloc::registry::Registry;
+use scanloc::registry::{CrossValidationPlan, Registry};
 use scanloc::run::cross_validation;
 
 /// Cross-validate a trained detector: its training set split into k folds
@@ -58,14 +58,12 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
         })?;
     let folds = args.folds.or(block.map(|b| b.folds)).unwrap_or(5);
     let mut registry = Registry::open(&args.registry)?;
-    let outcome = cross_validation::cross_validate(
-        &mut registry,
-        &manifest,
-        &detector,
+    let plan = CrossValidationPlan {
+        detector,
         folds,
-        args.fold,
-        args.force,
-    )?;
+        fold: args.fold,
+    };
+    let outcome = cross_validation::cross_validate(&mut registry, &manifest, &plan, args.force)?;
     if args.json {
         println!(
             "{}",
@@ -74,8 +72,8 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
                 "detector": outcome.detector,
                 "folds": outcome.folds,
                 "cells": outcome.cells,
-                "cached_steps": outcome.run.cached_steps,
-                "computed_steps": outcome.run.computed_steps,
+                "cached_steps": outcome.run.counts.cached,
+                "computed_steps": outcome.run.counts.computed,
             })
         );
     } else {

@@ -5,8 +5,7 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::error::CheckFailed;
-use scanloc::registry::Registry;
-use scanloc::registry::query::Found;
+use scanloc::registry::{Found, Registry};
 use scanloc::run::reproduce;
 
 /// Re-execute a recorded run from scratch (ignoring every cached artefact,

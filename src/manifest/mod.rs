@@ -240,6 +240,18 @@ pub struct CrossValidation {
     pub detector: String,
 }
 
+impl CrossValidation {
+    /// Checks a fold count k (2 to 50): the one place that range is
+    /// enforced, for manifests and the command line alike.
+    pub fn check_folds(folds: usize) -> Result<(), String> {
+        if (2..=50).contains(&folds) {
+            Ok(())
+        } else {
+            Err(format!("must be between 2 and 50, got {folds}"))
+        }
+    }
+}
+
 /// Published numbers to print beside ours (e.g. the paper's Table 1).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Reference {
@@ -813,11 +825,8 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
     }
 
     if let Some(cv) = &cross_validation {
-        if !(2..=50).contains(&cv.folds) {
-            return Err(context.error(
-                &path_of(&["cross_validation", "folds"]),
-                format!("must be between 2 and 50, got {}", cv.folds),
-            ));
+        if let Err(message) = CrossValidation::check_folds(cv.folds) {
+            return Err(context.error(&path_of(&["cross_validation", "folds"]), message));
         }
         let detector_path = path_of(&["cross_validation", "detector"]);
         match detectors.iter().find(|d| d.name == cv.detector) {

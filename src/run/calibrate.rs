@@ -13,7 +13,7 @@ use serde::Serialize;
 use super::{RunOptions, execute, plan::Plan};
 use crate::error::input_error;
 use crate::manifest::Manifest;
-use crate::registry::Registry;
+use crate::registry::{Registry, RunKind};
 
 /// One grid point of the sweep.
 #[derive(Debug, Clone, Serialize)]
@@ -91,7 +91,7 @@ pub fn calibrate(
             &point_manifest,
             &plan,
             &RunOptions {
-                kind: Some("calibrate".to_string()),
+                kind: RunKind::Calibrate,
                 ..RunOptions::default()
             },
         )?;
