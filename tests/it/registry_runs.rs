@@ -1,7 +1,7 @@
 //! `scanloc run` over a registry: caching, recomputation of exactly what
 //! changed, `--force`, damaged blobs, `reproduce`, and the audit commands.
 
-mod common;
+use crate::common;
 
 use common::*;
 use serde_json::Value;

@@ -2,7 +2,7 @@
 //! Pareto front is marked, the CNN sweep trains models that learn, and bad
 //! settings are refused.
 
-mod common;
+use crate::common;
 
 use common::{scanloc, stderr, stdout};
 

@@ -5,7 +5,7 @@
 //! each file is `# expect: FRAGMENT`, the part of the error expected after
 //! `error: PATH` (starting with `:LINE:`).
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 

@@ -1,6 +1,6 @@
 //! `scanloc calibrate` (DESIGN §6) and `scanloc cv` on small manifests.
 
-mod common;
+use crate::common;
 
 use common::{scanloc, smoke, stderr, stdout, write_manifest};
 

@@ -1,6 +1,6 @@
 //! `scanloc locate` and `scanloc score` as a user runs them.
 
-mod common;
+use crate::common;
 
 use common::scanloc;
 

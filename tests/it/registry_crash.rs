@@ -1,7 +1,7 @@
 //! A registry survives what users do to runs: SIGKILL mid-run, and several
 //! runs started at once on one registry.
 
-mod common;
+use crate::common;
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
