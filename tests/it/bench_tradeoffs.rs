@@ -2,9 +2,7 @@
 //! Pareto front is marked, the CNN sweep trains models that learn, and bad
 //! settings are refused.
 
-use crate::common;
-
-use common::{scanloc, stderr, stdout};
+use crate::common::{scanloc, stderr, stdout};
 
 /// Rows of a CSV file as maps from header to field.
 fn read_csv(path: &std::path::Path) -> Vec<std::collections::HashMap<String, String>> {

@@ -5,11 +5,9 @@
 //! each file is `# expect: FRAGMENT`, the part of the error expected after
 //! `error: PATH` (starting with `:LINE:`).
 
-use crate::common;
-
 use std::path::PathBuf;
 
-use common::*;
+use crate::common::*;
 
 fn corpus() -> Vec<(PathBuf, String)> {
     let dir = root().join("tests/fixtures/manifests/bad");

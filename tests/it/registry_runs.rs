@@ -1,9 +1,7 @@
 //! `scanloc run` over a registry: caching, recomputation of exactly what
 //! changed, `--force`, damaged blobs, `reproduce`, and the audit commands.
 
-use crate::common;
-
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 
 fn steps(run: &Value) -> Vec<(String, String)> {

@@ -2,9 +2,7 @@
 
 use std::path::Path;
 
-use crate::common;
-
-use common::scanloc;
+use crate::common::scanloc;
 
 #[test]
 fn report_of_a_smoke_run_has_the_table_and_every_figure() {
