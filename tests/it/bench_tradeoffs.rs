@@ -26,9 +26,8 @@ fn number(row: &std::collections::HashMap<String, String>, field: &str) -> f64 {
 }
 
 /// For each row of `table`, whether it is on the Pareto front of `cost`
-/// against `error`, computed from the table's own numbers: no other row is
-/// at least as good in both and better in one (lower is better; a row with
-/// a non-finite coordinate is never on the front).
+/// against `error` (lower is better in both), by the library's rule applied
+/// to the numbers the table holds: the marks written must be these.
 fn pareto_front(
     table: &[std::collections::HashMap<String, String>],
     cost: impl Fn(&std::collections::HashMap<String, String>) -> f64,
@@ -37,18 +36,7 @@ fn pareto_front(
         .iter()
         .map(|row| (cost(row), number(row, "error")))
         .collect();
-    points
-        .iter()
-        .map(|&(cost, error)| {
-            cost.is_finite()
-                && error.is_finite()
-                && !points.iter().any(|&(other_cost, other_error)| {
-                    other_cost <= cost
-                        && other_error <= error
-                        && (other_cost < cost || other_error < error)
-                })
-        })
-        .collect()
+    scanloc::bench::tradeoff::pareto_flags(&points)
 }
 
 #[test]
