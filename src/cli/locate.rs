@@ -21,6 +21,8 @@ use scanloc::io::{self, csv_tables};
 /// `--channel`. The CNN goes through the frames in batches of at most 2¹⁸
 /// pixels, so its memory beyond the frames themselves does not grow with
 /// the recording.
+///
+/// Both methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct LocateArgs {
@@ -113,7 +115,13 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
             bar.finish_and_clear();
-            csv_tables::write_features(&args.out, &features)?;
+            csv_tables::write_localisations(
+                &args.out,
+                crocker_grier::FEATURE_COLUMNS,
+                features
+                    .iter()
+                    .map(|(frame, f)| (f.prediction(*frame), f.column_values())),
+            )?;
         }
         Method::Cnn => {
             let model_dir = args

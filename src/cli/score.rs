@@ -9,7 +9,7 @@ use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::metrics;
 
-/// Score localisations against ground truth (DESIGN §3).
+/// Score localisations against ground truth (docs/metric.md).
 ///
 /// Prints the AUC of the precision–recall curve for each matching radius ε,
 /// the RMSE of each frame's top-scoring prediction, and the fraction of
@@ -127,8 +127,8 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
 /// 0 without a word.
 fn refuse_disjoint_frames(
     args: &ScoreArgs,
-    truth: &[scanloc::sim::TruthRow],
-    predictions: &[scanloc::detect::Prediction],
+    truth: &[scanloc::types::TruthRow],
+    predictions: &[scanloc::types::Prediction],
 ) -> anyhow::Result<()> {
     if predictions.is_empty() {
         return Ok(());

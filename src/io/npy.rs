@@ -5,16 +5,18 @@
 //! from a float dtype whose values are all whole non-negative numbers; a
 //! 2-D array is read as one frame. Values that are negative, NaN, infinite,
 //! fractional or above `u32::MAX` are refused with the index of the first
-//! offender, never rounded or clipped.
+//! offender, never rounded or clipped. One writer and one reader, over any
+//! `Write`/`Read` (the registry stores the same bytes as `frames.npy`
+//! blobs); the file reader calls it.
 
-use std::io::{BufReader, Write};
+use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
 use npyz::{NpyFile, Order, TypeChar, WriterBuilder};
 
 use super::open_input;
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::FrameStack;
 
 /// Writes `frames` as a C-order `(n, H, W)` array.
 pub fn write_frames<W: Write>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {
@@ -41,10 +43,16 @@ pub fn write_frames<W: Write>(writer: &mut W, frames: &FrameStack) -> anyhow::Re
 
 /// Reads a frame stack from a `.npy` file.
 pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    let name = path.display();
     let file = open_input(path)?;
     let file_len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
-    let reader = BufReader::new(file);
+    read_frames_from(BufReader::new(file), file_len, &path.display().to_string())
+}
+
+/// Reads a frame stack from `.npy` data of `len` bytes (header included)
+/// from any reader, as [`read_frames`]; the header's shape is checked
+/// against `len` before anything is allocated. `name` (a path, or a blob's
+/// role) names the data in errors.
+pub fn read_frames_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Result<FrameStack> {
     let npy = NpyFile::new(reader)
         .map_err(|e| input_error(format!("{name}: not a readable .npy file: {e}")))?;
     if npy.order() != Order::C {
@@ -62,7 +70,6 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
             )));
         }
     };
-    crate::limits::check_stack_shape(&name.to_string(), n, height, width)?;
     let dtype = match npy.dtype() {
         npyz::DType::Plain(type_str) => type_str,
         other => {
@@ -72,29 +79,29 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
             )));
         }
     };
-    // A damaged header can claim any shape: check it against the file's
-    // size before allocating anything for the data.
+    // A damaged header can claim any shape: check it against the data's
+    // size before allocating anything for it.
     let claimed_bytes = shape.iter().try_fold(dtype.size_field().max(1), |acc, &d| {
         acc.checked_mul(d as u64)
     });
-    if claimed_bytes.is_none_or(|bytes| bytes > file_len) {
+    if claimed_bytes.is_none_or(|bytes| bytes > len) {
         return Err(input_error(format!(
-            "{name}: header claims shape {shape:?} of {dtype}, more data than the file's {file_len} bytes"
+            "{name}: header claims shape {shape:?} of {dtype}, more data than its {len} bytes"
         )));
     }
-    // Exact: the shape's product was checked against the file size above.
-    let len = n * height * width;
+    // Exact: the shape's product was checked against the data's size above.
+    let values = n * height * width;
     let data: Vec<u32> = match (dtype.type_char(), dtype.size_field()) {
-        (TypeChar::Uint, 1) => read_counts(npy, len, &name, |v: u8| Some(v.into()))?,
-        (TypeChar::Uint, 2) => read_counts(npy, len, &name, |v: u16| Some(v.into()))?,
-        (TypeChar::Uint, 4) => read_counts(npy, len, &name, |v: u32| Some(v))?,
-        (TypeChar::Uint, 8) => read_counts(npy, len, &name, |v: u64| u32::try_from(v).ok())?,
-        (TypeChar::Int, 1) => read_counts(npy, len, &name, |v: i8| u32::try_from(v).ok())?,
-        (TypeChar::Int, 2) => read_counts(npy, len, &name, |v: i16| u32::try_from(v).ok())?,
-        (TypeChar::Int, 4) => read_counts(npy, len, &name, |v: i32| u32::try_from(v).ok())?,
-        (TypeChar::Int, 8) => read_counts(npy, len, &name, |v: i64| u32::try_from(v).ok())?,
-        (TypeChar::Float, 4) => read_counts(npy, len, &name, |v: f32| count_from_f64(v.into()))?,
-        (TypeChar::Float, 8) => read_counts(npy, len, &name, count_from_f64)?,
+        (TypeChar::Uint, 1) => read_counts(npy, values, name, |v: u8| Some(v.into()))?,
+        (TypeChar::Uint, 2) => read_counts(npy, values, name, |v: u16| Some(v.into()))?,
+        (TypeChar::Uint, 4) => read_counts(npy, values, name, |v: u32| Some(v))?,
+        (TypeChar::Uint, 8) => read_counts(npy, values, name, |v: u64| u32::try_from(v).ok())?,
+        (TypeChar::Int, 1) => read_counts(npy, values, name, |v: i8| u32::try_from(v).ok())?,
+        (TypeChar::Int, 2) => read_counts(npy, values, name, |v: i16| u32::try_from(v).ok())?,
+        (TypeChar::Int, 4) => read_counts(npy, values, name, |v: i32| u32::try_from(v).ok())?,
+        (TypeChar::Int, 8) => read_counts(npy, values, name, |v: i64| u32::try_from(v).ok())?,
+        (TypeChar::Float, 4) => read_counts(npy, values, name, |v: f32| count_from_f64(v.into()))?,
+        (TypeChar::Float, 8) => read_counts(npy, values, name, count_from_f64)?,
         _ => {
             return Err(input_error(format!(
                 "{name}: unsupported dtype {dtype}; expected integer or float counts"
@@ -110,7 +117,7 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
 fn read_counts<T: npyz::Deserialize, R: std::io::Read>(
     npy: NpyFile<R>,
     len: usize,
-    name: &impl std::fmt::Display,
+    name: &str,
     to_count: impl Fn(T) -> Option<u32>,
 ) -> anyhow::Result<Vec<u32>> {
     let values = npy

@@ -5,8 +5,7 @@ use indicatif::ProgressBar;
 use super::data::input_tensor;
 use super::model::{Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL};
 use super::{CnnArchitecture, TrainedCnn, inference_device};
-use crate::detect::Prediction;
-use crate::frames::FrameStack;
+use crate::types::{FrameStack, Prediction};
 
 /// Most frames per forward pass (small frames; the paper's 24 × 25 pixel
 /// frames go 256 at a time).

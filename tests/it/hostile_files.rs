@@ -3,18 +3,16 @@
 //! exit 2 and one line naming the file or flag, never a panic, never an
 //! unbounded allocation, never a clobbered file.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 
-use common::{scanloc, stderr};
+use crate::common::{self, scanloc, stderr};
 use npyz::WriterBuilder;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
-use scanloc::frames::FrameStack;
 use scanloc::progress::hidden;
 use scanloc::sim::{self, SimParams};
+use scanloc::types::FrameStack;
 
 /// Asserts exit code 2 with one line on stderr that contains `needle`, and
 /// no panic.
@@ -104,6 +102,7 @@ fn tiny_model(seed: u64) -> TrainedCnn {
         &data,
         None,
         seed,
+        &scanloc::metrics::paper_aucs,
         &hidden(),
     )
     .unwrap()
