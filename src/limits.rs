@@ -81,6 +81,19 @@ pub fn dataset_pixels_problem(frames: usize, height: usize, width: usize) -> Opt
     })
 }
 
+/// Checks a dataset of `frames` frames of `height × width` pixels asked for
+/// by flag or field `name`: [`check_frame_count`] and
+/// [`check_dataset_pixels`], the checks a manifest's datasets pass.
+pub fn check_dataset_size(
+    name: &str,
+    frames: usize,
+    height: usize,
+    width: usize,
+) -> anyhow::Result<()> {
+    check_frame_count(name, frames as u64)?;
+    check_dataset_pixels(name, frames, height, width)
+}
+
 /// Checks a frame stack's shape as read from a file: at least one frame,
 /// no side of zero or above [`MAX_FRAME_SIDE`], at most [`MAX_FRAMES`]
 /// frames and [`MAX_DATASET_PIXELS`] pixels. `source` names the file.

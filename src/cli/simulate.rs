@@ -132,8 +132,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     // The manifest's limits, checked by the same functions.
-    scanloc::limits::check_frame_count("--frames", args.frames as u64)?;
-    scanloc::limits::check_dataset_pixels("--frames", args.frames, args.height, args.width)?;
+    scanloc::limits::check_dataset_size("--frames", args.frames, args.height, args.width)?;
     io::FrameFormat::from_path(&args.out)?;
     let mut outputs = vec![("--out", args.out.as_path())];
     outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));

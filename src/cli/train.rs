@@ -139,11 +139,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         scanloc::error::require_non_negative("--test-diffusion", d)?;
     }
     // The manifest's limits, checked by the same functions.
-    scanloc::limits::check_frame_count("--frames", args.frames as u64)?;
-    scanloc::limits::check_dataset_pixels("--frames", args.frames, params.height, params.width)?;
+    scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     if args.test_frames > 0 {
-        scanloc::limits::check_frame_count("--test-frames", args.test_frames as u64)?;
-        scanloc::limits::check_dataset_pixels(
+        scanloc::limits::check_dataset_size(
             "--test-frames",
             args.test_frames,
             params.height,

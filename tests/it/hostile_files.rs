@@ -328,6 +328,33 @@ fn simulate_and_train_apply_the_manifest_limits_and_leave_nothing_behind() {
         assert!(!model.exists());
         assert!(partial_files(dir.path()).is_empty());
     }
+    // The benchmarks' frame counts too (paper-sized frames: 2³¹ pixels
+    // are fewer than the frame limit's worth of them).
+    for args in [
+        vec!["bench", "simulate", "--frames", "1000000000000"],
+        vec!["bench", "locate", "--frames", "5000000"],
+        vec!["bench", "locate", "--reference-frames", "1000000000000"],
+        vec![
+            "bench",
+            "tradeoffs",
+            "--out",
+            "unused",
+            "--static-frames",
+            "1000000000000",
+        ],
+        vec!["bench", "train", "--samples", "1000000000000"],
+        vec![
+            "bench",
+            "cnn-locate",
+            "--model",
+            "m",
+            "--frames",
+            "1000000000000",
+        ],
+    ] {
+        let output = scanloc(&args);
+        assert_refused(&output, args[args.len() - 2]);
+    }
     let output = scanloc(&[
         "train",
         "--frames",
