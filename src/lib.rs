@@ -9,6 +9,7 @@
 
 pub mod bench;
 pub mod detect;
+pub mod env_vars;
 pub mod error;
 pub mod frames;
 pub mod io;

@@ -28,7 +28,7 @@ fn ensure_font() -> anyhow::Result<()> {
     REGISTERED
         .get_or_init(|| {
             let mut candidates: Vec<PathBuf> = Vec::new();
-            if let Ok(path) = std::env::var("SCANLOC_FONT") {
+            if let Ok(path) = std::env::var(crate::env_vars::SCANLOC_FONT) {
                 candidates.push(path.into());
             }
             candidates.extend(FONT_CANDIDATES.iter().map(PathBuf::from));
