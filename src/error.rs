@@ -191,3 +191,38 @@ pub fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
     }
     Ok(value)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn field_errors_take_the_path_of_the_value_that_holds_them() {
+        let error = FieldError::new("training.epochs", "must be ≥ 1, got 0").under(&[
+            Segment::key("detectors"),
+            Segment::key("cnn.v2"),
+            Segment::key("cnn"),
+        ]);
+        assert_eq!(error.field(), "detectors.cnn.v2.cnn.training.epochs");
+        assert_eq!(error.path.len(), 5, "a dotted name stays one segment");
+        assert_eq!(
+            error.to_string(),
+            "detectors.cnn.v2.cnn.training.epochs: must be ≥ 1, got 0"
+        );
+        let listed = FieldError::at(
+            &[
+                Segment::key("metrics"),
+                Segment::key("eps_px"),
+                Segment::Index(2),
+            ],
+            "duplicate radius 1",
+        );
+        assert_eq!(listed.to_string(), "metrics.eps_px[2]: duplicate radius 1");
+        let converted: anyhow::Error = listed.into();
+        assert_eq!(exit_code(&converted), 2);
+        assert_eq!(
+            converted.to_string(),
+            "metrics.eps_px[2]: duplicate radius 1"
+        );
+    }
+}

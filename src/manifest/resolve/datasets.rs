@@ -2,7 +2,7 @@
 //! microscope.
 
 use super::microscope::apply_sim_overrides;
-use crate::error::{FieldError, Segment};
+use crate::error::{FieldError, Segment, display_path};
 use crate::manifest::serde_adapters::Named;
 use crate::manifest::{DatasetSpec, MAX_DATASET_PIXELS, MAX_FRAMES, derive_seed};
 use crate::sim::SimParams;
@@ -50,7 +50,10 @@ fn resolve_dataset(
 
 /// A failed check of a dataset's parameters belongs to the dataset when it
 /// sets the field itself (or the error names no field), and otherwise to
-/// the microscope it inherited the value from.
+/// the microscope it inherited the value from. The microscope's values
+/// passed their own check, so such a value fails only together with the
+/// dataset's overrides (a margin too wide for the dataset's narrower
+/// frames): the message then names the dataset too.
 fn blame_dataset_or_microscope(
     error: FieldError,
     dataset_path: &[Segment],
@@ -62,10 +65,14 @@ fn blame_dataset_or_microscope(
         Some(Segment::Index(_)) => false,
     };
     if set_by_dataset {
-        error.under(dataset_path)
-    } else {
-        error.under(&super::path_of(&["microscope"]))
+        return error.under(dataset_path);
     }
+    let message = format!(
+        "{} (inherited by {})",
+        error.message,
+        display_path(dataset_path)
+    );
+    FieldError { message, ..error }.under(&super::path_of(&["microscope"]))
 }
 
 /// The dataset's `frames`: a positive integer, at most [`MAX_FRAMES`].

@@ -26,52 +26,42 @@ use crate::error::{FieldError, Segment};
 
 /// Resolves `raw`, read from `text`; `source` names the file in the result.
 pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Manifest, FieldError> {
-    let RawManifest {
-        name,
-        description,
-        seed,
-        microscope,
-        datasets,
-        detectors,
-        metrics,
-        evaluations,
-        cross_validation,
-        reference,
-    } = raw;
-    if name.trim().is_empty() {
+    if raw.name.trim().is_empty() {
         return Err(FieldError::new("name", "must not be empty"));
     }
-    let microscope = microscope::resolve_microscope(&microscope)?;
-    let datasets = datasets::resolve_datasets(&datasets, &microscope, seed)?;
-    let detectors = detectors::resolve_detectors(detectors, seed, &datasets)?;
-    metrics::check_metrics(&metrics)?;
-    let evaluations = evaluations::resolve_evaluations(&evaluations, &datasets, &detectors)?;
-    if let Some(cross_validation) = &cross_validation {
+    let microscope = microscope::resolve_microscope(&raw.microscope)?;
+    let datasets = datasets::resolve_datasets(&raw.datasets, &microscope, raw.seed)?;
+    let detectors = detectors::resolve_detectors(raw.detectors, raw.seed, &datasets)?;
+    metrics::check_metrics(&raw.metrics)?;
+    let evaluations = evaluations::resolve_evaluations(&raw.evaluations, &datasets, &detectors)?;
+    if let Some(cross_validation) = &raw.cross_validation {
         cross_validation::check_cross_validation(cross_validation, &detectors)?;
     }
-    let reference = reference
+    let reference = raw
+        .reference
         .map(|reference| {
-            reference::resolve_reference(reference, &metrics.eps_px, &datasets, &detectors)
+            reference::resolve_reference(reference, &raw.metrics.eps_px, &datasets, &detectors)
         })
         .transpose()?;
     Ok(Manifest {
         source: source.to_string(),
         manifest_sha256: hex::encode(Sha256::digest(text.as_bytes())),
-        name,
-        description,
-        seed,
+        name: raw.name,
+        description: raw.description,
+        seed: raw.seed,
         microscope,
         datasets,
         detectors,
-        metrics,
+        metrics: raw.metrics,
         evaluations,
-        cross_validation,
+        cross_validation: raw.cross_validation,
         reference,
         text: text.to_string(),
     })
 }
 
-/// The path of the top-level field `section`, or of a field inside it.
+/// The path through the mappings `keys` from the top of the document
+/// (`["datasets", name]`).
 fn path_of(keys: &[&str]) -> Vec<Segment> {
     keys.iter().map(|k| Segment::key(k)).collect()
 }
