@@ -75,8 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
 /// `&args.registry` wherever a `&Path` is wanted.
 #[derive(Debug, Clone, Args)]
 pub struct RegistryDir {
-    /// Registry folder: the database registry.sqlite and the blobs/ beside it
-    /// (see docs/registry.md).
+    /// Registry folder (registry.sqlite and blobs/; see docs/registry.md).
     #[arg(
         id = "registry",
         long = "registry",
