@@ -38,6 +38,24 @@ struct StepDone {
     verify_seconds: f64,
 }
 
+/// With `--force`, how a recomputed artefact compares with the intact one
+/// already stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Recomputed {
+    Identical,
+    Differs,
+}
+
+impl Recomputed {
+    /// What the step's record says about it.
+    fn detail(self) -> &'static str {
+        match self {
+            Recomputed::Identical => "recomputed: identical to the stored artefact",
+            Recomputed::Differs => "recomputed: DIFFERS from the stored artefact",
+        }
+    }
+}
+
 impl Execution {
     pub(super) fn new(run_id: String) -> Self {
         Self {
@@ -110,26 +128,14 @@ impl Execution {
         };
         let artefact = compute(registry, plan, index, loaded)?;
         let encoded = artefact.encode()?;
-        let blobs: Vec<BlobRef> = encoded
-            .iter()
-            .map(|(role, bytes)| BlobRef {
-                role: role.clone(),
-                sha256: sha256_hex(bytes),
-            })
-            .collect();
-        let (differs, detail) = match stored {
-            Stored::Intact(previous, _) => {
-                let differs = self.compare_with_stored(step, &blobs, previous);
-                let detail = if differs {
-                    "recomputed: DIFFERS from the stored artefact"
-                } else {
-                    "recomputed: identical to the stored artefact"
-                };
-                (differs, Some(detail.to_string()))
-            }
-            Stored::Absent | Stored::Damaged(_) => (false, None),
+        let blobs = blob_refs(&encoded);
+        // With --force the artefact may be stored intact: the recomputation
+        // must then match it, and a mismatch keeps the stored one.
+        let recomputed = match stored {
+            Stored::Intact(previous, _) => Some(self.compare_with_stored(step, &blobs, previous)),
+            Stored::Absent | Stored::Damaged(_) => None,
         };
-        if !differs {
+        if recomputed != Some(Recomputed::Differs) {
             // Blobs first: a row never names a blob that is not there.
             for (_, bytes) in &encoded {
                 registry.blobs().put(bytes)?;
@@ -162,7 +168,7 @@ impl Execution {
         Ok(StepDone {
             outcome,
             blobs,
-            detail,
+            detail: recomputed.map(|r| r.detail().to_string()),
             artefact: Some(artefact),
             verify_seconds: 0.0,
         })
@@ -178,14 +184,19 @@ impl Execution {
         }
     }
 
-    /// `--force`: whether the recomputed `blobs` differ from the `stored`
-    /// ones (which are in role order); a difference is reported and fails
-    /// the run at its end.
-    fn compare_with_stored(&mut self, step: &Step, blobs: &[BlobRef], stored: &[BlobRef]) -> bool {
+    /// `--force`: compares the recomputed `blobs` with the `stored` ones
+    /// (which are in role order); a difference is reported and fails the
+    /// run at its end.
+    fn compare_with_stored(
+        &mut self,
+        step: &Step,
+        blobs: &[BlobRef],
+        stored: &[BlobRef],
+    ) -> Recomputed {
         let mut ours = blobs.to_vec();
         ours.sort_by(|a, b| a.role.cmp(&b.role));
         if ours == stored {
-            return false;
+            return Recomputed::Identical;
         }
         let message = format!(
             "{} ({}): recomputed blobs {:?} differ from the stored {:?}",
@@ -193,7 +204,7 @@ impl Execution {
         );
         eprintln!("error: {message}");
         self.mismatches.push(message);
-        true
+        Recomputed::Differs
     }
 
     /// Records step `index` of the run, in the registry and in memory.
@@ -220,6 +231,17 @@ impl Execution {
         self.steps.push(record);
         Ok(())
     }
+}
+
+/// The blob references of encoded blobs: (role, sha256), in the same order.
+fn blob_refs(encoded: &[(String, Vec<u8>)]) -> Vec<BlobRef> {
+    encoded
+        .iter()
+        .map(|(role, bytes)| BlobRef {
+            role: role.clone(),
+            sha256: sha256_hex(bytes),
+        })
+        .collect()
 }
 
 /// The AUC table rows of a scoring step (one per ε), none for other steps.
