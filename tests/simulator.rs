@@ -243,7 +243,7 @@ fn several_emitters_give_one_truth_row_each() {
         &hidden(),
     )
     .unwrap();
-    let total = |d: &sim::Dataset| d.frames.data.iter().map(|&c| c as f64).sum::<f64>();
+    let total = |d: &scanloc::types::Dataset| d.frames.data.iter().map(|&c| c as f64).sum::<f64>();
     let background = params.background * (10 * 40 * 40) as f64;
     let ratio = (total(&dataset) - background) / (total(&one) - background);
     // Signal per QD ≈ 420 photons × 10 frames, shot noise of the whole

@@ -100,7 +100,13 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
             bar.finish_and_clear();
-            csv_tables::write_features(&args.out, &features)?;
+            csv_tables::write_localisations(
+                &args.out,
+                crocker_grier::FEATURE_COLUMNS,
+                features
+                    .iter()
+                    .map(|(frame, f)| (f.prediction(*frame), f.column_values())),
+            )?;
         }
         Method::Cnn => {
             let model_dir = args

@@ -10,7 +10,6 @@ use anyhow::Context;
 use serde_json::Value;
 
 use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
-use crate::detect::Prediction;
 use crate::error::input_error;
 use crate::manifest::Reference;
 use crate::metrics::Score;
@@ -18,7 +17,8 @@ use crate::progress::hidden;
 use crate::registry::query::query;
 use crate::registry::{AucRow, Registry};
 use crate::run::{cross_validation, load_artefact};
-use crate::sim::{self, Dataset, Distribution, SimParams};
+use crate::sim::{self, Distribution, SimParams};
+use crate::types::{Dataset, Prediction};
 
 /// One scored (detector, dataset) pair of the run.
 struct Evaluation {

@@ -148,7 +148,10 @@ fn train(
             &spec.architecture,
             &spec.training,
             training_set,
-            validation_set.dataset()?,
+            crate::detect::cnn::ValidationSet {
+                dataset: validation_set.dataset()?,
+                score: &crate::metrics::paper_aucs,
+            },
             fresh_frames,
             detector.seed,
             &progress,
@@ -159,6 +162,7 @@ fn train(
             training_set,
             fresh_frames,
             detector.seed,
+            &crate::metrics::paper_aucs,
             &progress,
         ),
     }
@@ -230,9 +234,9 @@ pub(super) fn root_dataset(plan: &Plan, mut index: usize) -> Option<&DatasetSpec
 /// Frames `frames` of `source` (renumbered 0, 1, … in the given order) and
 /// their truth rows.
 pub fn subset(
-    source: &crate::sim::Dataset,
+    source: &crate::types::Dataset,
     frames: &[usize],
-) -> anyhow::Result<crate::sim::Dataset> {
+) -> anyhow::Result<crate::types::Dataset> {
     let stack = &source.frames;
     let mut data = Vec::with_capacity(frames.len() * stack.frame_len());
     let mut position = vec![None; stack.n];
@@ -246,7 +250,7 @@ pub fn subset(
         position[old] = Some(new);
         data.extend_from_slice(stack.frame(old));
     }
-    let mut truth: Vec<crate::sim::TruthRow> = source
+    let mut truth: Vec<crate::types::TruthRow> = source
         .truth
         .iter()
         .filter_map(|row| {
@@ -259,8 +263,8 @@ pub fn subset(
         .collect();
     // Frame order, emitters in their original order within a frame.
     truth.sort_by_key(|row| row.frame);
-    Ok(crate::sim::Dataset {
-        frames: crate::frames::FrameStack::from_vec(frames.len(), stack.height, stack.width, data)?,
+    Ok(crate::types::Dataset {
+        frames: crate::types::FrameStack::from_vec(frames.len(), stack.height, stack.width, data)?,
         truth,
     })
 }
