@@ -1,4 +1,4 @@
-//! The paper's precision–recall AUC (DESIGN §3), plus the RMSE of each
+//! The paper's precision–recall AUC (`docs/metric.md`), plus the RMSE of each
 //! frame's top prediction and the fraction of frames with no prediction.
 //!
 //! For one test set, the predictions of all frames are pooled and sorted by

@@ -15,6 +15,8 @@ use scanloc::io::{self, csv_tables};
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model DIR` (a model saved by `scanloc train`) the columns are
 /// frame,x,y,score.
+///
+/// Both methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct LocateArgs {

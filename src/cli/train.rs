@@ -12,7 +12,7 @@ use scanloc::manifest::derive_seed;
 use scanloc::metrics;
 use scanloc::sim::{self, Distribution, SimParams};
 
-/// Train the CNN localiser on simulated frames (DESIGN §2) and save it.
+/// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
 /// Simulates `--frames` frames of the paper's microscope (with the given
 /// brightness, margin and diffusion) as the fixed dataset, of which

@@ -12,7 +12,9 @@ use super::log;
 use super::plan::{Action, Plan, Step};
 use super::stored::{Stored, check_stored_artefacts, read_blobs};
 use crate::registry::hashing::sha256_hex;
-use crate::registry::{AucRow, BlobRef, NewArtefact, Registry, StepRecord};
+use crate::registry::{
+    AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
+};
 
 /// What a run has done so far.
 pub(super) struct Execution {
@@ -23,14 +25,13 @@ pub(super) struct Execution {
     /// With `--force`: one line per recomputed artefact that differs from
     /// the stored one.
     pub mismatches: Vec<String>,
-    /// (cached, computed, rebuilt)
-    pub counts: (usize, usize, usize),
+    pub counts: StepCounts,
 }
 
 /// One step done: how, with which blobs, and its artefact if it was made
 /// (a cached artefact is not loaded unless a later step reads it).
 struct StepDone {
-    outcome: &'static str,
+    outcome: StepOutcome,
     blobs: Vec<BlobRef>,
     detail: Option<String>,
     artefact: Option<Artefact>,
@@ -63,7 +64,7 @@ impl Execution {
             steps: Vec::new(),
             damaged: Vec::new(),
             mismatches: Vec::new(),
-            counts: (0, 0, 0),
+            counts: StepCounts::default(),
         }
     }
 
@@ -95,10 +96,10 @@ impl Execution {
 
     /// A step whose artefact is stored intact: nothing to do.
     fn reuse(&mut self, step: &Step, blobs: &[BlobRef], verify_seconds: f64) -> StepDone {
-        self.counts.0 += 1;
+        self.counts.add(StepOutcome::Cached);
         log(format!("cached    {}", step.id));
         StepDone {
-            outcome: "cached",
+            outcome: StepOutcome::Cached,
             blobs: blobs.to_vec(),
             detail: Some(format!("verified in {verify_seconds:.3} s")),
             artefact: None,
@@ -154,12 +155,11 @@ impl Execution {
             registry.record_artefact(&row, replace)?;
         }
         let outcome = if replace {
-            self.counts.2 += 1;
-            "rebuilt"
+            StepOutcome::Rebuilt
         } else {
-            self.counts.1 += 1;
-            "computed"
+            StepOutcome::Computed
         };
+        self.counts.add(outcome);
         log(format!(
             "{outcome:<9} {} in {:.2} s",
             step.id,
@@ -221,7 +221,7 @@ impl Execution {
             step: step.id.clone(),
             kind: step.kind,
             artefact_key: step.key.clone(),
-            outcome: done.outcome.to_string(),
+            outcome: done.outcome,
             // A cached step's time is the re-hashing of its blobs.
             seconds: clock.elapsed().as_secs_f64() + done.verify_seconds,
             blobs: done.blobs,

@@ -38,7 +38,10 @@ pub use stored::{load_artefact, read_blobs};
 use crate::error::CheckFailed;
 use crate::manifest::Manifest;
 use crate::registry::hashing::sha256_hex;
-use crate::registry::{AucRow, Registry, RunStart, RunStatus, StepRecord, host_name, utc_now};
+use crate::registry::{
+    AucRow, CrossValidationPlan, Registry, RunKind, RunStart, RunStatus, StepCounts, StepRecord,
+    host_name, utc_now,
+};
 use execution::Execution;
 
 /// How to run.
@@ -46,11 +49,12 @@ use execution::Execution;
 pub struct RunOptions {
     /// Recompute every step and check the results equal the stored ones.
     pub force: bool,
-    /// Recorded as the run's kind: `run` unless a command says otherwise
-    /// (`reproduce`, `cv`, …).
-    pub kind: Option<String>,
+    /// Recorded as the run's kind.
+    pub kind: RunKind,
     /// The run this one derives from (e.g. the run being reproduced).
     pub parent_run: Option<String>,
+    /// For a cross-validation, its plan (recorded with the run).
+    pub cross_validation: Option<CrossValidationPlan>,
 }
 
 /// What a run did.
@@ -61,10 +65,10 @@ pub struct RunOutcome {
     pub status: RunStatus,
     /// The AUC table, one row per (detector, dataset, ε), in plan order.
     pub auc: Vec<AucRow>,
-    pub cached_steps: usize,
-    pub computed_steps: usize,
-    /// Steps made again because a stored blob was missing or damaged.
-    pub rebuilt_steps: usize,
+    /// Steps cached, computed, and rebuilt (made again because a stored
+    /// blob was missing or damaged).
+    #[serde(flatten)]
+    pub counts: StepCounts,
     pub steps: Vec<StepRecord>,
     /// Blobs found missing or damaged (and rebuilt).
     pub damaged_blobs: Vec<String>,
@@ -138,9 +142,7 @@ pub fn execute(
         manifest: manifest.source.clone(),
         status,
         auc,
-        cached_steps: execution.counts.0,
-        computed_steps: execution.counts.1,
-        rebuilt_steps: execution.counts.2,
+        counts: execution.counts,
         steps: execution.steps,
         damaged_blobs: execution.damaged,
         seconds: started.elapsed().as_secs_f64(),
@@ -158,7 +160,7 @@ fn record_run_start(
 ) -> anyhow::Result<()> {
     registry.begin_run(&RunStart {
         id: run_id.to_string(),
-        kind: options.kind.clone().unwrap_or_else(|| "run".to_string()),
+        kind: options.kind,
         parent_run: options.parent_run.clone(),
         manifest_name: manifest.name.clone(),
         manifest_path: manifest.source.clone(),
@@ -167,6 +169,7 @@ fn record_run_start(
         resolved_json: serde_json::to_string(manifest)?,
         seeds_json: serde_json::to_string(&plan.seeds())?,
         forced: options.force,
+        cross_validation: options.cross_validation.clone(),
     })
 }
 
@@ -210,9 +213,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut registry = Registry::open(dir.path()).unwrap();
         let first = execute(&mut registry, &manifest, &plan, &RunOptions::default()).unwrap();
-        assert_eq!(first.computed_steps, 2);
+        assert_eq!(first.counts.computed, 2);
         let again = execute(&mut registry, &manifest, &plan, &RunOptions::default()).unwrap();
-        assert_eq!(again.cached_steps, 2);
+        assert_eq!(again.counts.cached, 2);
 
         let all = load_artefact(&registry, &plan.steps[0].key).unwrap();
         let part = load_artefact(&registry, &plan.steps[fold].key).unwrap();

@@ -94,7 +94,7 @@ pub fn read_blobs(
 
 /// Loads the artefact stored under `key` (blobs re-hashed; a damaged or
 /// missing blob is an error), decoded by its kind. For reports and other
-/// readers of past runs: `registry.run_record(id)["steps"]` gives the keys.
+/// readers of past runs: `registry.run_record(id)?.steps` gives the keys.
 pub fn load_artefact(registry: &Registry, key: &str) -> anyhow::Result<Artefact> {
     let stored = registry
         .artefact(key)?

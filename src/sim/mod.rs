@@ -1,4 +1,4 @@
-//! The point-scanning two-photon microscope simulator (DESIGN §1).
+//! The point-scanning two-photon microscope simulator (`docs/simulator.md`).
 //!
 //! The beam sweeps the frame row by row, each row left to right, dwelling
 //! `dwell_us` on every pixel and taking `retrace_ms` to return to the start of

@@ -1,4 +1,4 @@
-//! The CNN localiser (DESIGN §2, detector `cnn`): a small fully
+//! The CNN localiser (detector `cnn`, `docs/detectors.md`): a small fully
 //! convolutional network, trained on simulated frames, that outputs a
 //! per-pixel centre score and a sub-pixel offset to the QD's *trajectory
 //! centroid* (the label of the simulator's ground truth), not to the

@@ -1,7 +1,7 @@
 //! The Crocker–Grier locator, step for step as TrackPy 0.7's `locate`
 //! (Crocker & Grier, J. Colloid Interface Sci. 179:298, 1996).
 //!
-//! 1. Band pass ([`filters::bandpass`]): a Gaussian low pass of width
+//! 1. Band pass (`filters::bandpass`): a Gaussian low pass of width
 //!    `noise_size` minus a boxcar background of side `smoothing_size`, values
 //!    below `threshold` set to 0.
 //! 2. Integer rescaling: the band-passed image is scaled so its maximum is

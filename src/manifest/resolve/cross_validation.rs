@@ -10,12 +10,8 @@ pub(super) fn check_cross_validation(
     cross_validation: &CrossValidation,
     detectors: &[DetectorEntry],
 ) -> Result<(), FieldError> {
-    if !(2..=50).contains(&cross_validation.folds) {
-        return Err(FieldError::new(
-            "cross_validation.folds",
-            format!("must be between 2 and 50, got {}", cross_validation.folds),
-        ));
-    }
+    CrossValidation::check_folds(cross_validation.folds)
+        .map_err(|message| FieldError::new("cross_validation.folds", message))?;
     let detector_path = super::path_of(&["cross_validation", "detector"]);
     let detector = super::require_detector(detectors, &detector_path, &cross_validation.detector)?;
     if detector.spec.training_dataset().is_none() {
