@@ -7,7 +7,7 @@
 //! thousands of frames) and low enough that no allocation sized by them can
 //! exceed what a workstation holds.
 
-use crate::error::input_error;
+use crate::error::{FieldError, input_error};
 
 /// Largest frame count of a dataset (simulated or read) and the bound on
 /// frame numbers in truth and localisation files.
@@ -24,31 +24,27 @@ pub const MAX_FEATURE_PX: usize = 1_001;
 
 /// Checks a frame count (`name` names the field or flag): 1 to
 /// [`MAX_FRAMES`].
-pub fn check_frame_count(name: &str, frames: u64) -> anyhow::Result<usize> {
-    match frame_count_problem(frames) {
-        Some(problem) => Err(input_error(format!("{name}: {problem}"))),
-        None => Ok(frames as usize),
-    }
-}
-
-/// What is wrong with a frame count, if anything (see [`check_frame_count`]).
-pub fn frame_count_problem(frames: u64) -> Option<String> {
+pub fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {
     if frames == 0 {
-        Some("must be a positive integer".to_string())
-    } else if frames > MAX_FRAMES as u64 {
-        Some(format!("must be at most {MAX_FRAMES}, got {frames}"))
-    } else {
-        None
+        return Err(FieldError::new(name, "must be a positive integer"));
     }
+    if frames > MAX_FRAMES as u64 {
+        return Err(FieldError::new(
+            name,
+            format!("must be at most {MAX_FRAMES}, got {frames}"),
+        ));
+    }
+    Ok(frames as usize)
 }
 
 /// Checks a frame side (`name` names the field or flag): 1 to
 /// [`MAX_FRAME_SIDE`] pixels.
-pub fn check_frame_side(name: &str, pixels: usize) -> anyhow::Result<()> {
+pub fn check_frame_side(name: &str, pixels: usize) -> Result<(), FieldError> {
     if pixels == 0 || pixels > MAX_FRAME_SIDE {
-        return Err(input_error(format!(
-            "{name}: must be between 1 and {MAX_FRAME_SIDE} pixels, got {pixels}"
-        )));
+        return Err(FieldError::new(
+            name,
+            format!("must be between 1 and {MAX_FRAME_SIDE} pixels, got {pixels}"),
+        ));
     }
     Ok(())
 }
@@ -61,24 +57,19 @@ pub fn check_dataset_pixels(
     frames: usize,
     height: usize,
     width: usize,
-) -> anyhow::Result<()> {
-    match dataset_pixels_problem(frames, height, width) {
-        Some(problem) => Err(input_error(format!("{name}: {problem}"))),
-        None => Ok(()),
-    }
-}
-
-/// What is wrong with a dataset's size, if anything (see
-/// [`check_dataset_pixels`]).
-pub fn dataset_pixels_problem(frames: usize, height: usize, width: usize) -> Option<String> {
+) -> Result<(), FieldError> {
     let pixels = frames
         .checked_mul(height)
         .and_then(|p| p.checked_mul(width));
-    pixels.is_none_or(|p| p > MAX_DATASET_PIXELS).then(|| {
-        format!(
-            "{frames} frames of {height}×{width} pixels exceed the limit of {MAX_DATASET_PIXELS} pixels per dataset"
-        )
-    })
+    if pixels.is_none_or(|p| p > MAX_DATASET_PIXELS) {
+        return Err(FieldError::new(
+            name,
+            format!(
+                "{frames} frames of {height}×{width} pixels exceed the limit of {MAX_DATASET_PIXELS} pixels per dataset"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Checks a dataset of `frames` frames of `height × width` pixels asked for
@@ -89,7 +80,7 @@ pub fn check_dataset_size(
     frames: usize,
     height: usize,
     width: usize,
-) -> anyhow::Result<()> {
+) -> Result<(), FieldError> {
     check_frame_count(name, frames as u64)?;
     check_dataset_pixels(name, frames, height, width)
 }
@@ -103,34 +94,37 @@ pub fn check_stack_shape(
     height: usize,
     width: usize,
 ) -> anyhow::Result<()> {
-    let located = |e: anyhow::Error| input_error(format!("{source}: {e}"));
+    let located = |e: FieldError| input_error(format!("{source}: {e}"));
     check_frame_not_empty(height, width).map_err(located)?;
     if frames == 0 {
         return Err(input_error(format!("{source}: contains no frames")));
     }
     check_frame_side("frame height", height).map_err(located)?;
     check_frame_side("frame width", width).map_err(located)?;
-    check_frame_count("frame count", frames as u64).map_err(located)?;
-    check_dataset_pixels("frame count", frames, height, width).map_err(located)
+    check_dataset_size("frame count", frames, height, width).map_err(located)
 }
 
 /// Refuses frames without pixels (`height` or `width` 0): no detector can
 /// look for anything in them, and saying so beats an empty result.
-pub fn check_frame_not_empty(height: usize, width: usize) -> anyhow::Result<()> {
+pub fn check_frame_not_empty(height: usize, width: usize) -> Result<(), FieldError> {
     if height == 0 || width == 0 {
-        return Err(input_error(format!(
-            "frames of {height}×{width} pixels are empty; every frame needs at least one row and one column"
-        )));
+        return Err(FieldError::at(
+            &[],
+            format!(
+                "frames of {height}×{width} pixels are empty; every frame needs at least one row and one column"
+            ),
+        ));
     }
     Ok(())
 }
 
 /// Checks a size-like parameter in pixels: at most [`MAX_FEATURE_PX`].
-pub fn check_feature_px(name: &str, pixels: f64) -> anyhow::Result<()> {
+pub fn check_feature_px(name: &str, pixels: f64) -> Result<(), FieldError> {
     if pixels > MAX_FEATURE_PX as f64 {
-        return Err(input_error(format!(
-            "{name}: must be at most {MAX_FEATURE_PX} pixels, got {pixels}"
-        )));
+        return Err(FieldError::new(
+            name,
+            format!("must be at most {MAX_FEATURE_PX} pixels, got {pixels}"),
+        ));
     }
     Ok(())
 }

@@ -161,7 +161,12 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
 /// manifest's datasets have.
 pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
     let paper = SimParams::default();
-    scanloc::limits::check_dataset_size(flag, frames, paper.height, paper.width)
+    Ok(scanloc::limits::check_dataset_size(
+        flag,
+        frames,
+        paper.height,
+        paper.width,
+    )?)
 }
 
 fn locate(args: LocateBench) -> anyhow::Result<ExitCode> {
