@@ -87,13 +87,16 @@ impl CnnArchitecture {
                 format!("must be in 1..={MAX_CHANNELS}, got {}", self.channels),
             ));
         }
-        if self.dilations.is_empty() || self.dilations.len() > MAX_LAYERS {
+        if self.dilations.is_empty() {
             return Err(FieldError::new(
                 "architecture.dilations",
-                format!(
-                    "needs 1 to {MAX_LAYERS} layers, got {}",
-                    self.dilations.len()
-                ),
+                "needs at least one layer",
+            ));
+        }
+        if self.dilations.len() > MAX_LAYERS {
+            return Err(FieldError::new(
+                "architecture.dilations",
+                format!("at most {MAX_LAYERS} layers, got {}", self.dilations.len()),
             ));
         }
         if let Some(bad) = self.dilations.iter().find(|&&d| d == 0 || d > MAX_DILATION) {
