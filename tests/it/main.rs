@@ -13,6 +13,7 @@ mod cnn;
 mod crocker_grier;
 mod figures;
 mod hostile_files;
+mod layers;
 mod manifest_errors;
 mod manifest_fuzz;
 mod metric;
