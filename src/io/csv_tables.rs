@@ -296,41 +296,6 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
         .collect()
 }
 
-/// Column names of a Crocker–Grier localisation file: TrackPy's, plus
-/// `score` (= mass).
-pub const FEATURE_COLUMNS: [&str; 10] = [
-    "frame", "x", "y", "mass", "size", "ecc", "signal", "raw_mass", "ep", "score",
-];
-
-/// Writes Crocker–Grier features to `path` atomically, in the given order.
-/// `ep` is written as `NaN` where TrackPy's would be (no background to
-/// measure the noise on).
-pub fn write_features(
-    path: &Path,
-    features: &[(usize, crate::detect::crocker_grier::Feature)],
-) -> anyhow::Result<()> {
-    write_atomically(path, |writer| {
-        let mut csv = csv::Writer::from_writer(writer);
-        csv.write_record(FEATURE_COLUMNS)?;
-        for (frame, f) in features {
-            csv.write_record([
-                frame.to_string(),
-                f.x.to_string(),
-                f.y.to_string(),
-                f.mass.to_string(),
-                f.size.to_string(),
-                f.ecc.to_string(),
-                f.signal.to_string(),
-                f.raw_mass.to_string(),
-                f.ep.to_string(),
-                f.mass.to_string(),
-            ])?;
-        }
-        csv.flush()?;
-        Ok(())
-    })
-}
-
 /// Refuses a header without every `required` column, naming the missing ones.
 fn check_columns(
     name: &impl std::fmt::Display,
