@@ -144,13 +144,8 @@ pub fn read_predictions_scored_by_from<R: Read>(
     name: &str,
     score_column: &str,
 ) -> anyhow::Result<Vec<Prediction>> {
-    let mut reader = csv::Reader::from_reader(reader);
-    let headers = reader
-        .headers()
-        .map_err(|e| input_error(format!("{name}: cannot read the CSV header: {e}")))?
-        .clone();
     let required = ["frame", "x", "y", score_column];
-    check_columns(&name, &headers, &required)?;
+    let (mut reader, headers) = open_table(reader, name, &required)?;
     let column = |wanted: &str| headers.iter().position(|h| h.trim() == wanted);
     let [frame_at, x_at, y_at, score_at] = required.map(|c| column(c).unwrap_or_default());
     let mut predictions = Vec::new();
@@ -281,12 +276,7 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
     source: &str,
     required: &[&str],
 ) -> anyhow::Result<Vec<T>> {
-    let mut reader = csv::Reader::from_reader(reader);
-    let headers = reader
-        .headers()
-        .map_err(|e| input_error(format!("{source}: cannot read the CSV header: {e}")))?
-        .clone();
-    check_columns(&source, &headers, required)?;
+    let (mut reader, _) = open_table(reader, source, required)?;
     reader
         .deserialize()
         .enumerate()
@@ -296,12 +286,18 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
         .collect()
 }
 
-/// Refuses a header without every `required` column, naming the missing ones.
-fn check_columns(
-    name: &impl std::fmt::Display,
-    headers: &csv::StringRecord,
+/// Starts reading CSV from `reader`: its header, checked to have every
+/// `required` column (an error names `source` and the missing columns).
+fn open_table<R: Read>(
+    reader: R,
+    source: &str,
     required: &[&str],
-) -> anyhow::Result<()> {
+) -> anyhow::Result<(csv::Reader<R>, csv::StringRecord)> {
+    let mut reader = csv::Reader::from_reader(reader);
+    let headers = reader
+        .headers()
+        .map_err(|e| input_error(format!("{source}: cannot read the CSV header: {e}")))?
+        .clone();
     let missing: Vec<&str> = required
         .iter()
         .copied()
@@ -309,10 +305,10 @@ fn check_columns(
         .collect();
     if !missing.is_empty() {
         return Err(input_error(format!(
-            "{name}: missing column(s) {} (header: {})",
+            "{source}: missing column(s) {} (header: {})",
             missing.join(", "),
             headers.iter().collect::<Vec<_>>().join(",")
         )));
     }
-    Ok(())
+    Ok((reader, headers))
 }

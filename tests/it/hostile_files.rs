@@ -56,6 +56,19 @@ fn write_npy(path: &Path, shape: &[u64], fill: u16) {
     std::fs::write(path, bytes).unwrap();
 }
 
+/// Simulates 3 frames into `frames` with their truth in `truth`.
+fn simulate_small(frames: &Path, truth: &Path) {
+    assert_ok(&scanloc(&[
+        "simulate",
+        "--frames",
+        "3",
+        "--out",
+        text(frames),
+        "--truth",
+        text(truth),
+    ]));
+}
+
 /// Hidden `.scanloc-partial-*` files left in `dir`.
 fn partial_files(dir: &Path) -> Vec<String> {
     std::fs::read_dir(dir)
@@ -415,15 +428,7 @@ fn writers(dir: &Path, destination: &str) -> Vec<Vec<String>> {
     let locs = dir.join("in-locs.csv");
     std::fs::write(&locs, "frame,x,y,score\n0,1,1,0.5\n").unwrap();
     if !frames.exists() {
-        assert_ok(&scanloc(&[
-            "simulate",
-            "--frames",
-            "3",
-            "--out",
-            text(&frames),
-            "--truth",
-            text(&truth),
-        ]));
+        simulate_small(&frames, &truth);
     }
     let npy = text(&dir.join(format!("{destination}.npy"))).to_string();
     let csv = text(&dir.join(format!("{destination}.csv"))).to_string();
@@ -695,28 +700,14 @@ fn imagej_hyperstacks_need_a_channel_choice_and_read_that_channel() {
     let stack = dir.path().join("hyper.tif");
     imagej_hyperstack(&stack, 2, 3);
     let out = dir.path().join("l.csv");
-    let output = scanloc(&["locate", "--input", text(&stack), "--out", text(&out)]);
-    assert_refused(&output, "--channel");
-    let output = scanloc(&[
-        "locate",
-        "--input",
-        text(&stack),
-        "--out",
-        text(&out),
-        "--channel",
-        "2",
-    ]);
-    assert_refused(&output, "--channel 2");
-    let output = scanloc(&[
-        "locate",
-        "--input",
-        text(&stack),
-        "--out",
-        text(&out),
-        "--channel",
-        "1",
-    ]);
-    assert_ok(&output);
+    let locate = |extra: &[&str]| {
+        let mut args = vec!["locate", "--input", text(&stack), "--out", text(&out)];
+        args.extend_from_slice(extra);
+        scanloc(&args)
+    };
+    assert_refused(&locate(&[]), "--channel");
+    assert_refused(&locate(&["--channel", "2"]), "--channel 2");
+    assert_ok(&locate(&["--channel", "1"]));
     for channel in 0..2 {
         let frames = scanloc::io::read_frames_of_channel(&stack, Some(channel)).unwrap();
         assert_eq!((frames.n, frames.height, frames.width), (3, 5, 6));
@@ -767,15 +758,7 @@ fn an_output_naming_an_input_or_another_output_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let frames = dir.path().join("x.npy");
     let truth = dir.path().join("t.csv");
-    assert_ok(&scanloc(&[
-        "simulate",
-        "--frames",
-        "3",
-        "--out",
-        text(&frames),
-        "--truth",
-        text(&truth),
-    ]));
+    simulate_small(&frames, &truth);
     let before = std::fs::read(&frames).unwrap();
     let same_folder = dir.path().join("sub");
     std::fs::create_dir(&same_folder).unwrap();
