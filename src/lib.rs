@@ -19,3 +19,4 @@ pub mod registry;
 pub mod report;
 pub mod run;
 pub mod sim;
+pub mod sweep;

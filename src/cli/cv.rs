@@ -8,6 +8,9 @@ use scanloc::error::input_error;
 use scanloc::manifest;
 use scanloc::registry::Registry;
 use scanloc::run::cross_validation;
+use scanloc::sweep::{SweepKind, SweepSpec};
+
+use super::sweep::{ExecutorArgs, run_sweep};
 
 /// Cross-validate a trained detector: its training set split into k folds
 /// by a recorded seeded permutation, k models each trained on k − 1 folds,
@@ -39,6 +42,9 @@ pub struct CvArgs {
     /// Registry folder.
     #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
     registry: PathBuf,
+    /// Where the folds run (each fold a recorded run, then the table).
+    #[command(flatten)]
+    executor: ExecutorArgs,
 }
 
 pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
@@ -54,6 +60,15 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
             ))
         })?;
     let folds = args.folds.or(block.map(|b| b.folds)).unwrap_or(5);
+    if args.fold.is_none() {
+        // The whole sweep: a point per fold, through the sweep executors.
+        let spec = SweepSpec {
+            kind: SweepKind::Cv { detector, folds },
+            manifest_path: manifest.source.clone(),
+            manifest_text: manifest.text.clone(),
+        };
+        return run_sweep(&args.registry, spec, &args.executor, args.force, args.json);
+    }
     let mut registry = Registry::open(&args.registry)?;
     let outcome = cross_validation::cross_validate(
         &mut registry,

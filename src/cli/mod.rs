@@ -13,6 +13,7 @@ mod reproduce;
 mod run;
 mod score;
 mod simulate;
+mod sweep;
 mod train;
 
 use std::process::ExitCode;
@@ -45,6 +46,7 @@ enum Command {
     Report(report::ReportArgs),
     Calibrate(calibrate::CalibrateArgs),
     Cv(cv::CvArgs),
+    Sweep(sweep::SweepArgs),
 }
 
 /// Runs the parsed command.
@@ -62,5 +64,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Report(args) => report::run(args),
         Command::Calibrate(args) => calibrate::run(args),
         Command::Cv(args) => cv::run(args),
+        Command::Sweep(args) => sweep::run(args),
     }
 }

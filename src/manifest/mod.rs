@@ -29,6 +29,8 @@
 //!   - {detector: trackpy, datasets: [test-1.00]}
 //!   - {detector: cnn, datasets: [test-1.00]}
 //! cross_validation: {folds: 5, detector: cnn}    # optional; run by `scanloc cv`
+//! sweep:                      # optional; a grid run by `scanloc sweep run`
+//!   channels: {path: detectors.cnn.cnn.architecture.channels, values: [8, 16]}
 //! reference:                  # optional: published numbers printed beside ours
 //!   source: Table 1
 //!   rows:
@@ -419,6 +421,10 @@ struct RawManifest {
     cross_validation: Option<CrossValidation>,
     #[serde(default)]
     reference: Option<RawReference>,
+    /// A parameter grid for `scanloc sweep run`, read by `crate::sweep`
+    /// (a plain run ignores it).
+    #[serde(default, rename = "sweep")]
+    _sweep: Option<serde::de::IgnoredAny>,
 }
 
 #[derive(Deserialize)]
@@ -660,6 +666,7 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
         evaluations: raw_evaluations,
         cross_validation,
         reference: raw_reference,
+        _sweep: _,
     } = raw;
     if name.trim().is_empty() {
         return Err(context.error(&[key("name")], "must not be empty"));

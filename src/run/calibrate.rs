@@ -8,15 +8,15 @@
 //! numbers. Scored by the sum of squared differences over the reference
 //! cells.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::{RunOptions, execute, plan::Plan};
 use crate::error::input_error;
-use crate::manifest::Manifest;
-use crate::registry::Registry;
+use crate::manifest::{Manifest, ReferenceRow};
+use crate::registry::{AucRow, Registry};
 
 /// One grid point of the sweep.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct CalibrationPoint {
     pub brightness: f64,
     /// The recorded run of this point.
@@ -31,7 +31,7 @@ pub struct CalibrationPoint {
 }
 
 /// The sweep's result: every point and the best one.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Calibration {
     pub detector: String,
     pub points: Vec<CalibrationPoint>,
@@ -40,7 +40,7 @@ pub struct Calibration {
 
 /// The manifest with only `detector`'s evaluations, every dataset at
 /// `brightness`.
-fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
+pub fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
     let mut point = manifest.clone();
     point.microscope.brightness = brightness;
     for dataset in &mut point.datasets {
@@ -52,14 +52,14 @@ fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest 
     point
 }
 
-/// Runs the sweep over `grid` for `detector`, which needs reference cells.
-pub fn calibrate(
-    registry: &mut Registry,
-    manifest: &Manifest,
+/// Checks a calibration's inputs: `detector` exists and has a reference
+/// row, and `grid` is a non-empty list of brightness values ≥ 0. Returns
+/// the reference row.
+pub fn reference_row<'a>(
+    manifest: &'a Manifest,
     detector: &str,
     grid: &[f64],
-    progress: impl Fn(&CalibrationPoint),
-) -> anyhow::Result<Calibration> {
+) -> anyhow::Result<&'a ReferenceRow> {
     if manifest.detector(detector).is_none() {
         return Err(input_error(format!(
             "{}: detectors.{detector}: no such detector",
@@ -82,6 +82,64 @@ pub fn calibrate(
     for &b in grid {
         crate::error::require_non_negative("--brightness", b)?;
     }
+    Ok(reference)
+}
+
+/// Scores one grid point (run `run`, AUC table `auc`) against `reference`.
+pub fn score_point(
+    reference: &ReferenceRow,
+    brightness: f64,
+    run: String,
+    auc: &[AucRow],
+) -> CalibrationPoint {
+    let mut table = Vec::new();
+    for cell in &reference.cells {
+        if let Some(row) = auc.iter().find(|r| {
+            r.detector == reference.detector && r.dataset == cell.dataset && r.eps_px == cell.eps_px
+        }) {
+            table.push((cell.dataset.clone(), cell.eps_px, row.auc, cell.auc));
+        }
+    }
+    let sse = table
+        .iter()
+        .map(|(_, _, ours, theirs)| (ours - theirs).powi(2))
+        .sum();
+    CalibrationPoint {
+        brightness,
+        run,
+        sse,
+        cells_within_0_05: table
+            .iter()
+            .filter(|(_, _, o, t)| (o - t).abs() <= 0.05)
+            .count(),
+        cells: table.len(),
+        table,
+    }
+}
+
+/// The sweep's result from its points: the best is the smallest SSE.
+pub fn conclude(detector: &str, points: Vec<CalibrationPoint>) -> Calibration {
+    let best_brightness = points
+        .iter()
+        .min_by(|a, b| a.sse.total_cmp(&b.sse))
+        .map(|p| p.brightness)
+        .unwrap_or(f64::NAN);
+    Calibration {
+        detector: detector.to_string(),
+        points,
+        best_brightness,
+    }
+}
+
+/// Runs the sweep over `grid` for `detector`, which needs reference cells.
+pub fn calibrate(
+    registry: &mut Registry,
+    manifest: &Manifest,
+    detector: &str,
+    grid: &[f64],
+    progress: impl Fn(&CalibrationPoint),
+) -> anyhow::Result<Calibration> {
+    let reference = reference_row(manifest, detector, grid)?;
     let mut points = Vec::new();
     for &brightness in grid {
         let point_manifest = restricted(manifest, detector, brightness);
@@ -95,40 +153,9 @@ pub fn calibrate(
                 ..RunOptions::default()
             },
         )?;
-        let mut table = Vec::new();
-        for cell in &reference.cells {
-            if let Some(row) = outcome.auc.iter().find(|r| {
-                r.detector == detector && r.dataset == cell.dataset && r.eps_px == cell.eps_px
-            }) {
-                table.push((cell.dataset.clone(), cell.eps_px, row.auc, cell.auc));
-            }
-        }
-        let sse = table
-            .iter()
-            .map(|(_, _, ours, theirs)| (ours - theirs).powi(2))
-            .sum();
-        let point = CalibrationPoint {
-            brightness,
-            run: outcome.run.clone(),
-            sse,
-            cells_within_0_05: table
-                .iter()
-                .filter(|(_, _, o, t)| (o - t).abs() <= 0.05)
-                .count(),
-            cells: table.len(),
-            table,
-        };
+        let point = score_point(reference, brightness, outcome.run.clone(), &outcome.auc);
         progress(&point);
         points.push(point);
     }
-    let best_brightness = points
-        .iter()
-        .min_by(|a, b| a.sse.total_cmp(&b.sse))
-        .map(|p| p.brightness)
-        .unwrap_or(f64::NAN);
-    Ok(Calibration {
-        detector: detector.to_string(),
-        points,
-        best_brightness,
-    })
+    Ok(conclude(detector, points))
 }
