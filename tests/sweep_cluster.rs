@@ -239,8 +239,8 @@ fn smoke_cv_through_slurm_equals_local_bit_for_bit() {
     }
     let dir = tempfile::tempdir().unwrap();
     let cv = |registry: &Path, executor: &[&str]| {
-        let mut args = vec![
-            "cv",
+        let mut args: Vec<String> = vec![
+            "cv".into(),
             smoke().to_str().unwrap().to_string(),
             "--detector".into(),
             "cnn".into(),
