@@ -347,7 +347,7 @@ fn a_sweep_with_a_failing_point_reports_it_and_reruns_only_it() {
     assert!(printed.contains("diameter=9"), "{printed}");
     let log = folder.join("logs/task-1.out");
     assert!(
-        printed.contains(&"FAILED diameter=7") && printed.contains(log.to_str().unwrap()),
+        printed.contains("FAILED diameter=7") && printed.contains(log.to_str().unwrap()),
         "{printed}"
     );
     assert!(stderr(&out).contains("did not finish"), "{}", stderr(&out));

@@ -1,7 +1,7 @@
 //! `scanloc sweep`: parameter grids, and the executor options every sweep
 //! front end (`cv`, `calibrate`, `sweep run`) shares.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Subcommand, ValueEnum};
@@ -74,7 +74,7 @@ impl ExecutorArgs {
 /// Runs sweep `spec` and prints its table (or, for a Slurm submission
 /// without --wait, the job ids): the common tail of every front end.
 pub fn run_sweep(
-    registry: &PathBuf,
+    registry: &Path,
     spec: SweepSpec,
     executor: &ExecutorArgs,
     force: bool,

@@ -125,9 +125,20 @@ fn fields(line: &str) -> BTreeMap<&str, &str> {
         .collect()
 }
 
-/// What `scontrol -o show job ID` says: one (array index if any, state,
-/// reason) per record; `None` if Slurm no longer knows the job.
-pub fn job_states(job: &str) -> anyhow::Result<Option<Vec<(Option<usize>, String, String)>>> {
+/// One job, or one task of an array, as `scontrol` reports it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobRecord {
+    /// The array index, for a task of an array.
+    pub task: Option<usize>,
+    /// `PENDING`, `RUNNING`, `COMPLETED`, `FAILED`, `CANCELLED`, …
+    pub state: String,
+    /// Why it is in that state (`DependencyNeverSatisfied`, …).
+    pub reason: String,
+}
+
+/// What `scontrol -o show job ID` says: a record per job or array task;
+/// `None` if Slurm no longer knows the job.
+pub fn job_states(job: &str) -> anyhow::Result<Option<Vec<JobRecord>>> {
     let output = Command::new("scontrol")
         .args(["-o", "show", "job", job])
         .output()
@@ -142,15 +153,18 @@ pub fn job_states(job: &str) -> anyhow::Result<Option<Vec<(Option<usize>, String
     let mut records = Vec::new();
     for line in String::from_utf8_lossy(&output.stdout).lines() {
         let fields = fields(line);
-        let state = fields.get("JobState").copied().unwrap_or("UNKNOWN");
-        let reason = fields.get("Reason").copied().unwrap_or("None");
+        let record = |task| JobRecord {
+            task,
+            state: fields
+                .get("JobState")
+                .copied()
+                .unwrap_or("UNKNOWN")
+                .to_string(),
+            reason: fields.get("Reason").copied().unwrap_or("None").to_string(),
+        };
         match fields.get("ArrayTaskId") {
-            Some(ids) => {
-                for id in parse_array_ids(ids) {
-                    records.push((Some(id), state.to_string(), reason.to_string()));
-                }
-            }
-            None => records.push((None, state.to_string(), reason.to_string())),
+            Some(ids) => records.extend(parse_array_ids(ids).into_iter().map(Some).map(record)),
+            None => records.push(record(None)),
         }
     }
     Ok(Some(records))
@@ -243,7 +257,7 @@ pub fn submit(
     if let Some(last) = file.submissions.last() {
         for job in [&last.array_job, &last.aggregate_job] {
             if let Some(records) = job_states(job)?
-                && records.iter().any(|(_, state, _)| !is_terminal(state))
+                && records.iter().any(|r| !is_terminal(&r.state))
             {
                 return Err(input_error(format!(
                     "sweep {}: job {job} of its last submission is still queued or running; \
@@ -350,7 +364,7 @@ pub fn submit(
     }
     follow(&file, &submission, points.len())?;
     let result = match job_states(&submission.aggregate_job)? {
-        Some(records) if records.iter().all(|(_, state, _)| state == "COMPLETED") => {
+        Some(records) if records.iter().all(|r| r.state == "COMPLETED") => {
             let path = dir.join(RESULT_FILE);
             let text = std::fs::read_to_string(&path)
                 .with_context(|| format!("reading {}", path.display()))?;
@@ -358,10 +372,7 @@ pub fn submit(
         }
         other => {
             let why = other
-                .and_then(|r| {
-                    r.first()
-                        .map(|(_, state, reason)| format!("{state} ({reason})"))
-                })
+                .and_then(|r| r.first().map(|r| format!("{} ({})", r.state, r.reason)))
                 .unwrap_or_else(|| "gone".to_string());
             eprintln!(
                 "sweep {}: the aggregation job {} is {why}: aggregating here",
@@ -385,7 +396,7 @@ fn follow(file: &SweepFile, submission: &Submission, total: usize) -> anyhow::Re
         let count = |wanted: &dyn Fn(&str) -> bool| {
             tasks
                 .iter()
-                .filter(|(id, state, _)| id.is_some() && wanted(state))
+                .filter(|r| r.task.is_some() && wanted(&r.state))
                 .count()
         };
         let (done, failed, running) = (
@@ -395,7 +406,7 @@ fn follow(file: &SweepFile, submission: &Submission, total: usize) -> anyhow::Re
         );
         let pending = (submitted as usize).saturating_sub(done + failed + running);
         let aggregation = job_states(&submission.aggregate_job)?
-            .and_then(|r| r.first().map(|(_, state, _)| state.clone()))
+            .and_then(|r| r.first().map(|r| r.state.clone()))
             .unwrap_or_else(|| "GONE".to_string());
         let line = format!(
             "sweep {} ({total} points): {done}/{submitted} tasks done, {running} running, {pending} pending, {failed} failed; aggregation {}",
@@ -429,7 +440,7 @@ pub fn status(dir: &Path) -> anyhow::Result<(SweepFile, Vec<PointState>, Option<
             .unwrap_or(None)
             .unwrap_or_default()
             .into_iter()
-            .filter_map(|(id, state, _)| Some((id?, state)))
+            .filter_map(|r| Some((r.task?, r.state)))
             .collect(),
         None => BTreeMap::new(),
     };
@@ -437,7 +448,7 @@ pub fn status(dir: &Path) -> anyhow::Result<(SweepFile, Vec<PointState>, Option<
         let state = job_states(&s.aggregate_job).ok().flatten()?;
         state
             .first()
-            .map(|(_, state, reason)| format!("job {} {state} ({reason})", s.aggregate_job))
+            .map(|r| format!("job {} {} ({})", s.aggregate_job, r.state, r.reason))
     });
     let mut states = Vec::new();
     for point in &points {
