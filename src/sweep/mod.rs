@@ -710,6 +710,22 @@ fn shard_run(file: &SweepFile, index: usize) -> Option<(String, String, Option<S
     .ok()
 }
 
+/// Why point `index` has no result, as its shard tells (read after its
+/// task ended).
+fn shard_failure(file: &SweepFile, index: usize) -> String {
+    match shard_run(file, index) {
+        Some((run, status, _)) if status == "running" || status == "unfinished" => format!(
+            "run {run} did not finish: its task was killed (time limit, cancellation, preemption or node failure)"
+        ),
+        Some((run, status, error)) => format!(
+            "run {run} {status}{}",
+            error.map(|e| format!(": {e}")).unwrap_or_default()
+        ),
+        None if file.shard(index).exists() => "its shard holds no run".to_string(),
+        None => "no result: the task did not run or did not finish".to_string(),
+    }
+}
+
 /// Aggregates the sweep: every point's state (from `known` where this
 /// process ran it, else from the registry and the shards), the front end's
 /// table, recorded in `result.json` (and for cv, as a run of kind `cv`).
@@ -738,16 +754,7 @@ pub fn aggregate(
             (false, _) => {
                 let log = file.log(point.index);
                 let log = log.is_file().then_some(log);
-                let error = match shard_run(file, point.index) {
-                    Some((run, status, error)) => format!(
-                        "run {run} in its shard is {status}{}",
-                        error.map(|e| format!(": {e}")).unwrap_or_default()
-                    ),
-                    None if file.shard(point.index).exists() => {
-                        "its shard holds no run".to_string()
-                    }
-                    None => "no result: the task did not run or did not finish".to_string(),
-                };
+                let error = shard_failure(file, point.index);
                 failed_state(point, error, log.as_deref())
             }
         };

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{
     Point, PointState, RESULT_FILE, SweepFile, SweepResult, aggregate, import_and_aggregate,
-    import_shards, point_is_stored, shard_run,
+    import_shards, point_is_stored, shard_failure, shard_run,
 };
 use crate::error::input_error;
 use crate::manifest::Manifest;
@@ -472,14 +472,11 @@ pub fn status(dir: &Path) -> anyhow::Result<(SweepFile, Vec<PointState>, Option<
                 None,
                 failed.then(|| format!("task {state}")),
             )
-        } else if let Some((run, status, error)) = shard {
+        } else if let Some((run, ..)) = shard {
             (
                 "failed".to_string(),
-                Some(run.clone()),
-                Some(format!(
-                    "run {run} in its shard is {status}{}",
-                    error.map(|e| format!(": {e}")).unwrap_or_default()
-                )),
+                Some(run),
+                Some(shard_failure(&file, point.index)),
             )
         } else {
             ("missing".to_string(), None, None)
