@@ -159,7 +159,7 @@ pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
             let axes = grid::axes(&spec.manifest_text, &spec.manifest_path)?;
             if axes.is_empty() {
                 return Err(input_error(format!(
-                    "{}: no sweep block: `scanloc sweep run` needs `sweep:` axes (see docs/manifest.md)",
+                    "{}: no sweep block: `scanloc sweep run` needs `sweep:` axes (see docs/cluster.md)",
                     spec.manifest_path
                 )));
             }
