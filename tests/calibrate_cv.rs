@@ -1,4 +1,4 @@
-//! `scanloc calibrate` (DESIGN §6) and `scanloc cv` on small manifests.
+//! `scanloc calibrate` (docs/metric.md) and `scanloc cv` on small manifests.
 
 mod common;
 

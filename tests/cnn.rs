@@ -4,12 +4,12 @@
 //! Everything here uses a tiny network (8 channels) and a few hundred
 //! 24×25 frames so the whole file runs in seconds.
 
-use scanloc::detect::Prediction;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
+use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings, ValidationSet};
 use scanloc::error::InputError;
-use scanloc::frames::FrameStack;
+use scanloc::metrics;
 use scanloc::progress::hidden;
-use scanloc::sim::{self, Dataset, Distribution, RandomDistribution, SimParams};
+use scanloc::sim::{self, Distribution, RandomDistribution, SimParams};
+use scanloc::types::{Dataset, FrameStack, Prediction};
 
 fn params(brightness: f64) -> SimParams {
     SimParams {
@@ -49,6 +49,7 @@ fn train_tiny(data: &Dataset, epochs: usize, seed: u64) -> TrainedCnn {
         data,
         None,
         seed,
+        &metrics::paper_aucs,
         &hidden(),
     )
     .unwrap()
@@ -177,7 +178,18 @@ fn fresh_frames_are_used_and_seeded() {
         ..tiny_settings(2)
     };
     let arch = tiny_architecture();
-    let run = || cnn::train(&arch, &settings, &data, Some(&params(40.0)), 9, &hidden()).unwrap();
+    let run = || {
+        cnn::train(
+            &arch,
+            &settings,
+            &data,
+            Some(&params(40.0)),
+            9,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
     let model = run();
     assert_eq!(model.record.training_frames, 0);
     assert_eq!(model.record.validation_frames, 60);
@@ -304,7 +316,16 @@ fn bad_settings_are_refused_naming_the_field() {
         ),
     ];
     for (settings, architecture, field) in cases {
-        let error = cnn::train(&architecture, &settings, &data, None, 0, &hidden()).unwrap_err();
+        let error = cnn::train(
+            &architecture,
+            &settings,
+            &data,
+            None,
+            0,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap_err();
         assert!(is_input_error(&error), "{field}: {error:#}");
         assert!(format!("{error:#}").contains(field), "{field}: {error:#}");
     }
@@ -321,7 +342,16 @@ fn a_diverging_loss_stops_training_naming_epoch_and_batch() {
         cosine_decay: false,
         ..tiny_settings(3)
     };
-    let error = cnn::train(&tiny_architecture(), &settings, &data, None, 1, &hidden()).unwrap_err();
+    let error = cnn::train(
+        &tiny_architecture(),
+        &settings,
+        &data,
+        None,
+        1,
+        &metrics::paper_aucs,
+        &hidden(),
+    )
+    .unwrap_err();
     let message = format!("{error:#}");
     assert!(
         message.contains("epoch") && message.contains("batch"),
@@ -363,7 +393,10 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
         &tiny_architecture(),
         &tiny_settings(3),
         &training,
-        &validation,
+        ValidationSet {
+            dataset: &validation,
+            score: &metrics::paper_aucs,
+        },
         None,
         8,
         &hidden(),
@@ -409,7 +442,10 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
         &tiny_architecture(),
         &tiny_settings(1),
         &training,
-        &other_size,
+        ValidationSet {
+            dataset: &other_size,
+            score: &metrics::paper_aucs,
+        },
         None,
         8,
         &hidden(),

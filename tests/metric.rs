@@ -1,8 +1,7 @@
-//! The Table-1 metric (DESIGN §3) on cases worked out by hand.
+//! The Table-1 metric (docs/metric.md) on cases worked out by hand.
 
-use scanloc::detect::Prediction;
 use scanloc::metrics::score;
-use scanloc::sim::TruthRow;
+use scanloc::types::{Prediction, TruthRow};
 
 fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
     TruthRow {

@@ -369,6 +369,44 @@ fn audit_commands_list_show_diff_and_query() {
     let verify = scanloc(&["registry", "verify", "--registry", reg]);
     assert!(verify.status.success());
 
+    // For people, `show` is a summary read top-down that ends with the
+    // AUC grid exactly as `run` prints it.
+    let shown = scanloc(&["registry", "show", a, "--registry", reg]);
+    assert!(shown.status.success(), "{}", stderr(&shown));
+    let shown = stdout(&shown);
+    assert!(shown.starts_with(&format!("run {a}: done\n")), "{shown}");
+    let headings: Vec<&str> = shown
+        .lines()
+        .filter(|line| !line.starts_with(' '))
+        .take(6)
+        .collect();
+    let counts = format!(
+        "steps: 0 cached, {} computed, 0 rebuilt",
+        steps(&first).len()
+    );
+    assert_eq!(
+        headings[1..5],
+        ["manifest", "code", "seeds", counts.as_str()],
+        "{shown}"
+    );
+    assert!(headings[5].starts_with("AUC "), "{shown}");
+    for (step, _) in steps(&first) {
+        assert!(
+            shown
+                .lines()
+                .any(|line| line.trim_start().starts_with("computed")
+                    && line.contains(&format!(" {step} "))),
+            "{step}: {shown}"
+        );
+    }
+    let rerun = scanloc(&["run", smoke().to_str().unwrap(), "--registry", reg]);
+    let rerun = stdout(&rerun);
+    let grid = &rerun[..rerun.trim_end().rfind('\n').unwrap() + 1];
+    assert!(
+        !grid.is_empty() && shown.ends_with(grid),
+        "{grid}\n---\n{shown}"
+    );
+
     // Unknown ids and missing registries are bad input.
     let output = scanloc(&["registry", "show", "zzzzzzzz", "--registry", reg]);
     assert_eq!(output.status.code(), Some(2));

@@ -140,8 +140,13 @@ pub fn open_read_only(dir: &Path) -> anyhow::Result<Connection> {
         .map_err(|e| damaged(&e))?;
     if version != SCHEMA_VERSION {
         return Err(input_error(format!(
-            "{}: registry schema version {version}, this scanloc reads version {SCHEMA_VERSION}",
-            path.display()
+            "{}: registry schema version {version}, this scanloc reads version {SCHEMA_VERSION}{}",
+            path.display(),
+            if version < SCHEMA_VERSION {
+                " (any scanloc registry command on it, e.g. `scanloc registry runs --registry DIR`, upgrades it)"
+            } else {
+                ""
+            }
         )));
     }
     let check: String = conn

@@ -35,7 +35,7 @@ use crate::error::{CheckFailed, input_error};
 use crate::manifest::{self, Manifest};
 use crate::registry::hashing::{canonical_json, sha256_hex};
 use crate::registry::shard::{self, Selection};
-use crate::registry::{AucRow, Registry, utc_now};
+use crate::registry::{AucRow, CrossValidationPlan, Registry, RunKind, utc_now};
 use crate::run::calibrate::{self, CalibrationPoint};
 use crate::run::cross_validation::{self, CrossValidationOutcome};
 use crate::run::{Action, Plan, RunOptions, RunOutcome, execute, load_artefact};
@@ -72,11 +72,11 @@ impl SweepKind {
     }
 
     /// The kind each point's run is recorded with.
-    fn run_kind(&self) -> &'static str {
+    fn run_kind(&self) -> RunKind {
         match self {
-            SweepKind::Cv { .. } => "cv",
-            SweepKind::Calibrate { .. } => "calibrate",
-            SweepKind::Grid => "sweep",
+            SweepKind::Cv { .. } => RunKind::Cv,
+            SweepKind::Calibrate { .. } => RunKind::Calibrate,
+            SweepKind::Grid => RunKind::Sweep,
         }
     }
 }
@@ -113,6 +113,8 @@ pub struct Point {
     pub plan: Plan,
     /// The brightness of a calibration point.
     pub brightness: Option<f64>,
+    /// The fold of a cross-validation point (recorded with its run).
+    pub cross_validation: Option<CrossValidationPlan>,
 }
 
 /// The points of `spec`, with the manifest they come from. Bad input
@@ -122,15 +124,20 @@ pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
     let points = match &spec.kind {
         SweepKind::Cv { detector, folds } => {
             // The whole plan checks the detector and fold count once.
-            cross_validation::plan(&base, detector, *folds, None)?;
+            cross_validation::plan(&base, &whole_cv(detector, *folds))?;
             (1..=*folds)
                 .map(|fold| {
+                    let cv = CrossValidationPlan {
+                        fold: Some(fold),
+                        ..whole_cv(detector, *folds)
+                    };
                     Ok(Point {
                         index: fold - 1,
                         label: format!("fold {fold}"),
                         manifest: base.clone(),
-                        plan: cross_validation::plan(&base, detector, *folds, Some(fold))?,
+                        plan: cross_validation::plan(&base, &cv)?,
                         brightness: None,
+                        cross_validation: Some(cv),
                     })
                 })
                 .collect::<anyhow::Result<_>>()?
@@ -151,6 +158,7 @@ pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
                         plan: Plan::from_manifest(&manifest)?,
                         manifest: Arc::new(manifest),
                         brightness: Some(b),
+                        cross_validation: None,
                     })
                 })
                 .collect::<anyhow::Result<_>>()?
@@ -173,6 +181,7 @@ pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
                         plan: Plan::from_manifest(&point.manifest)?,
                         manifest: Arc::new(point.manifest),
                         brightness: None,
+                        cross_validation: None,
                     })
                 })
                 .collect::<anyhow::Result<_>>()?
@@ -195,10 +204,20 @@ pub fn run_point(
         &point.plan,
         &RunOptions {
             force,
-            kind: Some(kind.run_kind().to_string()),
+            kind: kind.run_kind(),
             parent_run: None,
+            cross_validation: point.cross_validation.clone(),
         },
     )
+}
+
+/// The plan of a whole cross-validation of `detector` with `folds` folds.
+fn whole_cv(detector: &str, folds: usize) -> CrossValidationPlan {
+    CrossValidationPlan {
+        detector: detector.to_string(),
+        folds,
+        fold: None,
+    }
 }
 
 /// Whether every artefact of `point` is stored in `registry` (rows only:
@@ -498,8 +517,8 @@ fn state_of_run(point: &Point, outcome: &RunOutcome) -> PointState {
         run: Some(outcome.run.clone()),
         error: None,
         log: None,
-        cached_steps: outcome.cached_steps,
-        computed_steps: outcome.computed_steps + outcome.rebuilt_steps,
+        cached_steps: outcome.counts.cached,
+        computed_steps: outcome.counts.computed + outcome.counts.rebuilt,
     }
 }
 
@@ -657,8 +676,8 @@ pub fn task(dir: &Path, index: usize, direct: bool, force: bool) -> anyhow::Resu
         label: point.label.clone(),
         run: outcome.run,
         registry: target.display().to_string(),
-        cached_steps: outcome.cached_steps,
-        computed_steps: outcome.computed_steps + outcome.rebuilt_steps,
+        cached_steps: outcome.counts.cached,
+        computed_steps: outcome.counts.computed + outcome.counts.rebuilt,
         seeded_artefacts: seeded,
         seconds: clock.elapsed().as_secs_f64(),
     })
@@ -768,20 +787,23 @@ pub fn aggregate(
     let (mut text, json) = match &file.spec.kind {
         SweepKind::Cv { detector, folds } => {
             if all_done {
-                let plan = cross_validation::plan(base, detector, *folds, None)?;
+                let cv = whole_cv(detector, *folds);
+                let plan = cross_validation::plan(base, &cv)?;
                 let run = execute(
                     registry,
                     base,
                     &plan,
                     &RunOptions {
-                        kind: Some("cv".to_string()),
+                        kind: RunKind::Cv,
+                        cross_validation: Some(cv.clone()),
                         ..RunOptions::default()
                     },
                 )?;
+                let training_set = cross_validation::training_set(base, detector)?;
                 let outcome = CrossValidationOutcome {
                     detector: detector.clone(),
                     folds: *folds,
-                    cells: cross_validation::summarise(&run.auc, detector, *folds),
+                    cells: cross_validation::summarise(&run.auc, &cv, training_set),
                     run,
                 };
                 let sum = |f: fn(&PointState) -> usize| states.iter().map(f).sum::<usize>();
@@ -792,8 +814,8 @@ pub fn aggregate(
                         "detector": outcome.detector,
                         "folds": outcome.folds,
                         "cells": outcome.cells,
-                        "cached_steps": outcome.run.cached_steps + sum(|s| s.cached_steps),
-                        "computed_steps": outcome.run.computed_steps + sum(|s| s.computed_steps),
+                        "cached_steps": outcome.run.counts.cached + sum(|s| s.cached_steps),
+                        "computed_steps": outcome.run.counts.computed + sum(|s| s.computed_steps),
                         "sweep": file.id,
                         "points": states,
                     }),
