@@ -2,7 +2,7 @@
 //! detector's AUC row comes closest to its reference row.
 //!
 //! Each grid point is an ordinary recorded run (kind `calibrate`) of the
-//! manifest restricted to that detector, with every dataset's brightness
+//! manifest restricted to that detector (run as a sweep, `crate::sweep`), with every dataset's brightness
 //! set to the point's value; the points share dataset seeds (derived from
 //! the names), so the sweep compares brightness values on common random
 //! numbers. Scored by the sum of squared differences over the reference
@@ -10,10 +10,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{RunOptions, execute, plan::Plan};
 use crate::error::input_error;
 use crate::manifest::{Manifest, ReferenceRow};
-use crate::registry::{AucRow, Registry, RunKind};
+use crate::registry::AucRow;
 
 /// One grid point of the sweep.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -129,33 +128,4 @@ pub fn conclude(detector: &str, points: Vec<CalibrationPoint>) -> Calibration {
         points,
         best_brightness,
     }
-}
-
-/// Runs the sweep over `grid` for `detector`, which needs reference cells.
-pub fn calibrate(
-    registry: &mut Registry,
-    manifest: &Manifest,
-    detector: &str,
-    grid: &[f64],
-    progress: impl Fn(&CalibrationPoint),
-) -> anyhow::Result<Calibration> {
-    let reference = reference_row(manifest, detector, grid)?;
-    let mut points = Vec::new();
-    for &brightness in grid {
-        let point_manifest = restricted(manifest, detector, brightness);
-        let plan = Plan::from_manifest(&point_manifest)?;
-        let outcome = execute(
-            registry,
-            &point_manifest,
-            &plan,
-            &RunOptions {
-                kind: RunKind::Calibrate,
-                ..RunOptions::default()
-            },
-        )?;
-        let point = score_point(reference, brightness, outcome.run.clone(), &outcome.auc);
-        progress(&point);
-        points.push(point);
-    }
-    Ok(conclude(detector, points))
 }
