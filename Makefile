@@ -71,7 +71,7 @@ bench-registry: build
 FUZZ_CASES ?= 300000
 fuzz:
 	SCANLOC_FUZZ_CASES=$(FUZZ_CASES) $(CARGO) test --release --locked \
-		--test manifest_fuzz --test stress -- never_panic refused_cleanly
+		--test it -- never_panic refused_cleanly
 
 clean:
 	$(CARGO) clean

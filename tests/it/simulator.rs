@@ -285,6 +285,7 @@ fn start_positions_respect_the_margin() {
         ..paper(1.0)
     };
     let dataset = simulate(&params, 3, 0..2000, &hidden()).unwrap();
+    assert_eq!(dataset.truth.len(), 2000);
     for t in &dataset.truth {
         assert!((3.5..=20.5).contains(&t.x_start), "x_start {}", t.x_start);
         assert!((3.5..=19.5).contains(&t.y_start), "y_start {}", t.y_start);

@@ -4,7 +4,7 @@
 //! reader tests are fuzzing tests: `make fuzz` runs them with
 //! `SCANLOC_FUZZ_CASES` cases each.
 
-mod common;
+use crate::common;
 
 use proptest::prelude::*;
 use rand::SeedableRng;
