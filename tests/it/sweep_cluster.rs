@@ -4,11 +4,9 @@
 //! with a printed reason, unless SCANLOC_REQUIRE_SLURM=1 (CI), where they
 //! fail.
 
-mod common;
-
 use std::path::Path;
 
-use common::{blob_path, flip_a_byte, scanloc, smoke, stderr, stdout, write_manifest};
+use crate::common::{self, blob_path, flip_a_byte, scanloc, smoke, stderr, stdout, write_manifest};
 
 /// A small trackpy-only experiment: seconds, with every kind of artefact
 /// but a model.
