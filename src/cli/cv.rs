@@ -72,6 +72,11 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
         };
         return run_sweep(&args.registry, spec, &args.executor, args.force, args.json);
     }
+    if args.executor.is_not_default() {
+        return Err(input_error(
+            "--fold: one fold runs here, in this process; --executor and --jobs are for the whole sweep",
+        ));
+    }
     let mut registry = Registry::open(&args.registry)?;
     let plan = CrossValidationPlan {
         detector,

@@ -52,6 +52,20 @@ pub struct ExecutorArgs {
 }
 
 impl ExecutorArgs {
+    /// Whether any executor option was given (other than the default
+    /// local executor with one job).
+    pub fn is_not_default(&self) -> bool {
+        self.executor != ExecutorName::Local
+            || self.jobs != 1
+            || self.max_parallel.is_some()
+            || self.partition.is_some()
+            || self.time.is_some()
+            || self.cpus_per_task.is_some()
+            || self.mem.is_some()
+            || !self.sbatch_args.is_empty()
+            || self.wait
+    }
+
     /// The library's executor.
     pub fn executor(&self) -> Executor {
         match self.executor {
