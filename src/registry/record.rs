@@ -499,6 +499,7 @@ mod tests {
             RunKind::Reproduce,
             RunKind::Cv,
             RunKind::Calibrate,
+            RunKind::Sweep,
         ] {
             assert_eq!(RunKind::parse(kind.as_str()), Some(kind));
         }
@@ -510,7 +511,7 @@ mod tests {
             assert_eq!(StepOutcome::parse(outcome.as_str()), Some(outcome));
         }
         assert_eq!(RunStatus::parse("done"), Some(RunStatus::Done));
-        assert_eq!(RunKind::parse("sweep"), None);
+        assert_eq!(RunKind::parse("grid"), None);
         assert_eq!(format!("{:<9}|", StepOutcome::Cached), "cached   |");
     }
 
@@ -605,7 +606,7 @@ mod tests {
             .unwrap();
         for (sql, column) in [
             ("UPDATE runs SET seeds = 'not json'", "runs.seeds"),
-            ("UPDATE runs SET kind = 'sweep'", "runs.kind"),
+            ("UPDATE runs SET kind = 'grid'", "runs.kind"),
             ("UPDATE runs SET threads = -1", "runs.threads"),
             ("UPDATE runs SET cv_detector = 'cnn'", "runs.cv_folds"),
         ] {
