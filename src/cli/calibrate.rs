@@ -30,9 +30,8 @@ pub struct CalibrateArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Where the grid points run (each a recorded run, then the table).
     #[command(flatten)]
     executor: ExecutorArgs,

@@ -42,9 +42,8 @@ pub struct CvArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Where the folds run (each fold a recorded run, then the table).
     #[command(flatten)]
     executor: ExecutorArgs,

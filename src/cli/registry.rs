@@ -1,6 +1,6 @@
 //! `scanloc registry`: audit what has been run and stored.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Subcommand};
@@ -17,14 +17,8 @@ use scanloc::report::summary::run_summary;
 pub struct RegistryArgs {
     #[command(subcommand)]
     command: RegistryCommand,
-    /// Registry folder.
-    #[arg(
-        long,
-        global = true,
-        env = "SCANLOC_REGISTRY",
-        default_value = "registry"
-    )]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Print JSON instead of text.
     #[arg(long, global = true)]
     json: bool,
@@ -240,9 +234,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// `registry import`: every shard in turn; the exit code says the worst.
-fn import(registry: &std::path::Path, shards: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
+fn import(registry: &Path, shards: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
     let mut registry = Registry::open(registry)?;
-    let shards: Vec<&std::path::Path> = shards.iter().map(PathBuf::as_path).collect();
+    let shards: Vec<&Path> = shards.iter().map(PathBuf::as_path).collect();
     let results = shard::import_all(&mut registry, &shards);
     let (mut bad_shards, mut conflicts) = (Vec::new(), 0);
     let mut reports = Vec::new();

@@ -134,14 +134,8 @@ pub fn run_sweep(
 pub struct SweepArgs {
     #[command(subcommand)]
     command: SweepCommand,
-    /// Registry folder.
-    #[arg(
-        long,
-        global = true,
-        env = "SCANLOC_REGISTRY",
-        default_value = "registry"
-    )]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Print JSON instead of text.
     #[arg(long, global = true)]
     json: bool,

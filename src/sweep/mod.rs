@@ -38,7 +38,7 @@ use crate::registry::shard::{self, Selection};
 use crate::registry::{AucRow, CrossValidationPlan, Registry, RunKind, utc_now};
 use crate::run::calibrate::{self, CalibrationPoint};
 use crate::run::cross_validation::{self, CrossValidationOutcome};
-use crate::run::{Action, Plan, RunOptions, RunOutcome, execute, load_artefact};
+use crate::run::{Action, Plan, RunOptions, RunOutcome, execute, load_artefact, score_rows};
 
 /// The folder of a registry that holds its sweeps.
 pub const SWEEPS_DIR: &str = "sweeps";
@@ -236,24 +236,9 @@ pub fn point_is_stored(registry: &Registry, point: &Point) -> anyhow::Result<boo
 pub fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRow>> {
     let mut rows = Vec::new();
     for step in &point.plan.steps {
-        if let Action::Score {
-            detector,
-            dataset_name,
-            diffusion,
-            ..
-        } = &step.action
-        {
+        if matches!(step.action, Action::Score { .. }) {
             let score = load_artefact(registry, &step.key)?;
-            for per_eps in &score.evaluation()?.per_eps {
-                rows.push(AucRow {
-                    detector: detector.clone(),
-                    dataset: dataset_name.clone(),
-                    diffusion: *diffusion,
-                    eps_px: per_eps.eps_px,
-                    auc: per_eps.auc,
-                    evaluation_key: step.key.clone(),
-                });
-            }
+            rows.extend(score_rows(step, score.evaluation()?));
         }
     }
     Ok(rows)
@@ -560,7 +545,7 @@ fn run_local_processes(
                 .arg(file.dir())
                 .arg(point.index.to_string())
                 .arg("--direct")
-                .env("RAYON_NUM_THREADS", threads.to_string())
+                .env(crate::env_vars::RAYON_NUM_THREADS, threads.to_string())
                 .stdout(log.try_clone()?)
                 .stderr(log);
             if force {

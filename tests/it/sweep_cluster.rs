@@ -29,7 +29,7 @@ fn slurm_here(test: &str) -> bool {
     if scanloc::sweep::slurm::available() {
         return true;
     }
-    let required = std::env::var("SCANLOC_REQUIRE_SLURM").is_ok_and(|v| v == "1");
+    let required = std::env::var(scanloc::env_vars::SCANLOC_REQUIRE_SLURM).is_ok_and(|v| v == "1");
     assert!(
         !required,
         "{test}: SCANLOC_REQUIRE_SLURM=1 but no Slurm answers here (`sinfo` fails); start one with ci/slurm/start-test-cluster.sh"
