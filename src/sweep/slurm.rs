@@ -183,7 +183,12 @@ fn sbatch(script: &Path, extra: &[String]) -> anyhow::Result<String> {
         return Err(input_error(format!(
             "sbatch {}: {}",
             script.display(),
-            String::from_utf8_lossy(&output.stderr).trim()
+            String::from_utf8_lossy(&output.stderr)
+                .lines()
+                .map(str::trim)
+                .filter(|line| !line.is_empty())
+                .collect::<Vec<_>>()
+                .join("; ")
         )));
     }
     let text = String::from_utf8_lossy(&output.stdout);
@@ -339,7 +344,14 @@ pub fn submit(
     aggregate_text.push_str(&common_directives(options));
     aggregate_text.push_str(&format!("exec {scanloc} sweep aggregate {dir_word}\n"));
     std::fs::write(&aggregate_script, aggregate_text)?;
-    let aggregate_job = sbatch(&aggregate_script, &[])?;
+    let aggregate_job = match sbatch(&aggregate_script, &[]) {
+        Ok(id) => id,
+        Err(error) => {
+            // An array nobody will import: take it back.
+            let _ = Command::new("scancel").arg(&array_job).status();
+            return Err(error.context(format!("array job {array_job} cancelled")));
+        }
+    };
 
     let submission = Submission {
         array_job,
