@@ -394,12 +394,7 @@ impl Registry {
                     "DELETE FROM artefact_blobs WHERE artefact_key = ?1",
                     [&artefact.key],
                 )?;
-                for blob in &artefact.blobs {
-                    tx.execute(
-                        "INSERT INTO artefact_blobs (artefact_key, role, sha256) VALUES (?1, ?2, ?3)",
-                        params![artefact.key, blob.role, blob.sha256],
-                    )?;
-                }
+                insert_artefact_blobs(&tx, artefact)?;
             }
             tx.commit()?;
             return Ok(());
@@ -418,12 +413,7 @@ impl Registry {
                 artefact.compute_seconds
             ],
         )?;
-        for blob in &artefact.blobs {
-            tx.execute(
-                "INSERT INTO artefact_blobs (artefact_key, role, sha256) VALUES (?1, ?2, ?3)",
-                params![artefact.key, blob.role, blob.sha256],
-            )?;
-        }
+        insert_artefact_blobs(&tx, artefact)?;
         let key = &artefact.key;
         match &artefact.details {
             ArtefactDetails::Dataset {
@@ -710,6 +700,20 @@ fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result
         tx.execute(
             "UPDATE runs SET cv_detector = ?2, cv_folds = ?3, cv_fold = ?4 WHERE id = ?1",
             params![run, detector, folds as i64, only_fold],
+        )?;
+    }
+    Ok(())
+}
+
+/// Records which blobs make `artefact` (one row per role).
+fn insert_artefact_blobs(
+    tx: &rusqlite::Transaction<'_>,
+    artefact: &NewArtefact,
+) -> rusqlite::Result<()> {
+    for blob in &artefact.blobs {
+        tx.execute(
+            "INSERT INTO artefact_blobs (artefact_key, role, sha256) VALUES (?1, ?2, ?3)",
+            params![artefact.key, blob.role, blob.sha256],
         )?;
     }
     Ok(())
