@@ -293,6 +293,20 @@ fn smoke_cv_through_slurm_equals_local_bit_for_bit() {
         "{aggregate}"
     );
 
+    // The table's run, made of cluster tasks, re-executes here bit for bit.
+    let out = scanloc(&[
+        "reproduce",
+        on_slurm["run"].as_str().unwrap(),
+        "--registry",
+        cluster.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}{}", stdout(&out), stderr(&out));
+    assert!(
+        stdout(&out).contains("model/cnn-cv2of2"),
+        "{}",
+        stdout(&out)
+    );
+
     // Submitting the finished sweep again submits nothing.
     let (again, log) = cv(&cluster, &["--executor", "slurm", "--wait"]);
     assert!(!log.contains("submitted"), "{log}");
