@@ -21,3 +21,4 @@ mod registry_runs;
 mod report;
 mod simulator;
 mod stress;
+mod sweep_cluster;
