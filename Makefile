@@ -37,8 +37,13 @@ reproduce-paper: build
 # Five-fold cross-validation of the paper's CNN (the manifest's
 # cross_validation block; five trainings, about an hour here). Resumes
 # where an interrupted sweep stopped.
+# EXECUTOR=slurm runs the folds as a Slurm job array and waits for it
+# (README, "Running on a cluster"); SWEEP_ARGS passes further options
+# (--partition, --time, --max-parallel, --jobs, ...).
+EXECUTOR ?= local
+SWEEP_ARGS ?=
 cv: build
-	$(BIN) cv $(MANIFEST)
+	$(BIN) cv $(MANIFEST) --executor $(EXECUTOR) $(if $(filter slurm,$(EXECUTOR)),--wait) $(SWEEP_ARGS)
 
 # The brightness sweep alone: N_qd against the paper's TrackPy row
 # (docs/metric.md, "Calibrating the brightness").

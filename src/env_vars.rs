@@ -27,3 +27,13 @@ pub const SCANLOC_FUZZ_CASES: &str = "SCANLOC_FUZZ_CASES";
 /// A folder in which the figures test keeps the figures it draws, for a
 /// person to look at. Read by the test suite only.
 pub const SCANLOC_KEEP_FIGURES: &str = "SCANLOC_KEEP_FIGURES";
+
+/// `1` makes the Slurm tests fail, instead of skipping, when no Slurm
+/// answers (`.ci/run` sets it after starting its test cluster). Read by the
+/// test suite only.
+pub const SCANLOC_REQUIRE_SLURM: &str = "SCANLOC_REQUIRE_SLURM";
+
+/// The number of threads of the pool scanloc computes on (rayon's own
+/// variable; default: every CPU). A sweep sets it for each of its local
+/// processes, and its Slurm batch script to the task's CPUs.
+pub const RAYON_NUM_THREADS: &str = "RAYON_NUM_THREADS";

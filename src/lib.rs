@@ -22,4 +22,5 @@ pub mod registry;
 pub mod report;
 pub mod run;
 pub mod sim;
+pub mod sweep;
 pub mod types;

@@ -6,8 +6,9 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::manifest;
-use scanloc::registry::Registry;
-use scanloc::run::calibrate;
+use scanloc::sweep::{SweepKind, SweepSpec};
+
+use super::sweep::{ExecutorArgs, run_sweep};
 
 /// Sweep the QD brightness N_qd and report, per value, how close a
 /// detector's AUC row comes to its reference row (sum of squared
@@ -31,36 +32,20 @@ pub struct CalibrateArgs {
     json: bool,
     #[command(flatten)]
     registry: super::RegistryDir,
+    /// Where the grid points run (each a recorded run, then the table).
+    #[command(flatten)]
+    executor: ExecutorArgs,
 }
 
 pub fn run(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
-    let mut registry = Registry::open(&args.registry)?;
-    let json = args.json;
-    if !json {
-        println!("{:>10} {:>10} {:>14}  run", "N_qd", "SSE", "cells ≤ 0.05");
-    }
-    let result = calibrate::calibrate(
-        &mut registry,
-        &manifest,
-        &args.detector,
-        &args.brightness,
-        |point| {
-            if !json {
-                println!(
-                    "{:>10} {:>10.4} {:>11}/{:<2}  {}",
-                    point.brightness, point.sse, point.cells_within_0_05, point.cells, point.run
-                );
-            }
+    let spec = SweepSpec {
+        kind: SweepKind::Calibrate {
+            detector: args.detector,
+            brightness: args.brightness,
         },
-    )?;
-    if json {
-        println!("{}", serde_json::to_string(&result)?);
-    } else {
-        println!(
-            "best N_qd for {}: {}",
-            result.detector, result.best_brightness
-        );
-    }
-    Ok(ExitCode::SUCCESS)
+        manifest_path: manifest.source.clone(),
+        manifest_text: manifest.text.clone(),
+    };
+    run_sweep(&args.registry, spec, &args.executor, false, args.json)
 }

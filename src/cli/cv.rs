@@ -8,6 +8,9 @@ use scanloc::error::input_error;
 use scanloc::manifest;
 use scanloc::registry::{CrossValidationPlan, Registry};
 use scanloc::run::cross_validation;
+use scanloc::sweep::{SweepKind, SweepSpec};
+
+use super::sweep::{ExecutorArgs, run_sweep};
 
 /// Cross-validate a trained detector: its training set split into k folds
 /// by a recorded seeded permutation, k models each trained on k − 1 folds,
@@ -41,6 +44,9 @@ pub struct CvArgs {
     json: bool,
     #[command(flatten)]
     registry: super::RegistryDir,
+    /// Where the folds run (each fold a recorded run, then the table).
+    #[command(flatten)]
+    executor: ExecutorArgs,
 }
 
 pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
@@ -56,6 +62,20 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
             ))
         })?;
     let folds = args.folds.or(block.map(|b| b.folds)).unwrap_or(5);
+    if args.fold.is_none() {
+        // The whole sweep: a point per fold, through the sweep executors.
+        let spec = SweepSpec {
+            kind: SweepKind::Cv { detector, folds },
+            manifest_path: manifest.source.clone(),
+            manifest_text: manifest.text.clone(),
+        };
+        return run_sweep(&args.registry, spec, &args.executor, args.force, args.json);
+    }
+    if args.executor.is_not_default() {
+        return Err(input_error(
+            "--fold: one fold runs here, in this process; --executor and --jobs are for the whole sweep",
+        ));
+    }
     let mut registry = Registry::open(&args.registry)?;
     let plan = CrossValidationPlan {
         detector,

@@ -13,6 +13,7 @@ mod reproduce;
 mod run;
 mod score;
 mod simulate;
+mod sweep;
 mod train;
 
 use std::ops::Deref;
@@ -51,6 +52,7 @@ enum Command {
     Report(report::ReportArgs),
     Calibrate(calibrate::CalibrateArgs),
     Cv(cv::CvArgs),
+    Sweep(sweep::SweepArgs),
 }
 
 /// Runs the parsed command.
@@ -68,6 +70,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Report(args) => report::run(args),
         Command::Calibrate(args) => calibrate::run(args),
         Command::Cv(args) => cv::run(args),
+        Command::Sweep(args) => sweep::run(args),
     }
 }
 

@@ -1,10 +1,11 @@
 //! `scanloc registry`: audit what has been run and stored.
 
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Subcommand};
 use scanloc::error::{CheckFailed, input_error};
-use scanloc::registry::{Found, Registry, Table, diff, sql};
+use scanloc::registry::{Found, Registry, Table, diff, shard, sql};
 use scanloc::report::summary::run_summary;
 
 /// Query the registry: runs, datasets, models, evaluations, one run or
@@ -49,6 +50,26 @@ enum RegistryCommand {
         #[arg(long)]
         dry_run: bool,
     },
+    /// Write runs and every artefact they used (records and blobs) into a
+    /// shard: a registry folder that `registry import` reads, to move runs
+    /// between machines or labs.
+    Export {
+        /// Run ids (or unique prefixes).
+        #[arg(required = true)]
+        runs: Vec<String>,
+        /// The shard folder to write (created; an existing one is added to).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Copy shards (registry folders: from `registry export`, or a sweep's
+    /// tasks) into this registry: blobs re-hashed, artefact rows and run
+    /// records. Importing twice changes nothing. A shard that is missing
+    /// or damaged is reported and the others imported (exit 2); an artefact
+    /// stored here with other blobs is refused (exit 1).
+    Import {
+        #[arg(required = true)]
+        shards: Vec<PathBuf>,
+    },
     /// Run one read-only SQL statement, e.g.
     /// "SELECT detector, dataset, eps_px, auc FROM run_auc WHERE run_id = '…'".
     Sql { query: String },
@@ -85,6 +106,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
     if let RegistryCommand::Sql { query: sql } = &args.command {
         print_table(&sql::read_only_sql(&args.registry, sql)?, json);
         return Ok(ExitCode::SUCCESS);
+    }
+    if let RegistryCommand::Import { shards } = &args.command {
+        return import(&args.registry, shards, json);
     }
     let mut registry = Registry::open_existing(&args.registry)?;
     match args.command {
@@ -189,7 +213,63 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
                 }
             }
         }
-        RegistryCommand::Sql { .. } => unreachable!("handled above"),
+        RegistryCommand::Export { runs, out } => {
+            let ids = runs
+                .iter()
+                .map(|id| run_id(&registry, id))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            drop(registry);
+            let report = shard::export(&args.registry, &ids, &out)?;
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!("exported to {}: {}", out.display(), report.summary());
+            }
+        }
+        RegistryCommand::Sql { .. } | RegistryCommand::Import { .. } => {
+            unreachable!("handled above")
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `registry import`: every shard in turn; the exit code says the worst.
+fn import(registry: &Path, shards: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
+    let mut registry = Registry::open(registry)?;
+    let shards: Vec<&Path> = shards.iter().map(PathBuf::as_path).collect();
+    let results = shard::import_all(&mut registry, &shards);
+    let (mut bad_shards, mut conflicts) = (Vec::new(), 0);
+    let mut reports = Vec::new();
+    for (shard, result) in results {
+        match result {
+            Ok(report) => {
+                conflicts += report.conflicts.len();
+                if !json {
+                    println!("imported {}", report.summary());
+                }
+                reports.push(serde_json::json!({"shard": shard, "report": report}));
+            }
+            Err(error) => {
+                eprintln!("error: {error:#}");
+                reports.push(serde_json::json!({"shard": shard, "error": format!("{error:#}")}));
+                bad_shards.push(shard);
+            }
+        }
+    }
+    if json {
+        println!("{}", serde_json::Value::Array(reports));
+    }
+    if conflicts > 0 {
+        return Err(anyhow::Error::new(CheckFailed(format!(
+            "{conflicts} artefact(s) refused: stored here with other blobs (see above)"
+        ))));
+    }
+    if !bad_shards.is_empty() {
+        return Err(input_error(format!(
+            "{} shard(s) not imported: {}",
+            bad_shards.len(),
+            bad_shards.join(", ")
+        )));
     }
     Ok(ExitCode::SUCCESS)
 }

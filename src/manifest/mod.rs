@@ -31,6 +31,8 @@
 //!   - {detector: trackpy, datasets: [test-1.00]}
 //!   - {detector: cnn, datasets: [test-1.00]}
 //! cross_validation: {folds: 5, detector: cnn}    # optional; run by `scanloc cv`
+//! sweep:                      # optional; a grid run by `scanloc sweep run`
+//!   channels: {path: detectors.cnn.cnn.architecture.channels, values: [8, 16]}
 //! reference:                  # optional: published numbers printed beside ours
 //!   source: Table 1
 //!   rows:

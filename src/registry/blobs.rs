@@ -45,6 +45,14 @@ impl BlobStore {
         })
     }
 
+    /// The store under `registry_dir` as it is, creating nothing: for
+    /// reading another registry's blobs (a shard) without writing to it.
+    pub fn read_only(registry_dir: &Path) -> Self {
+        Self {
+            root: registry_dir.to_path_buf(),
+        }
+    }
+
     /// Where the blob with hash `sha256` lives.
     pub fn path(&self, sha256: &str) -> PathBuf {
         let prefix = sha256.get(..2).unwrap_or("xx");

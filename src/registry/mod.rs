@@ -20,6 +20,7 @@ pub mod diff;
 pub mod gc;
 pub mod hashing;
 pub mod record;
+pub mod shard;
 pub mod sql;
 pub mod table;
 pub mod verify;

@@ -55,6 +55,8 @@ pub enum RunKind {
     Cv,
     /// `scanloc calibrate`: one brightness grid point.
     Calibrate,
+    /// `scanloc sweep run`: one point of a manifest's `sweep:` grid.
+    Sweep,
 }
 
 stored_by_name!(RunKind {
@@ -62,6 +64,7 @@ stored_by_name!(RunKind {
     Reproduce => "reproduce",
     Cv => "cv",
     Calibrate => "calibrate",
+    Sweep => "sweep",
 });
 
 /// How a run ended (or not).
@@ -496,6 +499,7 @@ mod tests {
             RunKind::Reproduce,
             RunKind::Cv,
             RunKind::Calibrate,
+            RunKind::Sweep,
         ] {
             assert_eq!(RunKind::parse(kind.as_str()), Some(kind));
         }
@@ -507,7 +511,7 @@ mod tests {
             assert_eq!(StepOutcome::parse(outcome.as_str()), Some(outcome));
         }
         assert_eq!(RunStatus::parse("done"), Some(RunStatus::Done));
-        assert_eq!(RunKind::parse("sweep"), None);
+        assert_eq!(RunKind::parse("grid"), None);
         assert_eq!(format!("{:<9}|", StepOutcome::Cached), "cached   |");
     }
 
@@ -602,7 +606,7 @@ mod tests {
             .unwrap();
         for (sql, column) in [
             ("UPDATE runs SET seeds = 'not json'", "runs.seeds"),
-            ("UPDATE runs SET kind = 'sweep'", "runs.kind"),
+            ("UPDATE runs SET kind = 'grid'", "runs.kind"),
             ("UPDATE runs SET threads = -1", "runs.threads"),
             ("UPDATE runs SET cv_detector = 'cnn'", "runs.cv_folds"),
         ] {

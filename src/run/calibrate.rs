@@ -2,21 +2,20 @@
 //! detector's AUC row comes closest to its reference row.
 //!
 //! Each grid point is an ordinary recorded run (kind `calibrate`) of the
-//! manifest restricted to that detector, with every dataset's brightness
+//! manifest restricted to that detector (run as a sweep, `crate::sweep`), with every dataset's brightness
 //! set to the point's value; the points share dataset seeds (derived from
 //! the names), so the sweep compares brightness values on common random
 //! numbers. Scored by the sum of squared differences over the reference
 //! cells.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-use super::{RunOptions, execute, plan::Plan};
 use crate::error::input_error;
-use crate::manifest::Manifest;
-use crate::registry::{Registry, RunKind};
+use crate::manifest::{Manifest, ReferenceRow};
+use crate::registry::AucRow;
 
 /// One grid point of the sweep.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct CalibrationPoint {
     pub brightness: f64,
     /// The recorded run of this point.
@@ -31,7 +30,7 @@ pub struct CalibrationPoint {
 }
 
 /// The sweep's result: every point and the best one.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Calibration {
     pub detector: String,
     pub points: Vec<CalibrationPoint>,
@@ -40,7 +39,7 @@ pub struct Calibration {
 
 /// The manifest with only `detector`'s evaluations, every dataset at
 /// `brightness`.
-fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
+pub fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
     let mut point = manifest.clone();
     point.microscope.brightness = brightness;
     for dataset in &mut point.datasets {
@@ -52,14 +51,14 @@ fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest 
     point
 }
 
-/// Runs the sweep over `grid` for `detector`, which needs reference cells.
-pub fn calibrate(
-    registry: &mut Registry,
-    manifest: &Manifest,
+/// Checks a calibration's inputs: `detector` exists and has a reference
+/// row, and `grid` is a non-empty list of brightness values ≥ 0. Returns
+/// the reference row.
+pub fn reference_row<'a>(
+    manifest: &'a Manifest,
     detector: &str,
     grid: &[f64],
-    progress: impl Fn(&CalibrationPoint),
-) -> anyhow::Result<Calibration> {
+) -> anyhow::Result<&'a ReferenceRow> {
     if manifest.detector(detector).is_none() {
         return Err(input_error(format!(
             "{}: detectors.{detector}: no such detector",
@@ -82,53 +81,51 @@ pub fn calibrate(
     for &b in grid {
         crate::error::require_non_negative("--brightness", b)?;
     }
-    let mut points = Vec::new();
-    for &brightness in grid {
-        let point_manifest = restricted(manifest, detector, brightness);
-        let plan = Plan::from_manifest(&point_manifest)?;
-        let outcome = execute(
-            registry,
-            &point_manifest,
-            &plan,
-            &RunOptions {
-                kind: RunKind::Calibrate,
-                ..RunOptions::default()
-            },
-        )?;
-        let mut table = Vec::new();
-        for cell in &reference.cells {
-            if let Some(row) = outcome.auc.iter().find(|r| {
-                r.detector == detector && r.dataset == cell.dataset && r.eps_px == cell.eps_px
-            }) {
-                table.push((cell.dataset.clone(), cell.eps_px, row.auc, cell.auc));
-            }
+    Ok(reference)
+}
+
+/// Scores one grid point (run `run`, AUC table `auc`) against `reference`.
+pub fn score_point(
+    reference: &ReferenceRow,
+    brightness: f64,
+    run: String,
+    auc: &[AucRow],
+) -> CalibrationPoint {
+    let mut table = Vec::new();
+    for cell in &reference.cells {
+        if let Some(row) = auc.iter().find(|r| {
+            r.detector == reference.detector && r.dataset == cell.dataset && r.eps_px == cell.eps_px
+        }) {
+            table.push((cell.dataset.clone(), cell.eps_px, row.auc, cell.auc));
         }
-        let sse = table
-            .iter()
-            .map(|(_, _, ours, theirs)| (ours - theirs).powi(2))
-            .sum();
-        let point = CalibrationPoint {
-            brightness,
-            run: outcome.run.clone(),
-            sse,
-            cells_within_0_05: table
-                .iter()
-                .filter(|(_, _, o, t)| (o - t).abs() <= 0.05)
-                .count(),
-            cells: table.len(),
-            table,
-        };
-        progress(&point);
-        points.push(point);
     }
+    let sse = table
+        .iter()
+        .map(|(_, _, ours, theirs)| (ours - theirs).powi(2))
+        .sum();
+    CalibrationPoint {
+        brightness,
+        run,
+        sse,
+        cells_within_0_05: table
+            .iter()
+            .filter(|(_, _, o, t)| (o - t).abs() <= 0.05)
+            .count(),
+        cells: table.len(),
+        table,
+    }
+}
+
+/// The sweep's result from its points: the best is the smallest SSE.
+pub fn conclude(detector: &str, points: Vec<CalibrationPoint>) -> Calibration {
     let best_brightness = points
         .iter()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))
         .map(|p| p.brightness)
         .unwrap_or(f64::NAN);
-    Ok(Calibration {
+    Calibration {
         detector: detector.to_string(),
         points,
         best_brightness,
-    })
+    }
 }

@@ -11,6 +11,7 @@ use super::details::details;
 use super::log;
 use super::plan::{Action, Plan, Step};
 use super::stored::{Stored, check_stored_artefacts, read_blobs};
+use crate::metrics::Score;
 use crate::registry::hashing::sha256_hex;
 use crate::registry::{
     AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
@@ -247,15 +248,9 @@ fn blob_refs(encoded: &[(String, Vec<u8>)]) -> Vec<BlobRef> {
 /// The AUC table rows of a scoring step (one per ε), none for other steps.
 /// A cached evaluation is read from its `score.json` blob.
 fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result<Vec<AucRow>> {
-    let Action::Score {
-        detector,
-        dataset_name,
-        diffusion,
-        ..
-    } = &step.action
-    else {
+    if !matches!(step.action, Action::Score { .. }) {
         return Ok(Vec::new());
-    };
+    }
     let score = match &done.artefact {
         Some(artefact) => artefact.evaluation()?.clone(),
         None => Arc::new(artefacts::decode_score(&read_blobs(
@@ -263,7 +258,22 @@ fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result
             &done.blobs,
         )?)?),
     };
-    Ok(score
+    Ok(score_rows(step, &score))
+}
+
+/// The AUC table rows (one per ε) of scoring step `step` whose evaluation
+/// is `score`; none for a step that does not score.
+pub fn score_rows(step: &Step, score: &Score) -> Vec<AucRow> {
+    let Action::Score {
+        detector,
+        dataset_name,
+        diffusion,
+        ..
+    } = &step.action
+    else {
+        return Vec::new();
+    };
+    score
         .per_eps
         .iter()
         .map(|per_eps| AucRow {
@@ -274,5 +284,5 @@ fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result
             auc: per_eps.auc,
             evaluation_key: step.key.clone(),
         })
-        .collect())
+        .collect()
 }

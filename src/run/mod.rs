@@ -32,6 +32,7 @@ use serde::Serialize;
 
 pub use artefacts::Artefact;
 pub use compute::subset;
+pub use execution::score_rows;
 pub use plan::{Action, Plan, Step};
 pub use stored::{load_artefact, read_blobs};
 

@@ -10,7 +10,9 @@ use std::path::{Path, PathBuf};
 use crate::common::root;
 
 /// Modules above the pipeline: nothing in the pipeline or in `io` may name them.
-const ORCHESTRATION: &[&str] = &["run", "registry", "report", "bench", "cli", "manifest"];
+const ORCHESTRATION: &[&str] = &[
+    "run", "sweep", "registry", "report", "bench", "cli", "manifest",
+];
 
 /// Every `.rs` file of `path` (a file, or a folder searched recursively).
 fn rust_files(path: &Path) -> Vec<PathBuf> {

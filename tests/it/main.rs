@@ -22,3 +22,4 @@ mod registry_runs;
 mod report;
 mod simulator;
 mod stress;
+mod sweep_cluster;
