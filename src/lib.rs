@@ -14,6 +14,7 @@ pub mod detect;
 pub mod env_vars;
 pub mod error;
 pub mod io;
+pub mod limits;
 pub mod manifest;
 pub mod metrics;
 pub mod progress;

@@ -9,6 +9,7 @@ use std::process::ExitCode;
 use clap::Parser;
 
 fn main() -> ExitCode {
+    restore_default_sigpipe();
     let args = cli::Cli::parse();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
@@ -24,6 +25,21 @@ fn main() -> ExitCode {
             eprintln!("error: {error:#}");
             ExitCode::from(scanloc::error::exit_code(&error) as u8)
         }
+    }
+}
+
+/// Lets a closed stdout end the process quietly, for every command at once
+/// (`scanloc check … | head`): Rust ignores SIGPIPE, so each print to a
+/// closed pipe would fail, and `println!` panics on that failure. With the
+/// default action the process ends the way `cat` or `grep` do. Outputs to
+/// files are unaffected (they are written to temporary files and renamed),
+/// and the registry survives being stopped at any point.
+fn restore_default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: called first thing in `main`, before any other thread exists;
+    // setting a signal's disposition to its default has no other effect.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 

@@ -11,6 +11,7 @@
 //! `AUC = Σ_k (recall_k − recall_(k−1)) · precision_k`.
 
 use std::cmp::Ordering;
+use std::collections::{HashMap, HashSet};
 
 use serde::{Deserialize, Serialize};
 
@@ -76,13 +77,31 @@ fn ranking(a: &Prediction, b: &Prediction) -> Ordering {
         .then(a.y.total_cmp(&b.y))
 }
 
+/// The ground truth grouped by frame, holding only frames that have
+/// truth: memory grows with the rows given, never with the frame numbers.
+struct TruthByFrame {
+    /// Frame number → position in `points`.
+    slot: HashMap<usize, usize>,
+    /// Per frame with truth, its points `(x, y)` in input order.
+    points: Vec<Vec<(f64, f64)>>,
+}
+
+impl TruthByFrame {
+    /// The truth of `frame` (empty if it has none).
+    fn of(&self, frame: usize) -> &[(f64, f64)] {
+        self.slot
+            .get(&frame)
+            .map_or(&[], |&slot| &self.points[slot])
+    }
+}
+
 /// Checks predictions and truth (finite, on frames `0..frames`, some truth)
 /// and groups the truth by frame.
 fn checked_truth_by_frame(
     predictions: &[Prediction],
     truth: &[TruthRow],
     frames: usize,
-) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
+) -> anyhow::Result<TruthByFrame> {
     for p in predictions {
         if !(p.x.is_finite() && p.y.is_finite() && p.score.is_finite()) {
             return Err(input_error(format!(
@@ -97,7 +116,10 @@ fn checked_truth_by_frame(
             )));
         }
     }
-    let mut truth_by_frame: Vec<Vec<(f64, f64)>> = vec![Vec::new(); frames];
+    let mut by_frame = TruthByFrame {
+        slot: HashMap::new(),
+        points: Vec::new(),
+    };
     for t in truth {
         if !(t.x.is_finite() && t.y.is_finite()) {
             return Err(input_error(format!(
@@ -105,57 +127,52 @@ fn checked_truth_by_frame(
                 t.frame
             )));
         }
-        match truth_by_frame.get_mut(t.frame) {
-            Some(list) => list.push((t.x, t.y)),
-            None => {
-                return Err(input_error(format!(
-                    "ground truth on frame {}, but the test set has {frames} frames",
-                    t.frame
-                )));
-            }
+        if t.frame >= frames {
+            return Err(input_error(format!(
+                "ground truth on frame {}, but the test set has {frames} frames",
+                t.frame
+            )));
         }
+        let next = by_frame.points.len();
+        let slot = *by_frame.slot.entry(t.frame).or_insert(next);
+        if slot == next {
+            by_frame.points.push(Vec::new());
+        }
+        by_frame.points[slot].push((t.x, t.y));
     }
     if truth.is_empty() {
         return Err(input_error(
             "the test set has no ground truth, so recall and AUC are undefined",
         ));
     }
-    Ok(truth_by_frame)
+    Ok(by_frame)
 }
 
-/// For each frame, the squared distance from its top prediction (the first
-/// met in ranking order) to the nearest ground truth of that frame; None
-/// if the frame has no prediction or no truth.
-fn top_squared_errors(
-    ranked: &[Prediction],
-    truth_by_frame: &[Vec<(f64, f64)>],
-) -> Vec<Option<f64>> {
-    let mut top: Vec<Option<&Prediction>> = vec![None; truth_by_frame.len()];
+/// For each frame with both a prediction and truth, the squared distance
+/// from its top prediction (the first met in ranking order) to the nearest
+/// ground truth of that frame.
+fn top_squared_errors(ranked: &[Prediction], truth: &TruthByFrame) -> HashMap<usize, f64> {
+    let mut errors = HashMap::new();
     for p in ranked {
-        top[p.frame].get_or_insert(p);
+        let frame_truth = truth.of(p.frame);
+        if frame_truth.is_empty() {
+            continue;
+        }
+        errors.entry(p.frame).or_insert_with(|| {
+            frame_truth
+                .iter()
+                .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
+                .fold(f64::INFINITY, f64::min)
+        });
     }
-    truth_by_frame
-        .iter()
-        .zip(&top)
-        .map(|(frame_truth, top)| match (top, frame_truth.is_empty()) {
-            (Some(p), false) => Some(
-                frame_truth
-                    .iter()
-                    .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
-                    .fold(f64::INFINITY, f64::min),
-            ),
-            _ => None,
-        })
-        .collect()
+    errors
 }
 
-/// Frames of `0..frames` without any prediction.
+/// Frames of `0..frames` without any prediction (predictions are on
+/// frames `0..frames`, checked before).
 fn count_frames_without_prediction(ranked: &[Prediction], frames: usize) -> usize {
-    let mut has_prediction = vec![false; frames];
-    for p in ranked {
-        has_prediction[p.frame] = true;
-    }
-    has_prediction.iter().filter(|&&has| !has).count()
+    let with_prediction: HashSet<usize> = ranked.iter().map(|p| p.frame).collect();
+    frames - with_prediction.len()
 }
 
 /// Distance (px) from each frame's top-scoring prediction to the nearest
@@ -170,9 +187,9 @@ pub fn top_prediction_errors(
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
     let mut ranked: Vec<Prediction> = predictions.to_vec();
     ranked.sort_by(ranking);
-    Ok(top_squared_errors(&ranked, &truth_by_frame)
-        .into_iter()
-        .map(|squared| squared.map(f64::sqrt))
+    let squared = top_squared_errors(&ranked, &truth_by_frame);
+    Ok((0..frames)
+        .map(|frame| squared.get(&frame).map(|s| s.sqrt()))
         .collect())
 }
 
@@ -208,9 +225,13 @@ pub fn score(
         .collect();
 
     let top = top_squared_errors(&ranked, &truth_by_frame);
+    // Summed in frame order, as before the truth was stored sparsely, so
+    // the RMSE keeps its last bit.
+    let mut top: Vec<(usize, f64)> = top.into_iter().collect();
+    top.sort_unstable_by_key(|&(frame, _)| frame);
     let mut squared_sum = 0.0;
     let mut counted = 0usize;
-    for squared in top.iter().flatten() {
+    for (_, squared) in &top {
         squared_sum += squared;
         counted += 1;
     }
@@ -248,12 +269,13 @@ pub fn paper_aucs(predictions: &[Prediction], dataset: &Dataset) -> anyhow::Resu
 /// One greedy matching walk at radius `eps` over predictions already ranked.
 fn walk(
     ranked: &[Prediction],
-    truth_by_frame: &[Vec<(f64, f64)>],
+    truth_by_frame: &TruthByFrame,
     ground_truths: usize,
     eps: f64,
     keep_curve: bool,
 ) -> EpsScore {
     let mut matched: Vec<Vec<bool>> = truth_by_frame
+        .points
         .iter()
         .map(|t| vec![false; t.len()])
         .collect();
@@ -263,22 +285,24 @@ fn walk(
     let mut curve = Vec::with_capacity(if keep_curve { ranked.len() } else { 0 });
     for (index, p) in ranked.iter().enumerate() {
         let k = index + 1;
-        let candidates = &truth_by_frame[p.frame];
-        let mut best: Option<(usize, f64)> = None;
-        for (j, &(x, y)) in candidates.iter().enumerate() {
-            if matched[p.frame][j] {
-                continue;
+        // A frame without truth has no candidates: a false positive.
+        if let Some(&slot) = truth_by_frame.slot.get(&p.frame) {
+            let mut best: Option<(usize, f64)> = None;
+            for (j, &(x, y)) in truth_by_frame.points[slot].iter().enumerate() {
+                if matched[slot][j] {
+                    continue;
+                }
+                let d2 = (p.x - x).powi(2) + (p.y - y).powi(2);
+                if d2 <= eps2 && best.is_none_or(|(_, b)| d2 < b) {
+                    best = Some((j, d2));
+                }
             }
-            let d2 = (p.x - x).powi(2) + (p.y - y).powi(2);
-            if d2 <= eps2 && best.is_none_or(|(_, b)| d2 < b) {
-                best = Some((j, d2));
+            if let Some((j, _)) = best {
+                matched[slot][j] = true;
+                true_positives += 1;
+                // recall rises by 1/G exactly at true positives.
+                auc += (true_positives as f64 / k as f64) / ground_truths as f64;
             }
-        }
-        if let Some((j, _)) = best {
-            matched[p.frame][j] = true;
-            true_positives += 1;
-            // recall rises by 1/G exactly at true positives.
-            auc += (true_positives as f64 / k as f64) / ground_truths as f64;
         }
         if keep_curve {
             curve.push(CurvePoint {

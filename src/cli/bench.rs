@@ -83,9 +83,8 @@ impl TradeoffArgs {
     /// Refuses settings that would make an empty or meaningless sweep.
     fn validate(&self) -> anyhow::Result<()> {
         use scanloc::error::input_error;
-        if self.frames == 0 {
-            return Err(input_error("--frames: must be ≥ 1"));
-        }
+        paper_sized("--frames", self.frames)?;
+        paper_sized("--static-frames", self.static_frames)?;
         if !(self.brightness.is_finite() && self.brightness > 0.0) {
             return Err(input_error(format!(
                 "--brightness: must be a finite number > 0, got {}",
@@ -93,9 +92,7 @@ impl TradeoffArgs {
             )));
         }
         if self.stages.contains(&Stage::Cnn) {
-            if self.cnn_train_frames == 0 {
-                return Err(input_error("--cnn-train-frames: must be ≥ 1"));
-            }
+            paper_sized("--cnn-train-frames", self.cnn_train_frames)?;
             if self.cnn_epochs.contains(&0) {
                 return Err(input_error("--cnn-epochs: each must be ≥ 1"));
             }
@@ -160,7 +157,21 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     }
 }
 
+/// Checks a frame count flag of paper-sized frames against the limits a
+/// manifest's datasets have.
+pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
+    let paper = SimParams::default();
+    Ok(scanloc::limits::check_dataset_size(
+        flag,
+        frames,
+        paper.height,
+        paper.width,
+    )?)
+}
+
 fn locate(args: LocateBench) -> anyhow::Result<ExitCode> {
+    paper_sized("--frames", args.frames)?;
+    paper_sized("--reference-frames", args.reference_frames)?;
     let params = SimParams {
         diffusion_um2_s: Distribution::Fixed(1.0),
         margin_px: 4.0,
@@ -200,6 +211,7 @@ fn locate(args: LocateBench) -> anyhow::Result<ExitCode> {
 }
 
 fn simulate(args: SimulateBench) -> anyhow::Result<ExitCode> {
+    paper_sized("--frames", args.frames)?;
     let params = SimParams {
         diffusion_um2_s: "uniform:0.75,1.75"
             .parse::<Distribution>()

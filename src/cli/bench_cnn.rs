@@ -38,6 +38,8 @@ pub struct BenchTrainArgs {
 }
 
 pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
+    super::bench::paper_sized("--samples", args.samples)?;
+    super::bench::paper_sized("--locate-frames", args.locate_frames)?;
     let defaults = CnnArchitecture::default();
     let arch = CnnArchitecture {
         channels: args.channels.unwrap_or(defaults.channels),
@@ -100,6 +102,7 @@ pub struct BenchLocateArgs {
 }
 
 pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
+    super::bench::paper_sized("--frames", args.frames)?;
     let mut model = TrainedCnn::load(&args.model)?;
     if let Some(r) = args.peak_radius_px {
         model.architecture.peak_radius_px = r;

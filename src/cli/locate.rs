@@ -16,6 +16,12 @@ use scanloc::io::{self, csv_tables};
 /// --model DIR` (a model saved by `scanloc train`) the columns are
 /// frame,x,y,score.
 ///
+/// Frames are photon counts: integers, or floats whose values are whole
+/// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs
+/// `--channel`. The CNN goes through the frames in batches of at most 2¹⁸
+/// pixels, so its memory beyond the frames themselves does not grow with
+/// the recording.
+///
 /// Both methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
@@ -29,6 +35,10 @@ pub struct LocateArgs {
     /// Output CSV.
     #[arg(long)]
     out: PathBuf,
+    /// The channel to localise in (0-based), required for a multi-channel
+    /// stack (an ImageJ hyperstack with channels).
+    #[arg(long)]
+    channel: Option<usize>,
     /// With `--method cnn`: the model folder written by `scanloc train`.
     #[arg(long, required_if_eq("method", "cnn"))]
     model: Option<PathBuf>,
@@ -80,6 +90,9 @@ enum Method {
 }
 
 pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
+    let mut inputs = vec![("--input", args.input.as_path())];
+    inputs.extend(args.model.as_deref().map(|model| ("--model", model)));
+    io::refuse_shared_paths(&inputs, &[("--out", &args.out)])?;
     match args.method {
         Method::CrockerGrier => {
             let params = CrockerGrierParams {
@@ -98,7 +111,7 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             params
                 .validate()
                 .map_err(|e| input_error(format!("invalid crocker-grier parameter: {e}")))?;
-            let frames = io::read_frames(&args.input)?;
+            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
             bar.finish_and_clear();
@@ -116,7 +129,7 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
                 .as_deref()
                 .ok_or_else(|| input_error("--model: required with --method cnn"))?;
             let model = scanloc::detect::cnn::TrainedCnn::load(model_dir)?;
-            let frames = io::read_frames(&args.input)?;
+            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let predictions = model.locate(&frames, &bar)?;
             bar.finish_and_clear();

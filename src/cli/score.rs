@@ -15,14 +15,23 @@ use scanloc::metrics;
 /// the RMSE of each frame's top-scoring prediction, and the fraction of
 /// frames without a prediction. The test set's frames are those named in the
 /// truth file (0 to the largest frame index).
+///
+/// Frame numbers may be written as whole floats (`3.0`, as pandas writes
+/// them) and must be below 10,000,000; empty optional cells are missing
+/// values. Localisations none of which is on a frame of the truth file are
+/// refused (exit 2) rather than scored 0.
 #[derive(Debug, Args)]
 pub struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).
     #[arg(long)]
     truth: PathBuf,
-    /// Localisations CSV (needs columns frame,x,y,score).
+    /// Localisations CSV (needs columns frame,x,y and the score column).
     #[arg(long)]
     locs: PathBuf,
+    /// The column of --locs that ranks the localisations, e.g. `mass` for
+    /// TrackPy's own output.
+    #[arg(long, default_value = "score")]
+    score_column: String,
     /// Matching radii in pixels, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
     eps: Vec<f64>,
@@ -36,9 +45,18 @@ pub struct ScoreArgs {
 }
 
 pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
+    if let Some(curve) = &args.curve {
+        io::refuse_shared_paths(
+            &[("--truth", &args.truth), ("--locs", &args.locs)],
+            &[("--curve", curve)],
+        )?;
+    }
     let truth = csv_tables::read_truth(&args.truth)?;
-    let predictions = csv_tables::read_predictions(&args.locs)?;
+    let predictions = csv_tables::read_predictions_scored_by(&args.locs, &args.score_column)?;
+    // Frame numbers are below MAX_FRAMES (checked by the readers), so this
+    // cannot overflow.
     let frames = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
+    refuse_disjoint_frames(&args, &truth, &predictions)?;
     let score = metrics::score(
         &predictions,
         &truth,
@@ -101,4 +119,33 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
         )?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Refuses localisations none of which is on a frame with ground truth:
+/// frame numbers counted from 1 in one file and from 0 in the other, or
+/// the files of two different recordings, would otherwise score an AUC of
+/// 0 without a word.
+fn refuse_disjoint_frames(
+    args: &ScoreArgs,
+    truth: &[scanloc::types::TruthRow],
+    predictions: &[scanloc::types::Prediction],
+) -> anyhow::Result<()> {
+    if predictions.is_empty() {
+        return Ok(());
+    }
+    let truth_frames: std::collections::HashSet<usize> = truth.iter().map(|t| t.frame).collect();
+    if predictions.iter().any(|p| truth_frames.contains(&p.frame)) {
+        return Ok(());
+    }
+    let range = |frames: &mut dyn Iterator<Item = usize>| {
+        let (low, high) = frames.fold((usize::MAX, 0), |(lo, hi), f| (lo.min(f), hi.max(f)));
+        format!("{low}–{high}")
+    };
+    Err(input_error(format!(
+        "{}: no localisation is on a frame of {} (localisations on frames {}, truth on frames {}); are both from the same recording, numbered from the same first frame?",
+        args.locs.display(),
+        args.truth.display(),
+        range(&mut predictions.iter().map(|p| p.frame)),
+        range(&mut truth.iter().map(|t| t.frame)),
+    )))
 }

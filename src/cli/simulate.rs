@@ -16,7 +16,8 @@ use scanloc::sim::{self, DetectorNoise, Distribution, SimParams};
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct SimulateArgs {
-    /// Number of frames.
+    /// Number of frames (at most 10,000,000, and 2³¹ pixels in all: the
+    /// limits a manifest's datasets have).
     #[arg(long, default_value_t = 100)]
     frames: usize,
     /// Master seed of the dataset.
@@ -130,7 +131,12 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
     params
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
+    // The manifest's limits, checked by the same functions.
+    scanloc::limits::check_dataset_size("--frames", args.frames, args.height, args.width)?;
     io::FrameFormat::from_path(&args.out)?;
+    let mut outputs = vec![("--out", args.out.as_path())];
+    outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));
+    io::refuse_shared_paths(&[], &outputs)?;
     // Open every output before simulating: an unwritable destination fails
     // now, and nothing is renamed into place unless everything succeeded.
     let mut frames_out = PendingFile::create(&args.out)?;

@@ -25,6 +25,10 @@ use scanloc::sim::{self, Distribution, SimParams};
 ///
 /// With `--test-frames`, also simulates a test set per `--test-diffusion`
 /// value (seeds distinct from training) and prints the AUC table.
+///
+/// A training that diverges (a non-finite loss or network output, e.g.
+/// from too high a learning rate) stops with exit code 2, naming the epoch
+/// and batch: the settings are at fault, not the program.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
@@ -134,6 +138,17 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     for &d in &args.test_diffusion {
         scanloc::error::require_non_negative("--test-diffusion", d)?;
     }
+    // The manifest's limits, checked by the same functions.
+    scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
+    if args.test_frames > 0 {
+        scanloc::limits::check_dataset_size(
+            "--test-frames",
+            args.test_frames,
+            params.height,
+            params.width,
+        )?;
+    }
+    cnn::check_model_destination(&args.out)?;
 
     let bar = scanloc::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(

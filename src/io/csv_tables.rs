@@ -67,20 +67,21 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
 pub fn read_truth_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<TruthRow>> {
     #[derive(Deserialize)]
     struct Row {
+        #[serde(deserialize_with = "frame_number")]
         frame: usize,
         x: f64,
         y: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         x_start: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         y_start: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         x_end: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         y_end: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         z_mean: f64,
-        #[serde(default = "nan")]
+        #[serde(default = "nan", deserialize_with = "optional_number")]
         diffusion: f64,
     }
     let rows: Vec<Row> = read_rows(reader, source, &["frame", "x", "y"])?;
@@ -121,31 +122,96 @@ pub fn read_predictions(path: &Path) -> anyhow::Result<Vec<Prediction>> {
 /// Reads a localisation table from any reader, as [`read_predictions`];
 /// `source` names it in errors.
 pub fn read_predictions_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<Prediction>> {
-    #[derive(Deserialize)]
-    struct Row {
-        frame: usize,
-        x: f64,
-        y: f64,
-        score: f64,
-    }
-    let rows: Vec<Row> = read_rows(reader, source, &PREDICTION_COLUMNS)?;
-    rows.into_iter()
-        .enumerate()
-        .map(|(line, r)| {
-            if !(r.x.is_finite() && r.y.is_finite() && r.score.is_finite()) {
-                return Err(input_error(format!(
-                    "{source}: row {}: x, y and score must be finite numbers",
-                    line + 1
-                )));
+    read_predictions_scored_by_from(reader, source, "score")
+}
+
+/// Reads a localisation file whose score is column `score_column` (e.g.
+/// `mass` in TrackPy's own output): columns `frame`, `x`, `y` and
+/// `score_column`, others ignored. Frame numbers may be written as whole
+/// floats (`3.0`, as pandas writes them); non-finite coordinates or scores
+/// are refused, naming the row.
+pub fn read_predictions_scored_by(
+    path: &Path,
+    score_column: &str,
+) -> anyhow::Result<Vec<Prediction>> {
+    read_predictions_scored_by_from(open_input(path)?, &path.display().to_string(), score_column)
+}
+
+/// [`read_predictions_scored_by`] from any reader; `name` names it in
+/// errors.
+pub fn read_predictions_scored_by_from<R: Read>(
+    reader: R,
+    name: &str,
+    score_column: &str,
+) -> anyhow::Result<Vec<Prediction>> {
+    let required = ["frame", "x", "y", score_column];
+    let (mut reader, headers) = open_table(reader, name, &required)?;
+    let column = |wanted: &str| headers.iter().position(|h| h.trim() == wanted);
+    let [frame_at, x_at, y_at, score_at] = required.map(|c| column(c).unwrap_or_default());
+    let mut predictions = Vec::new();
+    for (index, record) in reader.records().enumerate() {
+        let row = index + 1;
+        let record = record.map_err(|e| input_error(format!("{name}: row {row}: {e}")))?;
+        let cell = |at: usize| record.get(at).unwrap_or("").trim();
+        let number = |at: usize, column: &str| -> anyhow::Result<f64> {
+            let text = cell(at);
+            match text.parse::<f64>() {
+                Ok(value) if value.is_finite() => Ok(value),
+                _ => Err(input_error(format!(
+                    "{name}: row {row}: {column}: expected a finite number, got {text:?}"
+                ))),
             }
-            Ok(Prediction {
-                frame: r.frame,
-                x: r.x,
-                y: r.y,
-                score: r.score,
-            })
-        })
-        .collect()
+        };
+        let frame = parse_frame_number(cell(frame_at))
+            .map_err(|e| input_error(format!("{name}: row {row}: frame: {e}")))?;
+        predictions.push(Prediction {
+            frame,
+            x: number(x_at, "x")?,
+            y: number(y_at, "y")?,
+            score: number(score_at, score_column)?,
+        });
+    }
+    Ok(predictions)
+}
+
+/// A frame number as written by scanloc (`3`) or pandas (`3.0`): a whole
+/// number from 0 to below [`MAX_FRAMES`](crate::limits::MAX_FRAMES), the
+/// limit every frame count has.
+pub fn parse_frame_number(text: &str) -> Result<usize, String> {
+    let text = text.trim();
+    let value = match text.parse::<u64>() {
+        Ok(value) => value,
+        Err(_) => match text.parse::<f64>() {
+            Ok(value) if value.is_finite() && value >= 0.0 && value.fract() == 0.0 => {
+                // Saturates for huge values, which the bound below refuses.
+                value as u64
+            }
+            _ => return Err(format!("expected a whole number ≥ 0, got {text:?}")),
+        },
+    };
+    let limit = crate::limits::MAX_FRAMES;
+    if value >= limit as u64 {
+        return Err(format!("{value} is beyond the limit of {limit} frames"));
+    }
+    Ok(value as usize)
+}
+
+/// serde adapter for [`parse_frame_number`].
+fn frame_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<usize, D::Error> {
+    let text = String::deserialize(deserializer)?;
+    parse_frame_number(&text).map_err(serde::de::Error::custom)
+}
+
+/// serde adapter for an optional number column: an empty cell (as pandas
+/// writes a missing value) is NaN, like an absent column.
+fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    let text = String::deserialize(deserializer)?;
+    let text = text.trim();
+    if text.is_empty() {
+        return Ok(f64::NAN);
+    }
+    text.parse::<f64>()
+        .map_err(|_| serde::de::Error::custom(format!("expected a number, got {text:?}")))
 }
 
 /// Writes predictions as `frame,x,y,score` to `path` atomically.
@@ -210,6 +276,23 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
     source: &str,
     required: &[&str],
 ) -> anyhow::Result<Vec<T>> {
+    let (mut reader, _) = open_table(reader, source, required)?;
+    reader
+        .deserialize()
+        .enumerate()
+        .map(|(index, row)| {
+            row.map_err(|e| input_error(format!("{source}: row {}: {e}", index + 1)))
+        })
+        .collect()
+}
+
+/// Starts reading CSV from `reader`: its header, checked to have every
+/// `required` column (an error names `source` and the missing columns).
+fn open_table<R: Read>(
+    reader: R,
+    source: &str,
+    required: &[&str],
+) -> anyhow::Result<(csv::Reader<R>, csv::StringRecord)> {
     let mut reader = csv::Reader::from_reader(reader);
     let headers = reader
         .headers()
@@ -227,11 +310,5 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
             headers.iter().collect::<Vec<_>>().join(",")
         )));
     }
-    reader
-        .deserialize()
-        .enumerate()
-        .map(|(index, row)| {
-            row.map_err(|e| input_error(format!("{source}: row {}: {e}", index + 1)))
-        })
-        .collect()
+    Ok((reader, headers))
 }

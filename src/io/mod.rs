@@ -48,11 +48,35 @@ impl FrameFormat {
 }
 
 /// Reads a frame stack from `.npy` or TIFF, by extension.
+/// Refuses stacks no command can use (see
+/// [`check_stack_shape`](crate::limits::check_stack_shape)): no frames,
+/// frames without pixels, or more than the size limits; and multi-channel
+/// stacks (see [`read_frames_of_channel`]).
 pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    match FrameFormat::from_path(path)? {
-        FrameFormat::Npy => npy::read_frames(path),
-        FrameFormat::Tiff => tiff_stack::read_frames(path),
-    }
+    read_frames_of_channel(path, None)
+}
+
+/// [`read_frames`] of one channel of a multi-channel stack (an ImageJ
+/// hyperstack, see [`tiff_stack::read_channel`]); `None` for a stack with
+/// one channel. A `.npy` stack has one channel (0).
+pub fn read_frames_of_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<FrameStack> {
+    let frames = match FrameFormat::from_path(path)? {
+        FrameFormat::Npy => match channel {
+            None | Some(0) => npy::read_frames(path),
+            Some(channel) => Err(input_error(format!(
+                "{}: --channel {channel} does not exist; a .npy stack (n, H, W) has one channel (0)",
+                path.display()
+            ))),
+        },
+        FrameFormat::Tiff => tiff_stack::read_channel(path, channel),
+    }?;
+    crate::limits::check_stack_shape(
+        &path.display().to_string(),
+        frames.n,
+        frames.height,
+        frames.width,
+    )?;
+    Ok(frames)
 }
 
 /// Writes a frame stack to `.npy` or TIFF, by extension, atomically.
@@ -78,6 +102,11 @@ pub fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Re
 /// untouched. Creating every pending output of a command before computing
 /// anything makes an unwritable destination fail fast, and committing them
 /// only at the end leaves no partial output behind.
+///
+/// This is the one way scanloc writes a user's output file. It refuses a
+/// destination that exists and is not a regular file (a symlink, a FIFO, a
+/// device node, a folder) instead of replacing it, and creates the file
+/// with mode 0666 minus the umask, as any other program would.
 pub struct PendingFile {
     path: PathBuf,
     temporary: tempfile::NamedTempFile,
@@ -86,18 +115,48 @@ pub struct PendingFile {
 impl PendingFile {
     /// Starts writing `path` (its folder must exist and be writable).
     pub fn create(path: &Path) -> anyhow::Result<Self> {
+        refuse_special_destination(path)?;
         let folder = match path.parent() {
             Some(parent) if !parent.as_os_str().is_empty() => parent,
             _ => Path::new("."),
         };
-        let temporary = tempfile::Builder::new()
-            .prefix(".scanloc-partial-")
+        // The extension is kept so that writers which pick a format by file
+        // name (the figure backends) see the destination's.
+        let suffix = path
+            .extension()
+            .map(|extension| {
+                let mut suffix = std::ffi::OsString::from(".");
+                suffix.push(extension);
+                suffix
+            })
+            .unwrap_or_default();
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".scanloc-partial-").suffix(&suffix);
+        #[cfg(unix)]
+        {
+            // tempfile's own default is 0600; with 0666 the kernel applies
+            // the umask, so outputs get the permissions users expect.
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(std::fs::Permissions::from_mode(0o666));
+        }
+        let temporary = builder
             .tempfile_in(folder)
             .map_err(|e| input_error(format!("{}: cannot write here: {e}", path.display())))?;
         Ok(Self {
             path: path.to_path_buf(),
             temporary,
         })
+    }
+
+    /// The destination.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The temporary file's path, for writers that can only write to a
+    /// named file (it has the destination's extension).
+    pub fn temporary_path(&self) -> &Path {
+        self.temporary.path()
     }
 
     /// Fills the file through a buffered writer.
@@ -117,6 +176,8 @@ impl PendingFile {
     /// Syncs the data to disk and renames the file into place.
     pub fn commit(self) -> anyhow::Result<()> {
         let path = self.path;
+        // Checked again: the destination may have appeared since `create`.
+        refuse_special_destination(&path)?;
         self.temporary
             .as_file()
             .sync_all()
@@ -126,6 +187,123 @@ impl PendingFile {
             .map_err(|e| input_error(format!("{}: cannot write: {}", path.display(), e.error)))?;
         Ok(())
     }
+}
+
+/// Refuses an output path that exists and is not a regular file: renaming
+/// over a symlink, FIFO, device node or folder would destroy it (or fail
+/// late), and writing through it would write somewhere the user did not
+/// name.
+fn refuse_special_destination(path: &Path) -> anyhow::Result<()> {
+    let Ok(metadata) = std::fs::symlink_metadata(path) else {
+        return Ok(());
+    };
+    let file_type = metadata.file_type();
+    if file_type.is_file() {
+        return Ok(());
+    }
+    let kind = if file_type.is_symlink() {
+        "a symbolic link"
+    } else if file_type.is_dir() {
+        "a folder"
+    } else {
+        special_file_kind(&file_type)
+    };
+    Err(input_error(format!(
+        "{}: is {kind}; refusing to replace it (name a regular file or a new path)",
+        path.display()
+    )))
+}
+
+#[cfg(unix)]
+fn special_file_kind(file_type: &std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if file_type.is_fifo() {
+        "a FIFO"
+    } else if file_type.is_block_device() || file_type.is_char_device() {
+        "a device node"
+    } else if file_type.is_socket() {
+        "a socket"
+    } else {
+        "not a regular file"
+    }
+}
+
+#[cfg(not(unix))]
+fn special_file_kind(_file_type: &std::fs::FileType) -> &'static str {
+    "not a regular file"
+}
+
+/// Refuses a command whose outputs name one of its inputs or each other
+/// (after resolving `.`, `..` and symlinks, and comparing the files
+/// themselves where they exist): writing one would silently destroy the
+/// other. `inputs` and `outputs` pair a flag name with its path.
+pub fn refuse_shared_paths(
+    inputs: &[(&str, &Path)],
+    outputs: &[(&str, &Path)],
+) -> anyhow::Result<()> {
+    let named: Vec<(&str, &Path, Option<FileIdentity>)> = inputs
+        .iter()
+        .chain(outputs)
+        .map(|&(flag, path)| (flag, path, FileIdentity::of(path)))
+        .collect();
+    for (index, (output_flag, output, output_identity)) in
+        named.iter().enumerate().skip(inputs.len())
+    {
+        for (other_flag, other, other_identity) in &named[..index] {
+            if let (Some(output_identity), Some(other_identity)) = (output_identity, other_identity)
+                && output_identity.same_file(other_identity)
+            {
+                return Err(input_error(format!(
+                    "{output_flag} {} is the same file as {other_flag} {}; writing it would destroy the other",
+                    output.display(),
+                    other.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// What makes two paths the same file: the canonical path, and for existing
+/// files also the device and inode (hard links).
+#[derive(Debug)]
+struct FileIdentity {
+    canonical: PathBuf,
+    inode: Option<(u64, u64)>,
+}
+
+impl FileIdentity {
+    fn of(path: &Path) -> Option<Self> {
+        let canonical = canonical_destination(path)?;
+        #[cfg(unix)]
+        let inode = {
+            use std::os::unix::fs::MetadataExt;
+            std::fs::metadata(path)
+                .ok()
+                .map(|metadata| (metadata.dev(), metadata.ino()))
+        };
+        #[cfg(not(unix))]
+        let inode = None;
+        Some(Self { canonical, inode })
+    }
+
+    fn same_file(&self, other: &FileIdentity) -> bool {
+        self.canonical == other.canonical || (self.inode.is_some() && self.inode == other.inode)
+    }
+}
+
+/// The canonical form of `path`, which need not exist yet: its folder
+/// canonicalised plus its file name (following a symlink at the end).
+fn canonical_destination(path: &Path) -> Option<PathBuf> {
+    if let Ok(canonical) = std::fs::canonicalize(path) {
+        return Some(canonical);
+    }
+    let name = path.file_name()?;
+    let folder = match path.parent() {
+        Some(parent) if !parent.as_os_str().is_empty() => parent,
+        _ => Path::new("."),
+    };
+    Some(std::fs::canonicalize(folder).ok()?.join(name))
 }
 
 /// Writes `path` through `fill` atomically (see [`PendingFile`]).

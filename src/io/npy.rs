@@ -89,31 +89,19 @@ pub fn read_frames_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Res
             "{name}: header claims shape {shape:?} of {dtype}, more data than its {len} bytes"
         )));
     }
-    let read_error =
-        |e: std::io::Error| input_error(format!("{name}: truncated or unreadable data: {e}"));
+    // Exact: the shape's product was checked against the data's size above.
+    let values = n * height * width;
     let data: Vec<u32> = match (dtype.type_char(), dtype.size_field()) {
-        (TypeChar::Uint, 1) => widen(npy.into_vec::<u8>().map_err(read_error)?),
-        (TypeChar::Uint, 2) => widen(npy.into_vec::<u16>().map_err(read_error)?),
-        (TypeChar::Uint, 4) => npy.into_vec::<u32>().map_err(read_error)?,
-        (TypeChar::Uint, 8) => checked(name, npy.into_vec::<u64>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Int, 1) => checked(name, npy.into_vec::<i8>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Int, 2) => checked(name, npy.into_vec::<i16>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Int, 4) => checked(name, npy.into_vec::<i32>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Int, 8) => checked(name, npy.into_vec::<i64>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Float, 4) => checked(name, npy.into_vec::<f32>().map_err(read_error)?, |v| {
-            v as f64
-        })?,
-        (TypeChar::Float, 8) => checked(name, npy.into_vec::<f64>().map_err(read_error)?, |v| v)?,
+        (TypeChar::Uint, 1) => read_counts(npy, values, name, |v: u8| Some(v.into()))?,
+        (TypeChar::Uint, 2) => read_counts(npy, values, name, |v: u16| Some(v.into()))?,
+        (TypeChar::Uint, 4) => read_counts(npy, values, name, |v: u32| Some(v))?,
+        (TypeChar::Uint, 8) => read_counts(npy, values, name, |v: u64| u32::try_from(v).ok())?,
+        (TypeChar::Int, 1) => read_counts(npy, values, name, |v: i8| u32::try_from(v).ok())?,
+        (TypeChar::Int, 2) => read_counts(npy, values, name, |v: i16| u32::try_from(v).ok())?,
+        (TypeChar::Int, 4) => read_counts(npy, values, name, |v: i32| u32::try_from(v).ok())?,
+        (TypeChar::Int, 8) => read_counts(npy, values, name, |v: i64| u32::try_from(v).ok())?,
+        (TypeChar::Float, 4) => read_counts(npy, values, name, |v: f32| count_from_f64(v.into()))?,
+        (TypeChar::Float, 8) => read_counts(npy, values, name, count_from_f64)?,
         _ => {
             return Err(input_error(format!(
                 "{name}: unsupported dtype {dtype}; expected integer or float counts"
@@ -123,28 +111,31 @@ pub fn read_frames_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Res
     FrameStack::from_vec(n, height, width, data).map_err(|e| input_error(format!("{name}: {e}")))
 }
 
-fn widen<T: Into<u32>>(values: Vec<T>) -> Vec<u32> {
-    values.into_iter().map(Into::into).collect()
-}
-
-/// Converts values to counts, refusing any that is not a whole number in
-/// `0..=u32::MAX` and naming the first such one.
-fn checked<T: Copy>(
+/// Reads the `len` values of `npy` as counts, converting each as it is
+/// read (no intermediate array: a recording's memory is its counts alone),
+/// refusing any value `to_count` rejects, naming the first such one.
+fn read_counts<T: npyz::Deserialize, R: std::io::Read>(
+    npy: NpyFile<R>,
+    len: usize,
     name: &str,
-    values: Vec<T>,
-    to_f64: impl Fn(T) -> f64,
+    to_count: impl Fn(T) -> Option<u32>,
 ) -> anyhow::Result<Vec<u32>> {
-    values
-        .into_iter()
-        .enumerate()
-        .map(|(index, value)| count_from_f64(to_f64(value)).ok_or(index))
-        .collect::<Result<Vec<u32>, usize>>()
-        .map_err(|index| {
+    let values = npy
+        .data::<T>()
+        .map_err(|e| input_error(format!("{name}: unreadable data: {e}")))?;
+    let mut counts = Vec::with_capacity(len);
+    for (index, value) in values.enumerate() {
+        let value =
+            value.map_err(|e| input_error(format!("{name}: truncated or unreadable data: {e}")))?;
+        let count = to_count(value).ok_or_else(|| {
             input_error(format!(
                 "{name}: value at flat index {index} is not a photon count (a whole number from 0 to {}); NaN, negative and fractional values are refused",
                 u32::MAX
             ))
-        })
+        })?;
+        counts.push(count);
+    }
+    Ok(counts)
 }
 
 /// `Some(count)` if `value` is a whole number representable as `u32`.

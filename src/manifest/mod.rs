@@ -59,11 +59,8 @@ use crate::error::{FieldError, input_error};
 use crate::sim::SimParams;
 pub use locate::LineIndex;
 
-/// Largest frame count a dataset may ask for.
-pub const MAX_FRAMES: usize = 10_000_000;
-/// Largest number of pixels (frames × height × width) one dataset may hold:
-/// 2³¹ counts are 8 GiB in memory, more than the machines this runs on have.
-pub const MAX_DATASET_PIXELS: usize = 1 << 31;
+// The size limits are the command line's too: one definition, in `limits`.
+pub use crate::limits::{MAX_DATASET_PIXELS, MAX_FRAMES};
 /// Longest artefact name.
 pub const MAX_NAME_LEN: usize = 64;
 

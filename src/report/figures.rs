@@ -172,19 +172,24 @@ fn write_figure(
     };
     let png = with_suffix(".png");
     let svg = with_suffix(".svg");
+    // Through the one output writer (see `io::PendingFile`): the backends
+    // draw into its temporary file, which is renamed into place when done.
+    let png_out = crate::io::PendingFile::create(&png)?;
+    let svg_out = crate::io::PendingFile::create(&svg)?;
     {
-        let root = BitMapBackend::new(&png, size).into_drawing_area();
+        let root = BitMapBackend::new(png_out.temporary_path(), size).into_drawing_area();
         root.fill(&WHITE).map_err(plot_error)?;
         draw_png(&root).with_context(|| format!("drawing {}", png.display()))?;
         root.present().map_err(plot_error)?;
     }
     {
-        let root = SVGBackend::new(&svg, size).into_drawing_area();
+        let root = SVGBackend::new(svg_out.temporary_path(), size).into_drawing_area();
         root.fill(&WHITE).map_err(plot_error)?;
         draw_svg(&root).with_context(|| format!("drawing {}", svg.display()))?;
         root.present().map_err(plot_error)?;
     }
-    Ok(())
+    png_out.commit()?;
+    svg_out.commit()
 }
 
 fn plot_error<E: std::fmt::Debug>(error: E) -> anyhow::Error {

@@ -213,25 +213,14 @@ impl Default for SimParams {
 /// microscope), far below one photon of shot noise.
 pub const DEFAULT_PSF_CUTOFF_SIGMA: f64 = 6.0;
 
-/// Largest frame side accepted; larger frames are refused rather than
-/// risking an allocation the machine cannot serve.
-pub const MAX_FRAME_SIDE: usize = 16_384;
+pub use crate::limits::MAX_FRAME_SIDE;
 
 impl SimParams {
     /// Checks every parameter; an error names the parameter and says what
     /// is allowed.
     pub fn validate(&self) -> Result<(), FieldError> {
-        let check_side = |name: &str, value: usize| -> Result<(), FieldError> {
-            if value == 0 || value > MAX_FRAME_SIDE {
-                return Err(FieldError::new(
-                    name,
-                    format!("must be between 1 and {MAX_FRAME_SIDE} pixels, got {value}"),
-                ));
-            }
-            Ok(())
-        };
-        check_side("height", self.height)?;
-        check_side("width", self.width)?;
+        crate::limits::check_frame_side("height", self.height)?;
+        crate::limits::check_frame_side("width", self.width)?;
         require_positive("pixel_size_um", self.pixel_size_um)?;
         require_positive("dwell_us", self.dwell_us)?;
         require_non_negative("retrace_ms", self.retrace_ms)?;

@@ -306,13 +306,8 @@ impl SweepFile {
 fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     let folder = path.parent().context("a file in a folder")?;
     std::fs::create_dir_all(folder)?;
-    let temporary = tempfile::NamedTempFile::new_in(folder)?;
-    std::fs::write(temporary.path(), bytes)?;
-    temporary
-        .persist(path)
-        .map_err(|e| e.error)
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
+    // The one output writer (special destinations refused, umask honoured).
+    crate::io::write_bytes_atomically(path, bytes)
 }
 
 /// Creates (or finds) the folder of sweep `spec` in the registry `registry`

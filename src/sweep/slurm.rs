@@ -323,7 +323,7 @@ pub fn submit(
          exec {scanloc} sweep task {dir_word} \"$SLURM_ARRAY_TASK_ID\"\n"
     ));
     let task_script = dir.join("task.sh");
-    std::fs::write(&task_script, task)?;
+    crate::io::write_bytes_atomically(&task_script, task.as_bytes())?;
     let array_job = sbatch(&task_script, &[])?;
 
     let aggregate_script = dir.join("aggregate.sh");
@@ -343,7 +343,7 @@ pub fn submit(
     );
     aggregate_text.push_str(&common_directives(options));
     aggregate_text.push_str(&format!("exec {scanloc} sweep aggregate {dir_word}\n"));
-    std::fs::write(&aggregate_script, aggregate_text)?;
+    crate::io::write_bytes_atomically(&aggregate_script, aggregate_text.as_bytes())?;
     let aggregate_job = match sbatch(&aggregate_script, &[]) {
         Ok(id) => id,
         Err(error) => {

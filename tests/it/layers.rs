@@ -127,4 +127,9 @@ fn the_shared_types_import_nothing_but_errors() {
     ]
     .to_vec();
     assert_eq!(violations("types", &others), Vec::<(String, String)>::new());
+    // The size limits every layer checks against sit as low as the types.
+    assert_eq!(
+        violations("limits.rs", &others),
+        Vec::<(String, String)>::new()
+    );
 }

@@ -12,6 +12,7 @@ mod cli_simulate;
 mod cnn;
 mod crocker_grier;
 mod figures;
+mod hostile_files;
 mod layers;
 mod manifest_errors;
 mod manifest_fuzz;

@@ -7,12 +7,29 @@ use super::model::{Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCO
 use super::{CnnArchitecture, TrainedCnn, inference_device};
 use crate::types::{FrameStack, Prediction};
 
-/// Frames per forward pass in [`TrainedCnn::locate`].
+/// Most frames per forward pass (small frames; the paper's 24 × 25 pixel
+/// frames go 256 at a time).
 pub const INFERENCE_BATCH: usize = 256;
+
+/// Most pixels per forward pass: the network's activations, and so the
+/// memory of inference, grow with the pixels of a batch (each hidden layer
+/// holds `channels` floats per pixel), so large frames go fewer at a time.
+/// 2¹⁸ pixels is one 512 × 512 frame.
+pub const INFERENCE_PIXEL_BUDGET: usize = 1 << 18;
+
+/// Frames per forward pass for frames of `frame_len` pixels: as many as
+/// fit in [`INFERENCE_PIXEL_BUDGET`], at least 1 and at most
+/// [`INFERENCE_BATCH`]. Each frame's output does not depend on the others
+/// in its batch (batch normalisation uses its stored statistics at
+/// inference), so the batch size never changes a prediction.
+pub fn inference_batch(frame_len: usize) -> usize {
+    (INFERENCE_PIXEL_BUDGET / frame_len.max(1)).clamp(1, INFERENCE_BATCH)
+}
 
 impl TrainedCnn {
     /// Localises QDs in every frame of `frames` (any frame size), in
-    /// batches of [`INFERENCE_BATCH`]; `progress` advances by one per frame.
+    /// batches of [`inference_batch`] frames; `progress` advances by one
+    /// per frame.
     ///
     /// Predictions are ordered by frame, then raster order of their peak
     /// pixel. Fails (naming the frame) if the network outputs a non-finite
@@ -22,12 +39,24 @@ impl TrainedCnn {
         frames: &FrameStack,
         progress: &ProgressBar,
     ) -> anyhow::Result<Vec<Prediction>> {
+        self.locate_in_batches(frames, inference_batch(frames.frame_len()), progress)
+    }
+
+    /// [`locate`](Self::locate) with `frames_per_batch` frames per forward
+    /// pass (for measurements and for checking that batching changes
+    /// nothing).
+    pub fn locate_in_batches(
+        &self,
+        frames: &FrameStack,
+        frames_per_batch: usize,
+        progress: &ProgressBar,
+    ) -> anyhow::Result<Vec<Prediction>> {
         locate_with(
             &self.net,
             &self.architecture,
             self.settings.score_floor,
             frames,
-            INFERENCE_BATCH,
+            frames_per_batch,
             progress,
         )
     }
@@ -39,8 +68,9 @@ impl TrainedCnn {
     pub fn raw_output(&self, frames: &FrameStack) -> anyhow::Result<Vec<f32>> {
         let device = inference_device();
         let mut out = Vec::with_capacity(frames.n * OUTPUT_CHANNELS * frames.frame_len());
-        for start in (0..frames.n).step_by(INFERENCE_BATCH) {
-            let end = (start + INFERENCE_BATCH).min(frames.n);
+        let batch = inference_batch(frames.frame_len());
+        for start in (0..frames.n).step_by(batch) {
+            let end = (start + batch).min(frames.n);
             let input = input_tensor(frames, start..end, self.architecture.edge_channel, &device);
             let values = self
                 .net
@@ -53,6 +83,27 @@ impl TrainedCnn {
         Ok(out)
     }
 }
+
+/// The network produced a NaN or infinity: its weights are damaged (a
+/// corrupted model file, or a training that diverged).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NonFiniteOutput {
+    pub frame: usize,
+    pub channel: usize,
+    pub pixel: usize,
+}
+
+impl std::fmt::Display for NonFiniteOutput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "CNN output of frame {} is not finite (channel {}, pixel {}): the model is damaged",
+            self.frame, self.channel, self.pixel
+        )
+    }
+}
+
+impl std::error::Error for NonFiniteOutput {}
 
 /// Runs `net` over `frames` in batches of `batch` and extracts the peaks.
 pub(crate) fn locate_with(
@@ -67,10 +118,7 @@ pub(crate) fn locate_with(
     let (height, width) = (frames.height, frames.width);
     let len = frames.frame_len();
     let mut predictions = Vec::new();
-    if len == 0 {
-        progress.inc(frames.n as u64);
-        return Ok(predictions);
-    }
+    crate::limits::check_frame_not_empty(height, width)?;
     // The floor compared on logits (sigmoid is monotone), so no pixel's
     // sigmoid needs computing unless it is a candidate.
     let logit_floor = if score_floor > 0.0 {
@@ -89,11 +137,12 @@ pub(crate) fn locate_with(
         for (offset, maps) in output.chunks_exact(OUTPUT_CHANNELS * len).enumerate() {
             let frame = start + offset;
             if let Some(bad) = maps.iter().position(|v| !v.is_finite()) {
-                anyhow::bail!(
-                    "CNN output of frame {frame} is not finite (channel {}, pixel {}): the model is damaged",
-                    bad / len,
-                    bad % len
-                );
+                return Err(NonFiniteOutput {
+                    frame,
+                    channel: bad / len,
+                    pixel: bad % len,
+                }
+                .into());
             }
             let logits = &maps[SCORE_CHANNEL * len..(SCORE_CHANNEL + 1) * len];
             let dx = &maps[OFFSET_X_CHANNEL * len..(OFFSET_X_CHANNEL + 1) * len];

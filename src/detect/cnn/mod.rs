@@ -25,7 +25,6 @@ pub mod training;
 
 use std::path::Path;
 
-use anyhow::Context;
 use burn::module::Module;
 use burn::prelude::Device;
 use burn::store::ModuleRecord;
@@ -75,6 +74,8 @@ impl Default for CnnArchitecture {
 /// on frames of this kind, low enough to catch typos before allocating.
 const MAX_CHANNELS: usize = 1024;
 const MAX_DILATION: usize = 256;
+/// Most hidden layers (entries of `dilations`).
+const MAX_LAYERS: usize = 64;
 
 impl CnnArchitecture {
     /// Checks every field; the error names the field and says what is
@@ -90,6 +91,12 @@ impl CnnArchitecture {
             return Err(FieldError::new(
                 "architecture.dilations",
                 "needs at least one layer",
+            ));
+        }
+        if self.dilations.len() > MAX_LAYERS {
+            return Err(FieldError::new(
+                "architecture.dilations",
+                format!("at most {MAX_LAYERS} layers, got {}", self.dilations.len()),
             ));
         }
         if let Some(bad) = self.dilations.iter().find(|&&d| d == 0 || d > MAX_DILATION) {
@@ -181,8 +188,21 @@ impl TrainingSettings {
         if self.epochs == 0 {
             return Err(FieldError::new("training.epochs", "must be ≥ 1, got 0"));
         }
-        if self.batch_size == 0 {
-            return Err(FieldError::new("training.batch_size", "must be ≥ 1, got 0"));
+        if self.batch_size == 0 || self.batch_size > crate::limits::MAX_FRAMES {
+            return Err(FieldError::new(
+                "training.batch_size",
+                format!(
+                    "must be between 1 and {}, got {}",
+                    crate::limits::MAX_FRAMES,
+                    self.batch_size
+                ),
+            ));
+        }
+        if self.fresh_frames_per_epoch > 0 {
+            crate::limits::check_frame_count(
+                "training.fresh_frames_per_epoch",
+                self.fresh_frames_per_epoch as u64,
+            )?;
         }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
             return Err(FieldError::new(
@@ -208,6 +228,7 @@ impl TrainingSettings {
                 format!("must be a finite number > 0, got {}", self.heatmap_sigma_px),
             ));
         }
+        crate::limits::check_feature_px("training.heatmap_sigma_px", self.heatmap_sigma_px)?;
         if self.offset_radius_px > 16 {
             return Err(FieldError::new(
                 "training.offset_radius_px",
@@ -315,6 +336,20 @@ pub fn inference_device() -> Device {
     Device::flex()
 }
 
+/// Checks that a model can be saved at `dir`: a folder or a path that
+/// does not exist yet (not a file, which a model folder would replace).
+/// Checked before training, so a long training does not end in an
+/// unwritable destination.
+pub fn check_model_destination(dir: &Path) -> anyhow::Result<()> {
+    match std::fs::metadata(dir) {
+        Ok(metadata) if !metadata.is_dir() => crate::bail_input!(
+            "{}: exists and is not a folder; a model is saved as a folder (give a new path or a folder)",
+            dir.display()
+        ),
+        _ => Ok(()),
+    }
+}
+
 impl TrainedCnn {
     fn check_format(format: &str, source: &str) -> anyhow::Result<()> {
         if format != FORMAT {
@@ -417,9 +452,12 @@ impl TrainedCnn {
     /// Saves into folder `dir` (created if missing): the weights in burn's
     /// burnpack record format (`model.bpk`), `config.json` (format,
     /// architecture, settings) and `training.json` (the training record).
-    /// Each file is written atomically.
+    /// Each file is written atomically. `dir` must be a folder or a new
+    /// path (see [`check_model_destination`]).
     pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        check_model_destination(dir)?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| input_error(format!("{}: cannot create: {e}", dir.display())))?;
         let config = SavedConfig {
             format: FORMAT.to_string(),
             architecture: self.architecture.clone(),

@@ -11,7 +11,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
-use super::inference::{INFERENCE_BATCH, locate_with};
+use super::inference::{NonFiniteOutput, inference_batch, locate_with};
 use super::model::Net;
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
 use crate::sim::{self, SimParams};
@@ -170,7 +170,7 @@ fn validate(
         arch,
         settings.score_floor,
         &validation.frames,
-        INFERENCE_BATCH,
+        inference_batch(validation.frames.frame_len()),
         &ProgressBar::hidden(),
     )?;
     score(&predictions, validation)
@@ -290,8 +290,14 @@ fn train_and_select(
             "training.fresh_frames_per_epoch: {} fresh frames per epoch need simulator parameters",
             settings.fresh_frames_per_epoch
         ),
-        (_, Some(params)) => {
+        (fresh, Some(params)) => {
             params.validate()?;
+            crate::limits::check_dataset_pixels(
+                "training.fresh_frames_per_epoch",
+                fresh,
+                params.height,
+                params.width,
+            )?;
             Some(params)
         }
     };
@@ -378,8 +384,9 @@ fn train_and_select(
             let (loss, score_loss, offset_loss) = batch_loss(&net, arch, settings, batch, &device);
             let loss_value = loss.clone().into_scalar::<f32>() as f64;
             if !loss_value.is_finite() {
-                anyhow::bail!(
-                    "training diverged: loss is {loss_value} at epoch {epoch}, batch {} (of {steps_per_epoch}); lower training.learning_rate",
+                // The settings (usually the learning rate) are at fault: bad input.
+                crate::bail_input!(
+                    "training diverged: non-finite loss ({loss_value}) at epoch {epoch}, batch {} of {steps_per_epoch}; lower training.learning_rate",
                     batch_index + 1
                 );
             }
@@ -393,7 +400,18 @@ fn train_and_select(
         }
         let batches = steps_per_epoch as f64;
         let valid_net = net.valid();
-        let validation_auc = validate(&valid_net, arch, settings, validation, selection.score)?;
+        let validation_auc =
+            validate(&valid_net, arch, settings, validation, selection.score).map_err(|error| {
+                if error.is::<NonFiniteOutput>() {
+                    // The last step blew the weights up; the loss that
+                    // step saw was still finite.
+                    crate::error::input_error(format!(
+                        "training diverged: the network's output is not finite after epoch {epoch}, batch {steps_per_epoch} of {steps_per_epoch} ({error}); lower training.learning_rate"
+                    ))
+                } else {
+                    error
+                }
+            })?;
         let validation_mean_auc = (!validation_auc.is_empty())
             .then(|| validation_auc.iter().sum::<f64>() / validation_auc.len() as f64);
         let record = EpochRecord {

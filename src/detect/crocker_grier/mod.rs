@@ -31,7 +31,12 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{FieldError, input_error, require_finite};
+use crate::limits::check_feature_px;
 use crate::types::{FrameStack, Prediction};
+
+/// Most centroid refinement steps: each moves the mask by at most a pixel,
+/// so more than a feature's width of steps only repeats an oscillation.
+pub const MAX_ITERATIONS: usize = crate::limits::MAX_FEATURE_PX;
 
 /// Version of the locator's output, part of the content key of every
 /// prediction it makes in the registry: bump it whenever a change alters any
@@ -95,6 +100,13 @@ impl CrockerGrierParams {
                 format!("must be an odd integer ≥ 3, got {}", self.diameter),
             ));
         }
+        // Every size in pixels is bounded (the mask, the filters' kernels
+        // and the dilation window grow with them), the same bound wherever
+        // the parameters come from.
+        check_feature_px("diameter", self.diameter as f64)?;
+        if let Some(smoothing_size) = self.smoothing_size {
+            check_feature_px("smoothing_size", smoothing_size as f64)?;
+        }
         if let Some(minmass) = self.minmass {
             // Negative values would let empty (mass 0, size NaN) features through.
             crate::error::require_non_negative("minmass", minmass)?;
@@ -110,6 +122,7 @@ impl CrockerGrierParams {
                     format!("must be ≥ 0, got {separation}"),
                 ));
             }
+            check_feature_px("separation", separation)?;
         }
         require_finite("noise_size", self.noise_size)?;
         if self.noise_size < 0.0 {
@@ -118,6 +131,7 @@ impl CrockerGrierParams {
                 format!("must be ≥ 0, got {}", self.noise_size),
             ));
         }
+        check_feature_px("noise_size", self.noise_size)?;
         let smoothing = self.smoothing_size();
         if smoothing == 0 || smoothing.is_multiple_of(2) {
             return Err(FieldError::new(
@@ -147,8 +161,14 @@ impl CrockerGrierParams {
         if self.topn == Some(0) {
             return Err(FieldError::new("topn", "must be at least 1"));
         }
-        if self.max_iterations == 0 {
-            return Err(FieldError::new("max_iterations", "must be at least 1"));
+        if self.max_iterations == 0 || self.max_iterations > MAX_ITERATIONS {
+            return Err(FieldError::new(
+                "max_iterations",
+                format!(
+                    "must be between 1 and {MAX_ITERATIONS}, got {}",
+                    self.max_iterations
+                ),
+            ));
         }
         Ok(())
     }
@@ -296,6 +316,7 @@ pub fn locate_frame(
     params: &CrockerGrierParams,
 ) -> anyhow::Result<Vec<Feature>> {
     params.validate()?;
+    crate::limits::check_frame_not_empty(height, width)?;
     if frame.len() != height * width {
         return Err(input_error(format!(
             "frame has {} pixels, expected {height} × {width}",
@@ -565,6 +586,7 @@ pub fn locate_stack(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
     params.validate()?;
+    crate::limits::check_frame_not_empty(frames.height, frames.width)?;
     let integer_max = integer_range(frames.max_count());
     let mask = Mask::new(params.radius());
     let per_frame: Vec<Vec<(usize, Feature)>> = (0..frames.n)

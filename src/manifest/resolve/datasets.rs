@@ -4,7 +4,7 @@
 use super::microscope::apply_sim_overrides;
 use crate::error::{FieldError, Segment, display_path};
 use crate::manifest::serde_adapters::Named;
-use crate::manifest::{DatasetSpec, MAX_DATASET_PIXELS, MAX_FRAMES, derive_seed};
+use crate::manifest::{DatasetSpec, derive_seed};
 use crate::sim::SimParams;
 
 /// Every dataset, in manifest order, with its microscope and derived seed.
@@ -75,7 +75,7 @@ fn blame_dataset_or_microscope(
     FieldError { message, ..error }.under(&super::path_of(&["microscope"]))
 }
 
-/// The dataset's `frames`: a positive integer, at most [`MAX_FRAMES`].
+/// The dataset's `frames`: a positive integer, at most [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
 fn read_frames(
     dataset_path: &[Segment],
     value: Option<&serde_yaml::Value>,
@@ -86,34 +86,17 @@ fn read_frames(
             "missing field `frames` (the number of frames)",
         ));
     };
-    let frames_path = super::field(dataset_path, "frames");
-    match value.as_u64() {
-        Some(0) | None => Err(FieldError::at(&frames_path, "must be a positive integer")),
-        Some(n) if n > MAX_FRAMES as u64 => Err(FieldError::at(
-            &frames_path,
-            format!("must be at most {MAX_FRAMES}, got {n}"),
-        )),
-        Some(n) => Ok(n as usize),
-    }
+    // The command line's limits (one definition, in `limits`).
+    crate::limits::check_frame_count("frames", value.as_u64().unwrap_or(0))
+        .map_err(|e| e.under(dataset_path))
 }
 
-/// Refuses datasets too large to hold in memory ([`MAX_DATASET_PIXELS`]).
+/// Refuses datasets too large to hold in memory ([`MAX_DATASET_PIXELS`](crate::limits::MAX_DATASET_PIXELS)).
 fn check_pixel_count(
     dataset_path: &[Segment],
     frames: usize,
     params: &SimParams,
 ) -> Result<(), FieldError> {
-    let pixels = frames
-        .checked_mul(params.height)
-        .and_then(|p| p.checked_mul(params.width));
-    if pixels.is_none_or(|p| p > MAX_DATASET_PIXELS) {
-        return Err(FieldError::at(
-            &super::field(dataset_path, "frames"),
-            format!(
-                "{frames} frames of {}×{} pixels exceed the limit of {MAX_DATASET_PIXELS} pixels per dataset",
-                params.height, params.width
-            ),
-        ));
-    }
-    Ok(())
+    crate::limits::check_dataset_pixels("frames", frames, params.height, params.width)
+        .map_err(|e| e.under(dataset_path))
 }
