@@ -40,6 +40,7 @@
 //! reordering other entries never changes it and no global random state is
 //! involved.
 
+pub mod feasibility;
 pub mod locate;
 
 use std::fmt;
@@ -330,6 +331,9 @@ pub fn load(path: &Path) -> anyhow::Result<Manifest> {
 
 /// Parses and resolves manifest `text`; `source` names it in errors.
 pub fn parse(text: &str, source: &str) -> anyhow::Result<Manifest> {
+    // Editors on Windows save UTF-8 with a byte-order mark; YAML allows it
+    // but serde_yaml takes it for the start of a second document.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let lines = LineIndex::new(text);
     let located = |error: serde_yaml::Error| -> anyhow::Error {
         let message = error.to_string();
@@ -899,7 +903,7 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
         }
     };
 
-    Ok(Manifest {
+    let manifest = Manifest {
         source: context.source.to_string(),
         manifest_sha256: hex::encode(Sha256::digest(text.as_bytes())),
         name,
@@ -913,7 +917,9 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
         cross_validation,
         reference,
         text: text.to_string(),
-    })
+    };
+    feasibility::check(&manifest).map_err(|p| context.error(&p.path, p.message))?;
+    Ok(manifest)
 }
 
 #[cfg(test)]

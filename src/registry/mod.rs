@@ -14,6 +14,7 @@
 pub mod blobs;
 pub mod hashing;
 pub mod query;
+pub mod sql_guard;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};

@@ -230,11 +230,12 @@ pub fn reproduce(
             notes.push(format!("{field}: recorded {recorded}, now {now}"));
         }
     }
-    if let Some(status) = record["status"].as_str()
-        && status != "done"
-    {
+    let status = record["status"].as_str().unwrap_or("unknown");
+    refuse_incomplete(&record, run_id)?;
+    let recorded_done = status == "done";
+    if !recorded_done {
         notes.push(format!(
-            "the recorded run is {status}: only its recorded steps are compared"
+            "the recorded run is {status}: only the steps and AUC values it recorded are compared"
         ));
     }
     if record["kind"].as_str() == Some("reproduce") {
@@ -342,7 +343,9 @@ pub fn reproduce(
             row["eps_px"].as_f64().unwrap_or(f64::NAN),
         ));
     }
-    for row in &outcome.auc {
+    // A run that failed recorded no AUC table: there is nothing to compare
+    // the reproduced values with, which is not a difference.
+    for row in outcome.auc.iter().filter(|_| recorded_done) {
         if !cells
             .iter()
             .any(|(d, s, e)| *d == row.detector && *s == row.dataset && *e == row.eps_px)
@@ -374,12 +377,8 @@ pub fn reproduce(
             identical,
         });
     }
-    let recorded_done = record["status"].as_str() == Some("done");
-    let identical = artefacts.iter().all(|a| a.identical)
-        && auc
-            .iter()
-            .all(|c| c.identical || (!recorded_done && c.recorded.is_none()))
-        && !artefacts.is_empty();
+    // Identical exactly when every line the report prints says so.
+    let identical = artefacts.iter().all(|a| a.identical) && auc.iter().all(|c| c.identical);
 
     // Record the reproduction in the main registry.
     let reproduction_run = super::new_run_id();
@@ -432,6 +431,34 @@ pub fn reproduce(
         auc,
         notes,
     })
+}
+
+/// Refuses (as bad input) a run that has no complete record to compare
+/// with: one still running, and one whose process ended before it finished
+/// (killed), or that recorded no step at all.
+fn refuse_incomplete(record: &Value, run_id: &str) -> anyhow::Result<()> {
+    let who = format!(
+        "pid {} on {}",
+        record["pid"],
+        record["host"].as_str().unwrap_or("an unknown host")
+    );
+    match record["status"].as_str() {
+        Some("running") => Err(crate::error::input_error(format!(
+            "run {run_id} has not finished ({who} is still running it, or was killed on another \
+             machine): reproduce it once it is done"
+        ))),
+        Some("unfinished") => Err(crate::error::input_error(format!(
+            "run {run_id} is unfinished: its process ({who}) ended before the run did, so there \
+             is no complete record to compare with; rerun its manifest with `scanloc run` (the \
+             finished steps are reused) and reproduce that run"
+        ))),
+        _ if record["steps"].as_array().is_none_or(|s| s.is_empty()) => {
+            Err(crate::error::input_error(format!(
+                "run {run_id} recorded no step, so there is nothing to reproduce"
+            )))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// The plan a recorded run executed: its manifest's, or for a run of kind

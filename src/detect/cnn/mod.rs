@@ -172,6 +172,12 @@ impl Default for TrainingSettings {
 }
 
 impl TrainingSettings {
+    /// How many of a `frames`-frame training set are held out for
+    /// validation: `validation_fraction` of them, rounded to nearest.
+    pub fn held_out_frames(&self, frames: usize) -> usize {
+        ((frames as f64) * self.validation_fraction).round() as usize
+    }
+
     /// Checks every field; the error is an [`InputError`](crate::error::InputError)
     /// naming the field.
     pub fn validate(&self) -> anyhow::Result<()> {

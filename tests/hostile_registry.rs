@@ -1,0 +1,250 @@
+//! The registry against a hostile user and a hostile environment: SQL that
+//! tries to write or to run forever, reproductions of runs that never
+//! finished.
+
+mod common;
+
+use std::path::Path;
+use std::process::Output;
+use std::time::{Duration, Instant};
+
+use common::*;
+
+/// A manifest that runs in well under a second: one small dataset scored
+/// by TrackPy's algorithm.
+const TINY: &str = "\
+name: tiny
+seed: 11
+datasets:
+  a: {frames: 6, emitters: 2}
+  b: {frames: 6, emitters: 2, diffusion_um2_s: 1.5}
+detectors:
+  trackpy:
+    crocker_grier: {diameter: 7, minmass: 0}
+evaluations:
+  - {detector: trackpy, datasets: [a, b]}
+";
+
+/// A registry holding one finished run of [`TINY`]; returns the run id.
+fn registry_with_a_run(dir: &Path) -> String {
+    let manifest = write_manifest(dir, "tiny.yaml", TINY);
+    let run = run_json(&manifest, &dir.join("registry"), &[]);
+    assert_eq!(run["status"], "done");
+    run["run"].as_str().unwrap().to_string()
+}
+
+fn sql(registry: &Path, statement: &str) -> Output {
+    scanloc(&[
+        "registry",
+        "sql",
+        "--registry",
+        registry.to_str().unwrap(),
+        "--json",
+        statement,
+    ])
+}
+
+/// Edits the registry's database directly (as a crash or another tool
+/// would leave it).
+fn tamper(registry: &Path, statements: &str) {
+    let conn = rusqlite::Connection::open(registry.join("registry.sqlite")).unwrap();
+    conn.execute_batch(statements).unwrap();
+}
+
+/// The registry's files but SQLite's shared-memory index and an empty
+/// write-ahead log, which any reader of a WAL database creates.
+fn database_and_blobs(registry: &Path) -> std::collections::BTreeMap<std::path::PathBuf, String> {
+    let mut files = snapshot(registry);
+    files.remove(Path::new("registry.sqlite-shm"));
+    let wal = files.remove(Path::new("registry.sqlite-wal"));
+    let empty = "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855";
+    assert!(
+        wal.is_none_or(|hash| hash == empty),
+        "the write-ahead log holds writes"
+    );
+    files
+}
+
+/// A process id that is certainly not running: a child that has exited.
+fn dead_pid() -> u32 {
+    let mut child = std::process::Command::new("true").spawn().unwrap();
+    let pid = child.id();
+    child.wait().unwrap();
+    pid
+}
+
+#[test]
+fn registry_sql_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let output = sql(&registry, "SELECT id, status FROM runs");
+    assert!(output.status.success(), "{}", stderr(&output));
+    let rows: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    assert_eq!(rows, serde_json::json!([{"id": id, "status": "done"}]));
+    // Introspection still works.
+    for statement in [
+        "PRAGMA table_info(runs)",
+        "PRAGMA user_version",
+        "WITH RECURSIVE c(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM c WHERE x < 10) SELECT sum(x) AS s FROM c",
+    ] {
+        let output = sql(&registry, statement);
+        assert!(output.status.success(), "{statement}: {}", stderr(&output));
+    }
+}
+
+#[test]
+fn registry_sql_refuses_everything_that_writes_or_reaches_outside() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let copy = dir.path().join("copy.sqlite");
+    let other = dir.path().join("other.sqlite");
+    rusqlite::Connection::open(&other)
+        .unwrap()
+        .execute_batch("CREATE TABLE secret (x); INSERT INTO secret VALUES (42);")
+        .unwrap();
+    let before = database_and_blobs(&registry);
+    let attempts = [
+        format!("VACUUM INTO '{}'", copy.display()),
+        "VACUUM".to_string(),
+        format!("ATTACH DATABASE '{}' AS other", other.display()),
+        format!(
+            "ATTACH DATABASE '{}' AS fresh",
+            dir.path().join("new.sqlite").display()
+        ),
+        "PRAGMA user_version = 7".to_string(),
+        "PRAGMA journal_mode = DELETE".to_string(),
+        "PRAGMA query_only = 0".to_string(),
+        "PRAGMA writable_schema = ON".to_string(),
+        "DELETE FROM runs".to_string(),
+        "UPDATE runs SET status = 'done'".to_string(),
+        "INSERT INTO blobs (sha256, bytes, created_at) VALUES ('x', 1, 'y')".to_string(),
+        "DROP TABLE runs".to_string(),
+        "CREATE TABLE t (x)".to_string(),
+        "CREATE TEMP TABLE t (x)".to_string(),
+        "BEGIN IMMEDIATE".to_string(),
+        "REINDEX".to_string(),
+        "ANALYZE".to_string(),
+        "SELECT 1; DELETE FROM runs".to_string(),
+        "SELECT load_extension('/nonexistent')".to_string(),
+    ];
+    for attempt in &attempts {
+        let output = sql(&registry, attempt);
+        let error = stderr(&output);
+        assert_eq!(output.status.code(), Some(2), "{attempt}: {error}");
+        assert!(error.starts_with("error: sql: "), "{attempt}: {error}");
+        assert_eq!(error.trim_end().lines().count(), 1, "{attempt}: {error}");
+    }
+    assert!(!copy.exists(), "VACUUM INTO wrote a copy of the database");
+    assert!(!dir.path().join("new.sqlite").exists());
+    assert_eq!(
+        database_and_blobs(&registry),
+        before,
+        "the registry changed"
+    );
+    // Refusals say why.
+    let error = stderr(&sql(&registry, &attempts[0]));
+    assert!(error.contains("only reads the registry"), "{error}");
+    let error = stderr(&sql(&registry, &attempts[2]));
+    assert!(error.contains("ATTACH"), "{error}");
+}
+
+#[test]
+fn registry_sql_stops_a_query_that_never_ends() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let clock = Instant::now();
+    // Runs forever without producing a row.
+    let output = sql(
+        &registry,
+        "WITH RECURSIVE c(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM c) SELECT count(*) FROM c",
+    );
+    let error = stderr(&output);
+    assert_eq!(output.status.code(), Some(2), "{error}");
+    assert!(error.contains("stopped after"), "{error}");
+    assert!(clock.elapsed() < Duration::from_secs(60));
+    // Produces rows forever.
+    let output = sql(
+        &registry,
+        "WITH RECURSIVE c(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM c) SELECT x FROM c",
+    );
+    let error = stderr(&output);
+    assert_eq!(output.status.code(), Some(2), "{error}");
+    assert!(
+        error.contains("rows") || error.contains("stopped after"),
+        "{error}"
+    );
+    // Grows one value without bound.
+    let output = sql(&registry, "SELECT length(zeroblob(2000000000))");
+    assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+}
+
+/// What `reproduce` printed and how it exited.
+fn reproduce(registry: &Path, run: &str) -> (Option<i32>, String, String) {
+    let output = scanloc(&["reproduce", run, "--registry", registry.to_str().unwrap()]);
+    (output.status.code(), stdout(&output), stderr(&output))
+}
+
+#[test]
+fn reproducing_a_run_killed_mid_way_is_refused_with_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    // What a SIGKILL after the second step leaves: status running, a pid
+    // that is gone, two steps, no end and no AUC table.
+    tamper(
+        &registry,
+        &format!(
+            "UPDATE runs SET status = 'running', ended_at = NULL, pid = {}, cached_steps = 0,
+                 computed_steps = 0, rebuilt_steps = 0 WHERE id = '{id}';
+             DELETE FROM run_steps WHERE run_id = '{id}' AND ordinal >= 2;
+             DELETE FROM run_auc WHERE run_id = '{id}';",
+            dead_pid()
+        ),
+    );
+    let (code, out, err) = reproduce(&registry, &id);
+    assert_eq!(code, Some(2), "stdout {out}\nstderr {err}");
+    assert!(!out.contains("IDENTICAL"), "{out}");
+    assert!(err.contains("unfinished"), "{err}");
+    assert!(err.contains("scanloc run"), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+}
+
+#[test]
+fn a_failed_run_is_compared_on_what_it_recorded_and_the_verdict_matches_the_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    // A run that failed after its steps (say, the disk filled while the
+    // AUC table was written): no AUC rows.
+    tamper(
+        &registry,
+        &format!(
+            "UPDATE runs SET status = 'failed', error = 'disk full' WHERE id = '{id}';
+             DELETE FROM run_auc WHERE run_id = '{id}';"
+        ),
+    );
+    let (code, out, err) = reproduce(&registry, &id);
+    assert_eq!(code, Some(0), "stdout {out}\nstderr {err}");
+    assert!(out.contains("IDENTICAL"), "{out}");
+    assert!(!out.contains("DIFFERS"), "{out}");
+    assert!(
+        out.contains("only the steps and AUC values it recorded"),
+        "{out}"
+    );
+
+    // A recorded step that differs makes the verdict and the exit code
+    // say so.
+    tamper(
+        &registry,
+        &format!(
+            "UPDATE run_steps SET artefact_key = 'not-the-key' WHERE run_id = '{id}' AND ordinal = 0;"
+        ),
+    );
+    let (code, out, _) = reproduce(&registry, &id);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("DIFFERENT"), "{out}");
+    assert!(out.contains("DIFFERS"), "{out}");
+}
