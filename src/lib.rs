@@ -3,14 +3,15 @@
 //! score localisations with the paper's precision–recall AUC, and run all of
 //! it as reproducible, content-addressed experiments.
 //!
-//! The pipeline flows one way: [`sim`] → [`detect`] → [`metrics`].
-//! [`io`] holds every file format. Coordinates everywhere follow TrackPy:
-//! `x` is the column, `y` the row, pixel centres at integers.
+//! The pipeline flows one way: [`sim`] → [`detect`] → [`metrics`], over
+//! the data they share ([`types`]: frames, ground truth, predictions), at
+//! the bottom. [`io`] holds every file format. Coordinates everywhere
+//! follow TrackPy: `x` is the column, `y` the row, pixel centres at
+//! integers.
 
 pub mod bench;
 pub mod detect;
 pub mod error;
-pub mod frames;
 pub mod io;
 pub mod manifest;
 pub mod metrics;
@@ -19,3 +20,4 @@ pub mod registry;
 pub mod report;
 pub mod run;
 pub mod sim;
+pub mod types;

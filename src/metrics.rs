@@ -1,4 +1,4 @@
-//! The paper's precision–recall AUC (DESIGN §3), plus the RMSE of each
+//! The paper's precision–recall AUC (`docs/metric.md`), plus the RMSE of each
 //! frame's top prediction and the fraction of frames with no prediction.
 //!
 //! For one test set, the predictions of all frames are pooled and sorted by
@@ -14,9 +14,8 @@ use std::cmp::Ordering;
 
 use serde::{Deserialize, Serialize};
 
-use crate::detect::Prediction;
 use crate::error::input_error;
-use crate::sim::TruthRow;
+use crate::types::{Dataset, Prediction, TruthRow};
 
 /// The paper's matching radii in pixels (70, 140, 210 nm at 0.07 µm/px).
 pub const PAPER_EPS_PX: [f64; 3] = [1.0, 2.0, 3.0];
@@ -229,6 +228,21 @@ pub fn score(
         predictions: predictions.len(),
         ground_truths,
     })
+}
+
+/// The AUC at each of the paper's radii ([`PAPER_EPS_PX`], in that order)
+/// of `predictions` made on `dataset`: the validation score by which CNN
+/// training keeps its best epoch (callers pass this function to
+/// `detect::cnn::train`). Refuses what [`score`] refuses.
+pub fn paper_aucs(predictions: &[Prediction], dataset: &Dataset) -> anyhow::Result<Vec<f64>> {
+    let score = score(
+        predictions,
+        &dataset.truth,
+        dataset.frames.n,
+        &PAPER_EPS_PX,
+        false,
+    )?;
+    Ok(score.per_eps.iter().map(|e| e.auc).collect())
 }
 
 /// One greedy matching walk at radius `eps` over predictions already ranked.

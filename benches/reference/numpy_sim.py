@@ -1,4 +1,4 @@
-"""A straightforward vectorised numpy implementation of the DESIGN §1
+"""A straightforward vectorised numpy implementation of the docs/simulator.md
 simulator (paper parameters, D uniform in [0.75, 1.75], margin 4 px), used
 only as the speed reference of `scanloc bench simulate`.
 

@@ -3,8 +3,8 @@
 use std::time::Instant;
 
 use crate::detect::crocker_grier::{CrockerGrierParams, locate_stack};
-use crate::frames::FrameStack;
 use crate::progress::hidden;
+use crate::types::FrameStack;
 
 /// Locates features in every frame `repeats` times (after a warm-up) and
 /// returns the best frames/s.

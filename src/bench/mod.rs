@@ -2,6 +2,7 @@
 //! is available on the machine, a reference implementation in the same run,
 //! so speed is reported as a ratio measured under the same load.
 
+pub mod cnn;
 pub mod locate;
 pub mod reference;
 pub mod simulate;

@@ -1,5 +1,9 @@
 //! Run time against error: sweeps of a stage's settings, each point timed
 //! and scored in the same process run, with the Pareto front marked.
+//!
+//! Seeds: every data set and training run of the sweeps draws from
+//! [`derive_seed`]`(`[`SEED`]`, kind, name)`, as the artefacts of a manifest
+//! do (see [`seed`]).
 
 use std::path::Path;
 use std::time::Instant;
@@ -7,10 +11,21 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::detect::crocker_grier::{self, CrockerGrierParams};
+use crate::manifest::derive_seed;
 use crate::metrics;
 use crate::progress::hidden;
 use crate::report::figures::{TradeoffChart, tradeoff_chart};
-use crate::sim::{self, Dataset, Distribution, SimParams};
+use crate::sim::{self, Distribution, SimParams};
+use crate::types::{Dataset, Prediction};
+
+/// The master seed of the sweeps.
+pub const SEED: u64 = 0;
+
+/// The seed of the sweeps' data set or detector `name` (`kind` is
+/// `"dataset"` or `"detector"`): `derive_seed(SEED, kind, name)`.
+pub fn seed(kind: &str, name: &str) -> u64 {
+    derive_seed(SEED, kind, name)
+}
 
 /// One setting of a sweep: its speed and its error.
 #[derive(Debug, Clone, Serialize)]
@@ -139,10 +154,15 @@ pub struct TestSets {
 impl TestSets {
     pub fn simulate(frames: usize, static_frames: usize, brightness: f64) -> anyhow::Result<Self> {
         Ok(Self {
-            moving: sim::simulate(&test_params(brightness, 1.0), 3, 0..frames, &hidden())?,
+            moving: sim::simulate(
+                &test_params(brightness, 1.0),
+                seed("dataset", "test-moving"),
+                0..frames,
+                &hidden(),
+            )?,
             still: sim::simulate(
                 &test_params(brightness, 0.0),
-                4,
+                seed("dataset", "test-static"),
                 0..static_frames,
                 &hidden(),
             )?,
@@ -153,7 +173,7 @@ impl TestSets {
 /// Scores `predictions` of `dataset`: (RMSE of the top prediction, extras
 /// named with `prefix`: AUC per ε and the fraction of frames without one).
 fn score_extras(
-    predictions: &[crate::detect::Prediction],
+    predictions: &[Prediction],
     dataset: &Dataset,
 ) -> anyhow::Result<(f64, Vec<(String, f64)>)> {
     let score = metrics::score(
@@ -186,7 +206,7 @@ pub const FOUND_RADIUS_PX: f64 = 3.0;
 /// Cramér–Rao bound speaks of, free of the wrong-spot outliers that dominate
 /// the RMSE) and `found_static` (the fraction of frames counted there).
 fn static_extras(
-    predictions: &[crate::detect::Prediction],
+    predictions: &[Prediction],
     still: &Dataset,
 ) -> anyhow::Result<Vec<(String, f64)>> {
     let errors = metrics::top_prediction_errors(predictions, &still.truth, still.frames.n)?;
@@ -232,8 +252,10 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
         psf_cutoff_sigma: None,
         ..base.clone()
     };
+    let static_seed = seed("dataset", "simulator-static");
+    let timing_seed = seed("dataset", "simulator-timing");
     let exact_images: Vec<Vec<f64>> = (0..200)
-        .map(|i| sim::expected_frame(&exact, 1, i).0)
+        .map(|i| sim::expected_frame(&exact, static_seed, i).0)
         .collect();
     let default = SimParams::default();
     let mut points = Vec::new();
@@ -247,7 +269,7 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
             let (_, seconds) = fastest_of(TIMING_REPEATS, || {
                 Ok(std::hint::black_box(sim::simulate(
                     &params,
-                    2,
+                    timing_seed,
                     0..frames,
                     &hidden(),
                 )?))
@@ -261,7 +283,7 @@ pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
                 .iter()
                 .enumerate()
                 .map(|(i, exact_image)| {
-                    let (image, _) = sim::expected_frame(&still, 1, i);
+                    let (image, _) = sim::expected_frame(&still, static_seed, i);
                     image
                         .iter()
                         .zip(exact_image)
@@ -385,7 +407,13 @@ pub fn cnn_sweep(
         brightness: sweep.brightness,
         ..SimParams::default()
     };
-    let training = sim::simulate(&training_params, 5, 0..sweep.train_frames, &hidden())?;
+    let training = sim::simulate(
+        &training_params,
+        seed("dataset", "cnn-training"),
+        0..sweep.train_frames,
+        &hidden(),
+    )?;
+    let training_seed = seed("detector", "cnn");
     let settings_count = sweep.channels.len() * sweep.depths.len() * sweep.epochs.len();
     progress.set_length(settings_count as u64);
     let default = CnnArchitecture::default();
@@ -406,7 +434,16 @@ pub fn cnn_sweep(
                     ..TrainingSettings::default()
                 };
                 let start = Instant::now();
-                let model = cnn::train(&architecture, &settings, &training, None, 6, &hidden())?;
+                // No validation frames: the score is never computed.
+                let model = cnn::train(
+                    &architecture,
+                    &settings,
+                    &training,
+                    None,
+                    training_seed,
+                    &metrics::paper_aucs,
+                    &hidden(),
+                )?;
                 let training_seconds = start.elapsed().as_secs_f64();
                 let start = Instant::now();
                 let predictions = model.locate(&tests.moving.frames, &hidden())?;
@@ -452,42 +489,28 @@ pub fn cnn_sweep(
 }
 
 /// The Cramér–Rao lower bound on the 2-D localisation RMSE (px) of a static
-/// QD (D = 0) with this microscope: the inverse Fisher information of the
-/// expected counts under Poisson noise (Mortensen et al., Nat. Methods
-/// 7:377, 2010, for a Poisson detector), `I = Σ_pixels ∇μ ∇μᵀ / μ`, with
-/// `μ` the scanned PSF plus background of DESIGN §1. Averaged (as variance)
-/// over `positions × positions` sub-pixel QD positions near the frame centre.
+/// QD (D = 0, in focus) with this microscope: the inverse Fisher information
+/// of the expected counts under Poisson noise (Mortensen et al., Nat.
+/// Methods 7:377, 2010, for a Poisson detector), `I = Σ_pixels ∇μ ∇μᵀ / μ`,
+/// with `μ` the simulator's own forward model
+/// ([`sim::static_emitter_image`]: the scanned PSF plus background).
+/// Averaged (as variance) over `positions × positions` sub-pixel QD
+/// positions near the frame centre.
 pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
-    let a = params.pixel_size_um;
-    let s = params.substeps.max(1) as usize;
-    let inv2s2 = 1.0 / (2.0 * params.sigma_xy_um * params.sigma_xy_um);
-    let peak = params.psf_peak();
     let mut total_variance = 0.0;
     let mut count = 0usize;
     for iy in 0..positions {
         for ix in 0..positions {
-            let qx = (params.width as f64 / 2.0 + ix as f64 / positions as f64) * a;
-            let qy = (params.height as f64 / 2.0 + iy as f64 / positions as f64) * a;
+            // TrackPy pixel coordinates, a pixel centre plus a fraction.
+            let x = params.width as f64 / 2.0 - 0.5 + ix as f64 / positions as f64;
+            let y = params.height as f64 / 2.0 - 0.5 + iy as f64 / positions as f64;
+            let image = sim::static_emitter_image(params, x, y, 0.0);
             let (mut ixx, mut ixy, mut iyy) = (0.0, 0.0, 0.0);
-            for row in 0..params.height {
-                let by = (row as f64 + 0.5) * a;
-                for column in 0..params.width {
-                    let (mut mu, mut dx, mut dy) = (0.0, 0.0, 0.0);
-                    for j in 0..s {
-                        let bx = (column as f64 + (j as f64 + 0.5) / s as f64) * a;
-                        let psf = peak / s as f64
-                            * (-((qx - bx).powi(2) + (qy - by).powi(2)) * inv2s2).exp();
-                        mu += psf;
-                        // ∂/∂X of the PSF, per pixel of QD displacement.
-                        dx += psf * -(qx - bx) * 2.0 * inv2s2 * a;
-                        dy += psf * -(qy - by) * 2.0 * inv2s2 * a;
-                    }
-                    let expected = mu + params.background;
-                    if expected > 0.0 {
-                        ixx += dx * dx / expected;
-                        ixy += dx * dy / expected;
-                        iyy += dy * dy / expected;
-                    }
+            for ((&expected, &dx), &dy) in image.expected.iter().zip(&image.d_dx).zip(&image.d_dy) {
+                if expected > 0.0 {
+                    ixx += dx * dx / expected;
+                    ixy += dx * dy / expected;
+                    iyy += dy * dy / expected;
                 }
             }
             let determinant = ixx * iyy - ixy * ixy;

@@ -1,12 +1,13 @@
 //! CNN benchmarks: `scanloc bench train` (training and inference
 //! throughput) and `scanloc bench cnn-locate` (a saved model's AUC table and
 //! inference speed on fresh test sets). Thin wrappers over
-//! `scanloc::detect::cnn::bench`.
+//! `scanloc::bench::cnn`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Args;
+use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn};
 use scanloc::sim::{Distribution, RandomDistribution, SimParams};
 
@@ -44,7 +45,7 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         ..defaults
     };
     arch.validate()?;
-    let result = cnn::bench::throughput(
+    let result = bench::cnn::throughput(
         &arch,
         args.batch_size,
         args.samples,
@@ -68,10 +69,10 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
 /// Score a saved CNN on fresh simulated test sets and time its inference.
 ///
 /// Simulates `--frames` frames per `--diffusion` value (the paper's
-/// microscope with the given brightness and margin; set i uses seed
-/// `--seed` + i) and prints the AUC at ε = 1, 2, 3 px beside the paper's
-/// FCNN row, with frames/s. Inference options may be overridden to compare
-/// post-processing without retraining.
+/// microscope with the given brightness and margin; each set's seed is
+/// derived from `--seed` and its D) and prints the AUC at ε = 1, 2, 3 px
+/// beside the paper's FCNN row, with frames/s. Inference options may be
+/// overridden to compare post-processing without retraining.
 #[derive(Debug, Args)]
 pub struct BenchLocateArgs {
     /// Model folder written by `scanloc train`.
@@ -118,8 +119,8 @@ pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
         ..SimParams::default()
     };
     params.validate()?;
-    let rows = cnn::bench::auc_table(&model, &params, &args.diffusion, args.frames, args.seed)?;
-    print!("{}", cnn::bench::format_auc_table(&rows));
+    let rows = bench::cnn::auc_table(&model, &params, &args.diffusion, args.frames, args.seed)?;
+    print!("{}", bench::cnn::format_auc_table(&rows));
     for row in &rows {
         println!(
             "D {:.2}: {:.0} frames/s (batch {})",

@@ -1,4 +1,5 @@
-//! `scanloc calibrate`: the brightness sweep of DESIGN §6.
+//! `scanloc calibrate`: the brightness sweep (`docs/metric.md`, "Calibrating the
+//! brightness").
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -13,6 +14,8 @@ use scanloc::run::calibrate;
 /// differences over the reference cells). Every grid point is recorded as
 /// a run of kind `calibrate`; datasets are cached, so a repeated sweep is
 /// fast.
+///
+/// Why and how N_qd is calibrated: docs/metric.md.
 #[derive(Debug, Args)]
 pub struct CalibrateArgs {
     /// The experiment manifest (needs a `reference` row for the detector).

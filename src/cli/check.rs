@@ -11,6 +11,8 @@ use serde_json::json;
 /// Validate a manifest without running it, and print it resolved: every
 /// default filled in, every seed derived, and the plan of steps with their
 /// content keys.
+///
+/// Manifest format: docs/manifest.md.
 #[derive(Debug, Args)]
 pub struct CheckArgs {
     /// The manifest (YAML).

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::manifest;
-use scanloc::registry::Registry;
+use scanloc::registry::{CrossValidationPlan, Registry};
 use scanloc::run::cross_validation;
 
 /// Cross-validate a trained detector: its training set split into k folds
@@ -15,6 +15,9 @@ use scanloc::run::cross_validation;
 /// mean ± standard deviation. Each fold's data and model are artefacts of
 /// their own, so an interrupted sweep resumes where it stopped and one fold
 /// can be rerun alone (--fold K --force checks it against the stored one).
+///
+/// The cross_validation block: docs/manifest.md; how folds are stored:
+/// docs/registry.md.
 #[derive(Debug, Args)]
 pub struct CvArgs {
     /// The experiment manifest.
@@ -55,14 +58,12 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
         })?;
     let folds = args.folds.or(block.map(|b| b.folds)).unwrap_or(5);
     let mut registry = Registry::open(&args.registry)?;
-    let outcome = cross_validation::cross_validate(
-        &mut registry,
-        &manifest,
-        &detector,
+    let plan = CrossValidationPlan {
+        detector,
         folds,
-        args.fold,
-        args.force,
-    )?;
+        fold: args.fold,
+    };
+    let outcome = cross_validation::cross_validate(&mut registry, &manifest, &plan, args.force)?;
     if args.json {
         println!(
             "{}",
@@ -71,8 +72,8 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
                 "detector": outcome.detector,
                 "folds": outcome.folds,
                 "cells": outcome.cells,
-                "cached_steps": outcome.run.cached_steps,
-                "computed_steps": outcome.run.computed_steps,
+                "cached_steps": outcome.run.counts.cached,
+                "computed_steps": outcome.run.counts.computed,
             })
         );
     } else {

@@ -15,6 +15,8 @@ use scanloc::io::{self, csv_tables};
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model DIR` (a model saved by `scanloc train`) the columns are
 /// frame,x,y,score.
+///
+/// Both methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct LocateArgs {
@@ -100,7 +102,13 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
             bar.finish_and_clear();
-            csv_tables::write_features(&args.out, &features)?;
+            csv_tables::write_localisations(
+                &args.out,
+                crocker_grier::FEATURE_COLUMNS,
+                features
+                    .iter()
+                    .map(|(frame, f)| (f.prediction(*frame), f.column_values())),
+            )?;
         }
         Method::Cnn => {
             let model_dir = args

@@ -24,6 +24,9 @@ use clap::{Parser, Subcommand};
 ///
 /// Coordinates follow TrackPy: x is the column, y the row, pixel centres at
 /// integers. Exit codes: 0 success, 1 a check failed, 2 bad input.
+///
+/// Documentation (simulator physics, detectors, metric, manifests, registry):
+/// docs/README.md in the scanloc repository.
 #[derive(Debug, Parser)]
 #[command(name = "scanloc", version, about, long_about)]
 pub struct Cli {

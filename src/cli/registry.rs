@@ -5,14 +5,14 @@ use std::process::ExitCode;
 
 use clap::{Args, Subcommand};
 use scanloc::error::{CheckFailed, input_error};
-use scanloc::manifest::Reference;
-use scanloc::registry::query::{self, Found, Table};
-use scanloc::registry::{AucRow, Registry};
-use scanloc::run::table;
+use scanloc::registry::{Found, Registry, Table, diff, sql};
+use scanloc::report::summary::run_summary;
 
 /// Query the registry: runs, datasets, models, evaluations, one run or
 /// artefact in full, the differences between two runs, blob verification,
 /// garbage collection and read-only SQL.
+///
+/// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct RegistryArgs {
     #[command(subcommand)]
@@ -40,8 +40,9 @@ enum RegistryCommand {
     Models,
     /// Every stored evaluation, one row per ε.
     Evaluations,
-    /// One run (record, steps, AUC table) or artefact (spec, blobs, runs
-    /// that used it) in full, by id or unique prefix.
+    /// One run (status, manifest, code version, seeds, steps, AUC table;
+    /// with --json the whole record) or artefact (spec, blobs, runs that
+    /// used it) in full, by id or unique prefix.
     Show { id: String },
     /// What differs between two runs: code version, machine, manifest,
     /// parameters, seeds, artefact keys, AUC cells.
@@ -89,7 +90,7 @@ fn run_id(registry: &Registry, id: &str) -> anyhow::Result<String> {
 pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
     let json = args.json;
     if let RegistryCommand::Sql { query: sql } = &args.command {
-        print_table(&query::read_only_sql(&args.registry, sql)?, json);
+        print_table(&sql::read_only_sql(&args.registry, sql)?, json);
         return Ok(ExitCode::SUCCESS);
     }
     let mut registry = Registry::open_existing(&args.registry)?;
@@ -101,22 +102,17 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
         RegistryCommand::Show { id } => match registry.resolve_id(&id)? {
             Found::Run(id) => {
                 let record = registry.run_record(&id)?;
-                print_value(&record, json)?;
-                if !json {
-                    // The AUC table in the paper's layout, as `run` printed it.
-                    let rows: Vec<AucRow> =
-                        serde_json::from_value(record["auc"].clone()).unwrap_or_default();
-                    let reference: Option<Reference> =
-                        serde_json::from_value(record["resolved"]["reference"].clone()).ok();
-                    print!("{}", table::render(&rows, reference.as_ref()));
+                if json {
+                    println!("{}", serde_json::to_string(&record)?);
+                } else {
+                    print!("{}", run_summary(&record));
                 }
             }
             Found::Artefact(key) => print_value(&registry.artefact_record(&key)?, json)?,
         },
         RegistryCommand::Diff { a, b } => {
             let (a, b) = (run_id(&registry, &a)?, run_id(&registry, &b)?);
-            let differences =
-                query::diff_runs(&registry.run_record(&a)?, &registry.run_record(&b)?);
+            let differences = diff::diff_runs(&registry.run_record(&a)?, &registry.run_record(&b)?);
             if json {
                 println!(
                     "{}",

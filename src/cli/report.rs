@@ -4,12 +4,15 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Args;
-use scanloc::registry::Registry;
+use scanloc::registry::{Found, Registry, RunKind};
 
 /// Write a Markdown report of a run: the AUC table beside the reference
 /// (the paper's Table 1), localisation quality, precision–recall curves,
 /// example frames with trajectories, localisation panels and error
 /// histograms (PNG and SVG).
+///
+/// The metric and the paper's table: docs/metric.md. Figures are drawn with
+/// the embedded Roboto font, or the TrueType file named by SCANLOC_FONT.
 #[derive(Debug, Args)]
 pub struct ReportArgs {
     /// The run id (a unique prefix is enough), or `latest` for the most
@@ -26,12 +29,9 @@ pub struct ReportArgs {
 pub fn run(args: ReportArgs) -> anyhow::Result<ExitCode> {
     let registry = Registry::open_existing(&args.registry)?;
     let run_id = if args.run == "latest" {
-        let runs = registry.list_runs()?.to_json();
-        runs.as_array()
-            .into_iter()
-            .flatten()
-            .find(|r| r["kind"] == "run" && r["status"] == "done")
-            .and_then(|r| r["id"].as_str().map(str::to_string))
+        registry
+            .latest_done_run(RunKind::Run)?
+            .map(|run| run.id)
             .ok_or_else(|| {
                 scanloc::error::input_error(format!(
                     "{}: no finished run to report on",
@@ -40,7 +40,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<ExitCode> {
             })?
     } else {
         match registry.resolve_id(&args.run)? {
-            scanloc::registry::query::Found::Run(id) => id,
+            Found::Run(id) => id,
             _ => {
                 return Err(scanloc::error::input_error(format!(
                     "{}: not a run",

@@ -5,14 +5,15 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::error::CheckFailed;
-use scanloc::registry::Registry;
-use scanloc::registry::query::Found;
+use scanloc::registry::{Found, Registry};
 use scanloc::run::reproduce;
 
 /// Re-execute a recorded run from scratch (ignoring every cached artefact,
 /// into a scratch registry) and report, artefact by artefact and number by
 /// number, whether everything came out identical. Exit code 1 if anything
 /// differs, including a stored blob that was altered since.
+///
+/// What a run records and what is compared: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct ReproduceArgs {
     /// The run id (or a unique prefix of it), as `scanloc registry runs` lists.

@@ -16,6 +16,8 @@ use serde_json::json;
 /// the registry (and whose blobs re-hash correctly) is skipped and counted
 /// as cached; a damaged blob is reported and rebuilt. Several runs may share
 /// one registry at once.
+///
+/// Manifest format: docs/manifest.md; the registry: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// The manifest (YAML), e.g. experiments/smoke.yaml.
@@ -54,9 +56,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             "registry": args.registry.display().to_string(),
             "status": outcome.status,
             "auc": outcome.auc,
-            "cached_steps": outcome.cached_steps,
-            "computed_steps": outcome.computed_steps,
-            "rebuilt_steps": outcome.rebuilt_steps,
+            "cached_steps": outcome.counts.cached,
+            "computed_steps": outcome.counts.computed,
+            "rebuilt_steps": outcome.counts.rebuilt,
             "damaged_blobs": outcome.damaged_blobs,
             "steps": outcome.steps,
             "seconds": outcome.seconds,
@@ -70,9 +72,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         println!(
             "run {}: {} steps cached, {} computed, {} rebuilt in {:.2} s (registry {})",
             outcome.run,
-            outcome.cached_steps,
-            outcome.computed_steps,
-            outcome.rebuilt_steps,
+            outcome.counts.cached,
+            outcome.counts.computed,
+            outcome.counts.rebuilt,
             outcome.seconds,
             args.registry.display()
         );

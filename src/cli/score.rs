@@ -9,7 +9,7 @@ use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::metrics;
 
-/// Score localisations against ground truth (DESIGN §3).
+/// Score localisations against ground truth (docs/metric.md).
 ///
 /// Prints the AUC of the precision–recall curve for each matching radius ε,
 /// the RMSE of each frame's top-scoring prediction, and the fraction of

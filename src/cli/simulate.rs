@@ -8,7 +8,7 @@ use scanloc::error::input_error;
 use scanloc::io::{self, PendingFile};
 use scanloc::sim::{self, DetectorNoise, Distribution, SimParams};
 
-/// Simulate point-scanning 2PM frames of diffusing QDs (DESIGN §1).
+/// Simulate point-scanning 2PM frames of diffusing QDs (docs/simulator.md).
 ///
 /// Every parameter defaults to the paper's microscope. Frame i of a dataset
 /// depends only on (parameters, seed, i): the same frames come out whatever

@@ -5,11 +5,14 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Args;
+use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
+use scanloc::manifest::derive_seed;
+use scanloc::metrics;
 use scanloc::sim::{self, Distribution, SimParams};
 
-/// Train the CNN localiser on simulated frames (DESIGN §2) and save it.
+/// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
 /// Simulates `--frames` frames of the paper's microscope (with the given
 /// brightness, margin and diffusion) as the fixed dataset, of which
@@ -90,10 +93,6 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
-/// Seed offsets separating the dataset, training and test streams of the master seed.
-const DATASET_SEED_OFFSET: u64 = 0x5eed_da7a;
-const TEST_SEED_OFFSET: u64 = 0x7e57_0000;
-
 pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     let defaults = CnnArchitecture::default();
     let architecture = CnnArchitecture {
@@ -139,7 +138,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     let bar = scanloc::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(
         &params,
-        args.seed.wrapping_add(DATASET_SEED_OFFSET),
+        derive_seed(args.seed, "dataset", "training"),
         0..args.frames,
         &bar,
     )?;
@@ -153,6 +152,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         &dataset,
         Some(&params),
         args.seed,
+        &metrics::paper_aucs,
         &bar,
     )?;
     let seconds = started.elapsed().as_secs_f64();
@@ -183,14 +183,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     );
 
     if args.test_frames > 0 {
-        let table = cnn::bench::auc_table(
+        let table = bench::cnn::auc_table(
             &model,
             &params,
             &args.test_diffusion,
             args.test_frames,
-            args.seed.wrapping_add(TEST_SEED_OFFSET),
+            derive_seed(args.seed, "dataset", "test"),
         )?;
-        print!("{}", cnn::bench::format_auc_table(&table));
+        print!("{}", bench::cnn::format_auc_table(&table));
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::FrameStack;
 
 /// The frame file formats, chosen by file extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -5,16 +5,18 @@
 //! from a float dtype whose values are all whole non-negative numbers; a
 //! 2-D array is read as one frame. Values that are negative, NaN, infinite,
 //! fractional or above `u32::MAX` are refused with the index of the first
-//! offender, never rounded or clipped.
+//! offender, never rounded or clipped. One writer and one reader, over any
+//! `Write`/`Read` (the registry stores the same bytes as `frames.npy`
+//! blobs); the file reader calls it.
 
-use std::io::{BufReader, Write};
+use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
 use npyz::{NpyFile, Order, TypeChar, WriterBuilder};
 
 use super::open_input;
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::FrameStack;
 
 /// Writes `frames` as a C-order `(n, H, W)` array.
 pub fn write_frames<W: Write>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {
@@ -41,10 +43,16 @@ pub fn write_frames<W: Write>(writer: &mut W, frames: &FrameStack) -> anyhow::Re
 
 /// Reads a frame stack from a `.npy` file.
 pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    let name = path.display();
     let file = open_input(path)?;
     let file_len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
-    let reader = BufReader::new(file);
+    read_frames_from(BufReader::new(file), file_len, &path.display().to_string())
+}
+
+/// Reads a frame stack from `.npy` data of `len` bytes (header included)
+/// from any reader, as [`read_frames`]; the header's shape is checked
+/// against `len` before anything is allocated. `name` (a path, or a blob's
+/// role) names the data in errors.
+pub fn read_frames_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Result<FrameStack> {
     let npy = NpyFile::new(reader)
         .map_err(|e| input_error(format!("{name}: not a readable .npy file: {e}")))?;
     if npy.order() != Order::C {
@@ -71,14 +79,14 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
             )));
         }
     };
-    // A damaged header can claim any shape: check it against the file's
-    // size before allocating anything for the data.
+    // A damaged header can claim any shape: check it against the data's
+    // size before allocating anything for it.
     let claimed_bytes = shape.iter().try_fold(dtype.size_field().max(1), |acc, &d| {
         acc.checked_mul(d as u64)
     });
-    if claimed_bytes.is_none_or(|bytes| bytes > file_len) {
+    if claimed_bytes.is_none_or(|bytes| bytes > len) {
         return Err(input_error(format!(
-            "{name}: header claims shape {shape:?} of {dtype}, more data than the file's {file_len} bytes"
+            "{name}: header claims shape {shape:?} of {dtype}, more data than its {len} bytes"
         )));
     }
     let read_error =
@@ -87,25 +95,25 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
         (TypeChar::Uint, 1) => widen(npy.into_vec::<u8>().map_err(read_error)?),
         (TypeChar::Uint, 2) => widen(npy.into_vec::<u16>().map_err(read_error)?),
         (TypeChar::Uint, 4) => npy.into_vec::<u32>().map_err(read_error)?,
-        (TypeChar::Uint, 8) => checked(&name, npy.into_vec::<u64>().map_err(read_error)?, |v| {
+        (TypeChar::Uint, 8) => checked(name, npy.into_vec::<u64>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Int, 1) => checked(&name, npy.into_vec::<i8>().map_err(read_error)?, |v| {
+        (TypeChar::Int, 1) => checked(name, npy.into_vec::<i8>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Int, 2) => checked(&name, npy.into_vec::<i16>().map_err(read_error)?, |v| {
+        (TypeChar::Int, 2) => checked(name, npy.into_vec::<i16>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Int, 4) => checked(&name, npy.into_vec::<i32>().map_err(read_error)?, |v| {
+        (TypeChar::Int, 4) => checked(name, npy.into_vec::<i32>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Int, 8) => checked(&name, npy.into_vec::<i64>().map_err(read_error)?, |v| {
+        (TypeChar::Int, 8) => checked(name, npy.into_vec::<i64>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Float, 4) => checked(&name, npy.into_vec::<f32>().map_err(read_error)?, |v| {
+        (TypeChar::Float, 4) => checked(name, npy.into_vec::<f32>().map_err(read_error)?, |v| {
             v as f64
         })?,
-        (TypeChar::Float, 8) => checked(&name, npy.into_vec::<f64>().map_err(read_error)?, |v| v)?,
+        (TypeChar::Float, 8) => checked(name, npy.into_vec::<f64>().map_err(read_error)?, |v| v)?,
         _ => {
             return Err(input_error(format!(
                 "{name}: unsupported dtype {dtype}; expected integer or float counts"
@@ -122,7 +130,7 @@ fn widen<T: Into<u32>>(values: Vec<T>) -> Vec<u32> {
 /// Converts values to counts, refusing any that is not a whole number in
 /// `0..=u32::MAX` and naming the first such one.
 fn checked<T: Copy>(
-    name: &impl std::fmt::Display,
+    name: &str,
     values: Vec<T>,
     to_f64: impl Fn(T) -> f64,
 ) -> anyhow::Result<Vec<u32>> {

@@ -14,7 +14,7 @@ use tiff::encoder::{TiffEncoder, colortype};
 use super::npy::count_from_f64;
 use super::open_input;
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::FrameStack;
 
 /// Writes one page per frame.
 pub fn write_frames<W: Write + Seek>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {

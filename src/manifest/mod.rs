@@ -1,16 +1,18 @@
-//! Experiment manifests (`experiments/*.yaml`, DESIGN §4): what to simulate,
-//! which detectors to run, how to score them.
+//! Experiment manifests (`experiments/*.yaml`): what to simulate, which
+//! detectors to run, how to score them. The format, every field and its
+//! default are documented in `docs/manifest.md`.
 //!
 //! A manifest is parsed strictly: unknown fields are refused, every value is
 //! validated, and every default is filled in, so the resolved [`Manifest`]
-//! says everything a run will do. Errors are [`InputError`]s of the form
+//! says everything a run will do. Errors are
+//! [`InputError`](crate::error::InputError)s of the form
 //! `experiments/x.yaml:14: datasets.test-1.00.frames: must be a positive integer`
 //! (file, line, field path, what is wrong).
 //!
 //! ```yaml
 //! name: smoke                 # free text, recorded with each run
 //! seed: 1234                  # master seed: every artefact's seed derives from it
-//! microscope:                 # DESIGN §1 parameters shared by every dataset
+//! microscope:                 # simulator parameters shared by every dataset
 //!   brightness: 7
 //!   margin_px: 4
 //! datasets:                   # name → frame count + overrides of `microscope`
@@ -201,7 +203,7 @@ pub struct DetectorEntry {
     pub spec: DetectorSpec,
 }
 
-/// How evaluations are scored (DESIGN §3).
+/// How evaluations are scored (the metric: `docs/metric.md`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetricsSpec {
@@ -237,6 +239,18 @@ pub struct CrossValidation {
     pub folds: usize,
     /// The detector to cross-validate (one with a training set).
     pub detector: String,
+}
+
+impl CrossValidation {
+    /// Checks a fold count k (2 to 50): the one place that range is
+    /// enforced, for manifests and the command line alike.
+    pub fn check_folds(folds: usize) -> Result<(), String> {
+        if (2..=50).contains(&folds) {
+            Ok(())
+        } else {
+            Err(format!("must be between 2 and 50, got {folds}"))
+        }
+    }
 }
 
 /// Published numbers to print beside ours (e.g. the paper's Table 1).
@@ -815,11 +829,8 @@ fn resolve(raw: RawManifest, text: &str, context: &Context) -> anyhow::Result<Ma
     }
 
     if let Some(cv) = &cross_validation {
-        if !(2..=50).contains(&cv.folds) {
-            return Err(context.error(
-                &path_of(&["cross_validation", "folds"]),
-                format!("must be between 2 and 50, got {}", cv.folds),
-            ));
+        if let Err(message) = CrossValidation::check_folds(cv.folds) {
+            return Err(context.error(&path_of(&["cross_validation", "folds"]), message));
         }
         let detector_path = path_of(&["cross_validation", "detector"]);
         match detectors.iter().find(|d| d.name == cv.detector) {

@@ -1,7 +1,10 @@
 //! The registry: a SQLite database (`registry.sqlite`) mapping content keys
 //! of artefacts to the hashes of their stored bytes, plus the record of
 //! every run; blobs live beside it (see [`blobs`]). The schema is in
-//! `schema.sql` and documented in `docs/registry.md`.
+//! `schema.sql` and `schema_v2.sql` (a cross-validation run's plan) and
+//! documented in `docs/registry.md`. Writing is here; reading back is in
+//! [`record`] (runs, typed), [`sql`] (listings, artefacts, read-only SQL),
+//! [`verify`], [`gc`] and [`diff`].
 //!
 //! Concurrency: the database is in WAL mode with a long busy timeout and
 //! every write is a short `BEGIN IMMEDIATE` transaction, so several runs can
@@ -12,24 +15,39 @@
 //! second insert finds the first.
 
 pub mod blobs;
+pub mod dates;
+pub mod diff;
+pub mod gc;
 pub mod hashing;
-pub mod query;
+pub mod record;
+pub mod sql;
 pub mod sql_guard;
+pub mod table;
+pub mod verify;
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use anyhow::Context;
 use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
 use serde::{Deserialize, Serialize};
 
 pub use blobs::{BlobState, BlobStore};
+pub use dates::utc_now;
+pub use record::{
+    AucRow, CrossValidationPlan, RunKind, RunRecord, RunStart, RunStatus, RunSummary, StepCounts,
+    StepOutcome, StepRecord,
+};
+pub use sql::{EvaluationRow, Found};
+pub use table::Table;
 
 use crate::error::input_error;
 
-/// The schema version this code writes; see `schema.sql`.
-pub const SCHEMA_VERSION: i64 = 1;
+/// The schema version this code writes; see `schema.sql` (version 1) and
+/// `schema_v2.sql` (the migration to version 2).
+pub const SCHEMA_VERSION: i64 = 2;
 const SCHEMA_V1: &str = include_str!("schema.sql");
+const SCHEMA_V2: &str = include_str!("schema_v2.sql");
 
 /// The database file name inside a registry folder.
 pub const DATABASE_FILE: &str = "registry.sqlite";
@@ -181,101 +199,6 @@ pub fn process_alive(pid: u32) -> bool {
     Path::new(&format!("/proc/{pid}")).exists()
 }
 
-/// Now, UTC, ISO 8601 with milliseconds.
-pub fn utc_now() -> String {
-    format_utc(SystemTime::now())
-}
-
-/// `time` as UTC ISO 8601 with milliseconds (`2026-11-22T23:05:00.123Z`).
-pub fn format_utc(time: SystemTime) -> String {
-    let since = time.duration_since(UNIX_EPOCH).unwrap_or_default();
-    let seconds = since.as_secs() as i64;
-    let (days, rest) = (seconds.div_euclid(86_400), seconds.rem_euclid(86_400));
-    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z",
-        rest / 3600,
-        rest / 60 % 60,
-        rest % 60,
-        since.subsec_millis()
-    )
-}
-
-/// How a run ended (or not).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RunStatus {
-    /// Still going, or killed before it could say otherwise.
-    Running,
-    Done,
-    Failed,
-    /// Its process ended without finishing the record (killed).
-    Unfinished,
-}
-
-impl RunStatus {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            RunStatus::Running => "running",
-            RunStatus::Done => "done",
-            RunStatus::Failed => "failed",
-            RunStatus::Unfinished => "unfinished",
-        }
-    }
-}
-
-/// What a run records when it starts.
-#[derive(Debug, Clone)]
-pub struct RunStart {
-    pub id: String,
-    pub kind: String,
-    pub parent_run: Option<String>,
-    pub manifest_name: String,
-    pub manifest_path: String,
-    pub manifest_text: String,
-    pub manifest_sha256: String,
-    pub resolved_json: String,
-    pub seeds_json: String,
-    pub forced: bool,
-}
-
-/// One step of a run as recorded.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StepRecord {
-    pub ordinal: usize,
-    /// `dataset/train`, `evaluation/trackpy@test-1.00`, …
-    pub step: String,
-    pub kind: ArtefactKind,
-    pub artefact_key: String,
-    /// `cached`, `computed` or `rebuilt` (a damaged blob was made again).
-    pub outcome: String,
-    pub seconds: f64,
-    pub blobs: Vec<BlobRef>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub detail: Option<String>,
-}
-
-/// One cell of a run's AUC table.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct AucRow {
-    pub detector: String,
-    pub dataset: String,
-    /// The dataset's D in µm²/s, if it is fixed.
-    pub diffusion: Option<f64>,
-    pub eps_px: f64,
-    pub auc: f64,
-    pub evaluation_key: String,
-}
-
 /// An open registry: database connection plus blob store.
 pub struct Registry {
     dir: PathBuf,
@@ -359,6 +282,12 @@ impl Registry {
         if version < 1 {
             tx.execute_batch(SCHEMA_V1)
                 .context("creating the registry schema")?;
+        }
+        if version < 2 {
+            tx.execute_batch(SCHEMA_V2)
+                .context("migrating the registry schema to version 2")?;
+            backfill_cross_validation_plans(&tx)
+                .context("recording the plans of earlier cross-validation runs")?;
         }
         tx.execute_batch(&format!("PRAGMA user_version = {SCHEMA_VERSION}"))?;
         tx.commit()?;
@@ -587,20 +516,22 @@ impl Registry {
         Ok(())
     }
 
-    /// Marks runs of this host whose process is gone as `unfinished`.
+    /// Records as `unfinished` every run whose status in effect is
+    /// (see [`RunStatus::in_effect`]).
     pub fn mark_abandoned_runs(&mut self) -> anyhow::Result<usize> {
-        let host = host_name();
-        let candidates: Vec<(String, i64)> = {
+        let candidates: Vec<(String, String, i64)> = {
             let mut statement = self
                 .conn
-                .prepare("SELECT id, pid FROM runs WHERE status = 'running' AND host = ?1")?;
+                .prepare("SELECT id, host, pid FROM runs WHERE status = 'running'")?;
             statement
-                .query_map([&host], |row| Ok((row.get(0)?, row.get(1)?)))?
+                .query_map([], |row| {
+                    Ok((row.get("id")?, row.get("host")?, row.get("pid")?))
+                })?
                 .collect::<Result<_, _>>()?
         };
         let mut marked = 0;
-        for (id, pid) in candidates {
-            if pid as u32 != std::process::id() && !process_alive(pid as u32) {
+        for (id, host, pid) in candidates {
+            if RunStatus::Running.in_effect(&host, pid) == RunStatus::Unfinished {
                 let tx = self
                     .conn
                     .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -619,17 +550,19 @@ impl Registry {
     /// Records the start of a run (status `running`).
     pub fn begin_run(&mut self, start: &RunStart) -> anyhow::Result<()> {
         let code = CodeVersion::current();
+        let cv = start.cross_validation.as_ref();
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
         tx.execute(
             "INSERT INTO runs (id, kind, parent_run, manifest_name, manifest_path, manifest_text,
                  manifest_sha256, resolved, seeds, crate_version, git_commit, git_dirty, rustc, host,
-                 pid, threads, forced, started_at, status)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, 'running')",
+                 pid, threads, forced, started_at, status, cv_detector, cv_folds, cv_fold)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18,
+                 'running', ?19, ?20, ?21)",
             params![
                 start.id,
-                start.kind,
+                start.kind.as_str(),
                 start.parent_run,
                 start.manifest_name,
                 start.manifest_path,
@@ -645,7 +578,10 @@ impl Registry {
                 std::process::id() as i64,
                 rayon::current_num_threads() as i64,
                 start.forced,
-                utc_now()
+                utc_now(),
+                cv.map(|cv| cv.detector.as_str()),
+                cv.map(|cv| cv.folds as i64),
+                cv.and_then(|cv| cv.fold).map(|fold| fold as i64),
             ],
         )?;
         tx.commit()?;
@@ -671,7 +607,7 @@ impl Registry {
                 step.step,
                 step.kind.as_str(),
                 step.artefact_key,
-                step.outcome,
+                step.outcome.as_str(),
                 step.seconds,
                 serde_json::Value::Object(blobs).to_string(),
                 step.detail
@@ -687,7 +623,7 @@ impl Registry {
         run_id: &str,
         status: RunStatus,
         error: Option<&str>,
-        counts: (usize, usize, usize),
+        counts: StepCounts,
         auc: &[AucRow],
     ) -> anyhow::Result<()> {
         let tx = self
@@ -702,9 +638,9 @@ impl Registry {
                 status.as_str(),
                 error,
                 utc_now(),
-                counts.0 as i64,
-                counts.1 as i64,
-                counts.2 as i64
+                counts.cached as i64,
+                counts.computed as i64,
+                counts.rebuilt as i64
             ],
         )?;
         for row in auc {
@@ -727,6 +663,58 @@ impl Registry {
     }
 }
 
+/// Records the plan of every cross-validation run made before schema 2.
+/// Such a run left its plan only in its fold models' names
+/// (`DETECTOR-cvKofN`) in its AUC rows; they are read here, once, so that
+/// nothing else ever parses names. A run that recorded no AUC rows (it
+/// was interrupted) keeps no plan: it is still listed and shown, and
+/// `reproduce` says it cannot re-plan it.
+fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result<()> {
+    let runs: Vec<String> = {
+        let mut statement =
+            tx.prepare("SELECT id FROM runs WHERE kind = 'cv' AND cv_detector IS NULL")?;
+        statement
+            .query_map([], |row| row.get("id"))?
+            .collect::<Result<_, _>>()?
+    };
+    for run in runs {
+        let detectors: Vec<String> = {
+            let mut statement =
+                tx.prepare("SELECT DISTINCT detector FROM run_auc WHERE run_id = ?1")?;
+            statement
+                .query_map([&run], |row| row.get("detector"))?
+                .collect::<Result<_, _>>()?
+        };
+        let parsed: Vec<(&str, usize, usize)> = detectors
+            .iter()
+            .filter_map(|name| {
+                let (detector, fold) = name.rsplit_once("-cv")?;
+                let (fold, folds) = fold.split_once("of")?;
+                Some((detector, fold.parse().ok()?, folds.parse().ok()?))
+            })
+            .collect();
+        let Some(&(detector, _, folds)) = parsed.first() else {
+            continue;
+        };
+        if parsed.iter().any(|&(d, _, n)| d != detector || n != folds) {
+            continue;
+        }
+        let mut scored: Vec<usize> = parsed.iter().map(|&(_, fold, _)| fold).collect();
+        scored.sort_unstable();
+        scored.dedup();
+        // One fold scored out of several: a `cv --fold K` run.
+        let only_fold = match scored.as_slice() {
+            [fold] if folds > 1 => Some(*fold as i64),
+            _ => None,
+        };
+        tx.execute(
+            "UPDATE runs SET cv_detector = ?2, cv_folds = ?3, cv_fold = ?4 WHERE id = ?1",
+            params![run, detector, folds as i64, only_fold],
+        )?;
+    }
+    Ok(())
+}
+
 fn is_busy(error: &rusqlite::Error) -> bool {
     matches!(
         error,
@@ -738,15 +726,6 @@ fn is_busy(error: &rusqlite::Error) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn formats_utc_dates() {
-        let t = UNIX_EPOCH + Duration::from_millis(1_700_000_000_123);
-        assert_eq!(format_utc(t), "2023-11-14T22:13:20.123Z");
-        assert_eq!(format_utc(UNIX_EPOCH), "1970-01-01T00:00:00.000Z");
-        let leap = UNIX_EPOCH + Duration::from_secs(951_782_400); // 2000-02-29
-        assert_eq!(format_utc(leap), "2000-02-29T00:00:00.000Z");
-    }
 
     #[test]
     fn blobs_round_trip_and_damage_is_detected() {
@@ -836,6 +815,64 @@ mod tests {
             })
             .unwrap();
         assert_eq!(seed, u64::MAX.to_string());
+    }
+
+    #[test]
+    fn a_version_1_registry_opens_and_its_cv_runs_get_their_plans() {
+        let dir = tempfile::tempdir().unwrap();
+        let conn = Connection::open(dir.path().join(DATABASE_FILE)).unwrap();
+        conn.execute_batch(SCHEMA_V1).unwrap();
+        conn.execute_batch("PRAGMA user_version = 1").unwrap();
+        let insert_run = |id: &str, kind: &str| {
+            conn.execute(
+                "INSERT INTO runs (id, kind, manifest_name, manifest_path, manifest_text,
+                     manifest_sha256, resolved, seeds, crate_version, git_commit, git_dirty, rustc,
+                     host, pid, threads, forced, started_at, ended_at, status)
+                 VALUES (?1, ?2, 'm', 'm.yaml', 'name: m', '00', '{}', '{}', '0.1.0', 'c', 'false',
+                     'rustc', 'h', 1, 2, 0, '2026-01-01T00:00:00.000Z',
+                     '2026-01-01T00:00:01.000Z', 'done')",
+                params![id, kind],
+            )
+            .unwrap();
+        };
+        let insert_auc = |run: &str, detector: &str, dataset: &str| {
+            conn.execute(
+                "INSERT INTO run_auc (run_id, detector, dataset, diffusion, eps_px, auc, evaluation_key)
+                 VALUES (?1, ?2, ?3, NULL, 1.0, 0.5, 'e')",
+                params![run, detector, dataset],
+            )
+            .unwrap();
+        };
+        insert_run("sweep", "cv");
+        for fold in 1..=3 {
+            insert_auc("sweep", &format!("cnn-cv{fold}of3"), "x-held-out");
+        }
+        insert_run("one-fold", "cv");
+        insert_auc("one-fold", "cnn-cv2of3", "test");
+        insert_run("interrupted", "cv");
+        insert_run("plain", "run");
+        insert_auc("plain", "trackpy-cv1of2", "test");
+        drop(conn);
+
+        let registry = Registry::open(dir.path()).unwrap();
+        let plan = |id: &str| registry.run_record(id).unwrap().cross_validation;
+        let cv = |fold| {
+            Some(CrossValidationPlan {
+                detector: "cnn".into(),
+                folds: 3,
+                fold,
+            })
+        };
+        assert_eq!(plan("sweep"), cv(None));
+        assert_eq!(plan("one-fold"), cv(Some(2)));
+        assert_eq!(plan("interrupted"), None);
+        assert_eq!(plan("plain"), None, "only cv runs have a plan");
+        assert_eq!(registry.run_record("plain").unwrap().kind, RunKind::Run);
+        let version: i64 = registry
+            .connection()
+            .query_row("PRAGMA user_version", [], |row| row.get(0))
+            .unwrap();
+        assert_eq!(version, SCHEMA_VERSION);
     }
 
     #[test]

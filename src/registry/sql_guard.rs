@@ -25,7 +25,7 @@ use rusqlite::{Connection, OpenFlags};
 use serde_json::{Value, json};
 
 use super::DATABASE_FILE;
-use super::query::Table;
+use super::table::Table;
 use crate::error::input_error;
 
 /// Longest a `registry sql` statement may run.

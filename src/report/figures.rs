@@ -1,8 +1,11 @@
 //! Figures as PNG and SVG, drawn with plotters.
 //!
-//! Every figure is written twice, `NAME.png` and `NAME.svg`. Text needs a
-//! TrueType font: the first of [`FONT_CANDIDATES`] found (or the file named
-//! by `SCANLOC_FONT`) is used.
+//! Every figure is written twice, `NAME.png` and `NAME.svg`. Text is drawn
+//! with the TrueType font embedded in the binary ([`EMBEDDED_FONT`], Roboto
+//! Regular, Apache-2.0, see `assets/fonts/`), so figures look the same on
+//! every machine. `SCANLOC_FONT=/path/to/font.ttf` uses another font; if
+//! that file cannot be read or is not a TrueType font, a one-line warning is
+//! logged and the embedded font is used.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -14,39 +17,56 @@ use plotters::prelude::*;
 
 use crate::error::input_error;
 
-/// Fonts tried in order (Debian's and Fedora's DejaVu, Liberation).
-pub const FONT_CANDIDATES: [&str; 4] = [
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu-sans-fonts/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-];
+/// Roboto Regular (Google, Apache License 2.0; `assets/fonts/README.md`).
+pub const EMBEDDED_FONT: &[u8] = include_bytes!("../../assets/fonts/Roboto-Regular.ttf");
 
-/// Registers a system font with plotters once per process.
+/// The environment variable naming a TrueType font file to draw text with.
+pub const FONT_VARIABLE: &str = "SCANLOC_FONT";
+
+/// Registers the font figures are drawn with, as plotters' `sans-serif`:
+/// the file `requested` (the value of `SCANLOC_FONT`) if it is a readable
+/// TrueType font, else the embedded one. Returns a one-line warning saying
+/// why the requested file was not used, if it was not.
+fn register_figure_font(requested: Option<&Path>) -> Result<Option<String>, String> {
+    let register = |bytes: &'static [u8]| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok()
+    };
+    let mut warning = None;
+    if let Some(path) = requested {
+        let problem = match std::fs::read(path) {
+            Ok(bytes) => {
+                // plotters keeps fonts for the life of the process.
+                if register(Box::leak(bytes.into_boxed_slice())) {
+                    return Ok(None);
+                }
+                "not a TrueType font".to_string()
+            }
+            Err(error) => format!("cannot read it ({error})"),
+        };
+        warning = Some(format!(
+            "{FONT_VARIABLE}={}: {problem}; figures use the embedded font instead",
+            path.display()
+        ));
+    }
+    if register(EMBEDDED_FONT) {
+        Ok(warning)
+    } else {
+        Err("the embedded figure font could not be loaded".to_string())
+    }
+}
+
+/// Registers the figure font once per process, logging the warning of
+/// [`register_figure_font`] if there is one.
 fn ensure_font() -> anyhow::Result<()> {
     static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
     REGISTERED
         .get_or_init(|| {
-            let mut candidates: Vec<PathBuf> = Vec::new();
-            if let Ok(path) = std::env::var("SCANLOC_FONT") {
-                candidates.push(path.into());
+            let requested = std::env::var_os(FONT_VARIABLE).map(PathBuf::from);
+            let warning = register_figure_font(requested.as_deref())?;
+            if let Some(warning) = warning {
+                tracing::warn!("{warning}");
             }
-            candidates.extend(FONT_CANDIDATES.iter().map(PathBuf::from));
-            for path in candidates {
-                if let Ok(bytes) = std::fs::read(&path) {
-                    // plotters keeps fonts for the life of the process.
-                    let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                    if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-                        .is_ok()
-                    {
-                        return Ok(());
-                    }
-                }
-            }
-            Err(format!(
-                "no TrueType font found for figures (tried {}); set SCANLOC_FONT to a .ttf file",
-                FONT_CANDIDATES.join(", ")
-            ))
+            Ok(())
         })
         .clone()
         .map_err(input_error)
@@ -538,4 +558,60 @@ pub fn histograms(
         ((0.0, max), (0.0, top)),
         &curves,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_font_is_used_without_scanloc_font() {
+        assert_eq!(register_figure_font(None), Ok(None));
+    }
+
+    #[test]
+    fn a_missing_or_broken_scanloc_font_falls_back_with_one_warning_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("no-such-font.ttf");
+        let warning = register_figure_font(Some(&missing)).unwrap().unwrap();
+        assert!(warning.starts_with("SCANLOC_FONT="), "{warning}");
+        assert!(warning.contains("cannot read it"), "{warning}");
+        assert!(!warning.contains('\n'), "{warning}");
+
+        let broken = dir.path().join("broken.ttf");
+        std::fs::write(&broken, b"not a font").unwrap();
+        let warning = register_figure_font(Some(&broken)).unwrap().unwrap();
+        assert!(warning.contains("not a TrueType font"), "{warning}");
+    }
+
+    #[test]
+    fn a_readable_scanloc_font_is_used_without_warning() {
+        let dir = tempfile::tempdir().unwrap();
+        let font = dir.path().join("font.ttf");
+        std::fs::write(&font, EMBEDDED_FONT).unwrap();
+        assert_eq!(register_figure_font(Some(&font)), Ok(None));
+    }
+
+    #[test]
+    fn figures_are_written_after_a_font_fallback() {
+        let dir = tempfile::tempdir().unwrap();
+        register_figure_font(Some(&dir.path().join("missing.ttf"))).unwrap();
+        let base = dir.path().join("chart");
+        let curves = [Curve {
+            label: "ε = 1 px".into(),
+            points: vec![(0.0, 1.0), (1.0, 0.5)],
+        }];
+        line_chart(
+            &base,
+            "PR",
+            ("recall", "precision"),
+            ((0.0, 1.0), (0.0, 1.0)),
+            &curves,
+        )
+        .unwrap();
+        let png = std::fs::read(dir.path().join("chart.png")).unwrap();
+        assert_eq!(&png[1..4], b"PNG");
+        let svg = std::fs::read_to_string(dir.path().join("chart.svg")).unwrap();
+        assert!(svg.contains("ε = 1 px"));
+    }
 }

@@ -2,4 +2,6 @@
 //! figures (PNG and SVG).
 
 pub mod figures;
+pub mod recorded;
 pub mod run_report;
+pub mod summary;

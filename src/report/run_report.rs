@@ -2,23 +2,19 @@
 //! table beside the reference (the paper's Table 1), precision–recall
 //! curves, example frames, localisation panels and error histograms.
 
-use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
-use serde_json::Value;
-
 use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
-use crate::detect::Prediction;
+use super::recorded::RecordedManifest;
 use crate::error::input_error;
 use crate::manifest::Reference;
 use crate::metrics::Score;
 use crate::progress::hidden;
-use crate::registry::query::query;
-use crate::registry::{AucRow, Registry};
+use crate::registry::{Registry, RunRecord};
 use crate::run::{cross_validation, load_artefact};
-use crate::sim::{self, Dataset, Distribution, SimParams};
+use crate::sim::{self, Distribution, SimParams};
+use crate::types::{Dataset, Prediction};
 
 /// One scored (detector, dataset) pair of the run.
 struct Evaluation {
@@ -35,54 +31,55 @@ struct Evaluation {
 /// `out`; returns the path of the Markdown file.
 pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Result<PathBuf> {
     let record = registry.run_record(run_id)?;
-    let resolved = &record["resolved"];
+    let resolved = RecordedManifest::of(&record)?;
     std::fs::create_dir_all(out)
         .map_err(|e| input_error(format!("{}: cannot create: {e}", out.display())))?;
-    let reference: Option<Reference> = resolved
-        .get("reference")
-        .filter(|r| !r.is_null())
-        .map(|r| serde_json::from_value(r.clone()))
-        .transpose()
-        .context("reading the run's reference block")?;
-    let microscope: SimParams = serde_json::from_value(resolved["microscope"].clone())
-        .context("reading the run's microscope")?;
-    let evaluations = load_evaluations(registry, &record)?;
+    let reference = resolved.reference.as_ref();
+    let evaluations = load_evaluations(registry, &record, &resolved)?;
     let mut markdown = String::new();
-    let name = resolved["name"].as_str().unwrap_or("run");
-    writeln!(markdown, "# scanloc report: {name}, run {run_id}\n")?;
+    writeln!(
+        markdown,
+        "# scanloc report: {}, run {run_id}\n",
+        resolved.name
+    )?;
     writeln!(
         markdown,
         "Status **{}**, started {}, ended {}; scanloc {} (commit {}, dirty {}), {} on {} with {} threads.\n",
-        text(&record["status"]),
-        text(&record["started_at"]),
-        text(&record["ended_at"]),
-        text(&record["crate_version"]),
-        text(&record["git_commit"]),
-        text(&record["git_dirty"]),
-        text(&record["rustc"]),
-        text(&record["host"]),
-        text(&record["threads"]),
+        record.status,
+        record.started_at,
+        record.ended_at.as_deref().unwrap_or("—"),
+        record.code.crate_version,
+        record.code.git_commit,
+        record.code.git_dirty,
+        record.code.rustc,
+        record.host,
+        record.threads,
     )?;
     writeln!(
         markdown,
         "Steps: {} cached, {} computed. Re-run bit for bit with `scanloc reproduce {run_id}`.\n",
-        text(&record["cached_steps"]),
-        text(&record["computed_steps"])
+        record.counts.cached, record.counts.computed
     )?;
 
-    write_auc_table(&mut markdown, &evaluations, reference.as_ref())?;
-    if record["kind"].as_str() == Some("cv") {
-        write_cross_validation_table(&mut markdown, &record, reference.as_ref())?;
+    write_auc_table(&mut markdown, &evaluations, reference)?;
+    if let Some(reference) = reference {
+        write_reference_note(
+            &mut markdown,
+            &evaluations,
+            reference,
+            resolved.microscope.brightness,
+        )?;
     }
+    write_cross_validation_table(&mut markdown, &record, &resolved)?;
     write_quality_table(&mut markdown, &evaluations)?;
 
     writeln!(markdown, "\n## Figures\n")?;
-    example_frames(out, &microscope, resolved["seed"].as_u64().unwrap_or(0))?;
+    example_frames(out, &resolved.microscope, resolved.seed)?;
     writeln!(
         markdown,
         "**Example frames** at D = 0, 0.75, 1 and 1.75 µm²/s (the paper's Fig. 1): the QD's path in green, its start (green circle), end (cyan circle) and trajectory centroid (green cross).\n\n![example frames](example_frames.png)\n"
     )?;
-    let localisation = localisation_panels(registry, out, resolved, &evaluations)?;
+    let localisation = localisation_panels(registry, out, &resolved, &evaluations)?;
     if localisation {
         writeln!(
             markdown,
@@ -100,75 +97,70 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     Ok(path)
 }
 
-fn text(value: &Value) -> String {
-    match value {
-        Value::String(s) => s.clone(),
-        Value::Null => "—".to_string(),
-        other => other.to_string(),
-    }
-}
-
-fn load_evaluations(registry: &Registry, record: &Value) -> anyhow::Result<Vec<Evaluation>> {
-    let mut kinds = BTreeMap::new();
-    if let Some(detectors) = record["resolved"]["detectors"].as_array() {
-        for detector in detectors {
-            let kind = detector["spec"]
-                .as_object()
-                .and_then(|spec| spec.keys().next().cloned())
-                .unwrap_or_default();
-            kinds.insert(text(&detector["name"]), kind);
-        }
-    }
-    let mut keys: Vec<String> = Vec::new();
-    for row in record["auc"].as_array().into_iter().flatten() {
-        let key = text(&row["evaluation_key"]);
-        if !keys.contains(&key) {
-            keys.push(key);
+fn load_evaluations(
+    registry: &Registry,
+    record: &RunRecord,
+    resolved: &RecordedManifest,
+) -> anyhow::Result<Vec<Evaluation>> {
+    let mut keys: Vec<&str> = Vec::new();
+    for row in &record.auc {
+        if !keys.contains(&row.evaluation_key.as_str()) {
+            keys.push(&row.evaluation_key);
         }
     }
     let mut evaluations = Vec::new();
     for key in keys {
-        let rows = query(
-            registry.connection(),
-            "SELECT e.detector, e.dataset, e.dataset_key, e.predictions_key, d.diffusion
-             FROM evaluations e JOIN datasets d ON d.key = e.dataset_key WHERE e.key = ?1",
-            &[&key],
-        )?
-        .to_json();
-        let Some(row) = rows.as_array().and_then(|r| r.first()) else {
+        let Some(row) = registry.evaluation(key)? else {
             continue;
         };
-        let score = load_artefact(registry, &key)?
-            .evaluation()?
-            .as_ref()
-            .clone();
-        let detector = text(&row["detector"]);
+        let score = load_artefact(registry, key)?.evaluation()?.as_ref().clone();
+        // Fold models of a cross-validation are not manifest detectors:
+        // their kind is their detector's.
+        let detector_kind = resolved
+            .detector(&row.detector)
+            .or_else(|| {
+                let cv = record.cross_validation.as_ref()?;
+                resolved.detector(&cv.detector)
+            })
+            .map_or("", |d| d.spec.kind())
+            .to_string();
         evaluations.push(Evaluation {
-            detector_kind: kinds.get(&detector).cloned().unwrap_or_default(),
-            detector,
-            dataset: text(&row["dataset"]),
-            diffusion: row["diffusion"].as_f64(),
-            dataset_key: text(&row["dataset_key"]),
-            predictions_key: text(&row["predictions_key"]),
+            detector_kind,
+            detector: row.detector,
+            dataset: row.dataset,
+            diffusion: row.diffusion,
+            dataset_key: row.dataset_key,
+            predictions_key: row.predictions_key,
             score,
         });
     }
     Ok(evaluations)
 }
 
-/// A cross-validation run's table: per dataset and ε, the mean ± sample
-/// standard deviation of the fold models' AUC, the reference beside it.
+/// A cross-validation run's table (nothing for other runs): per dataset
+/// and ε, the mean ± sample standard deviation of the fold models' AUC, the
+/// reference beside it.
 fn write_cross_validation_table(
     markdown: &mut String,
-    record: &Value,
-    reference: Option<&Reference>,
+    record: &RunRecord,
+    resolved: &RecordedManifest,
 ) -> anyhow::Result<()> {
-    let auc: Vec<AucRow> =
-        serde_json::from_value(record["auc"].clone()).context("reading the run's AUC rows")?;
-    let Some((detector, folds)) = cross_validation::detector_and_folds(&auc) else {
+    let Some(cv) = &record.cross_validation else {
         return Ok(());
     };
-    let cells = cross_validation::summarise(&auc, &detector, folds);
+    let reference = resolved.reference.as_ref();
+    let training_set = resolved
+        .detector(&cv.detector)
+        .and_then(|d| d.spec.training_dataset())
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "run {}: the cross-validated detector {} is not a trained detector of the recorded manifest",
+                record.id,
+                cv.detector
+            )
+        })?;
+    let cells = cross_validation::summarise(&record.auc, cv, training_set);
+    let (detector, folds) = (&cv.detector, cv.folds);
     writeln!(
         markdown,
         "\n## {folds}-fold cross-validation of {detector}\n\n\
@@ -189,7 +181,7 @@ fn write_cross_validation_table(
             None => cell.dataset.clone(),
         };
         let theirs = reference
-            .and_then(|r| r.auc(&detector, &cell.dataset, cell.eps_px))
+            .and_then(|r| r.auc(detector, &cell.dataset, cell.eps_px))
             .map_or("—".to_string(), |auc| format!("{auc:.2}"));
         let per_fold: Vec<String> = cell.per_fold.iter().map(|a| format!("{a:.3}")).collect();
         writeln!(
@@ -285,6 +277,55 @@ fn write_auc_table(
     Ok(())
 }
 
+/// Which reference rows are a test and which were fitted: `scanloc
+/// calibrate` fits the brightness N_qd (which the paper does not print) to
+/// the row of an untrained detector (Crocker–Grier), so that row agrees by
+/// construction; only trained detectors' rows are out-of-sample.
+fn write_reference_note(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+    reference: &Reference,
+    brightness: f64,
+) -> anyhow::Result<()> {
+    let kind_of = |detector: &str| {
+        evaluations
+            .iter()
+            .find(|e| e.detector == detector)
+            .map(|e| e.detector_kind.as_str())
+    };
+    let mut fitted = Vec::new();
+    let mut tested = Vec::new();
+    for row in &reference.rows {
+        let label = format!("{} ({})", row.label, row.detector);
+        match kind_of(&row.detector) {
+            Some("crocker_grier") => fitted.push(label),
+            Some(_) => tested.push(label),
+            None => {}
+        }
+    }
+    if fitted.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        markdown,
+        "\n**Which rows are a test.** The QD brightness N_qd (here {brightness}) is not given \
+         in the paper; it is fitted with `scanloc calibrate`, which picks the N_qd whose \
+         {} row comes closest to the reference (docs/metric.md, \"Calibrating the \
+         brightness\"). That row was fitted: its agreement checks the simulator's trend across \
+         D and ε, not the locator.{}",
+        fitted.join(" and "),
+        if tested.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " Only the {} row is an out-of-sample comparison: nothing was tuned to it.",
+                tested.join(" and ")
+            )
+        }
+    )?;
+    Ok(())
+}
+
 fn write_quality_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
     writeln!(markdown, "\n## Localisation quality\n")?;
     writeln!(
@@ -350,25 +391,17 @@ fn top_per_frame(predictions: &[Prediction], frames: usize) -> Vec<Option<Predic
 fn localisation_panels(
     registry: &Registry,
     out: &Path,
-    resolved: &Value,
+    resolved: &RecordedManifest,
     evaluations: &[Evaluation],
 ) -> anyhow::Result<bool> {
     // The first dataset with a fixed D that every detector scored.
     let Some(first) = evaluations.iter().find(|e| e.diffusion.is_some()) else {
         return Ok(false);
     };
-    let dataset_entry = resolved["datasets"].as_array().and_then(|d| {
-        d.iter()
-            .find(|x| x["name"] == Value::String(first.dataset.clone()))
-    });
-    let Some(dataset_entry) = dataset_entry else {
+    let Some(dataset_entry) = resolved.dataset(&first.dataset) else {
         return Ok(false);
     };
-    let params: SimParams = serde_json::from_value(dataset_entry["params"].clone())?;
-    let seed = dataset_entry["seed"]
-        .as_u64()
-        .or_else(|| dataset_entry["seed"].as_str().and_then(|s| s.parse().ok()))
-        .unwrap_or(0);
+    let (params, seed) = (&dataset_entry.params, dataset_entry.seed);
     let dataset: Dataset = load_artefact(registry, &first.dataset_key)?
         .dataset()?
         .as_ref()
@@ -403,7 +436,7 @@ fn localisation_panels(
                 height: dataset.frames.height,
                 width: dataset.frames.width,
                 counts: dataset.frames.frame(i).to_vec(),
-                trajectory: sim::trajectories(&params, seed, i)
+                trajectory: sim::trajectories(params, seed, i)
                     .into_iter()
                     .next()
                     .unwrap_or_default(),
@@ -514,4 +547,75 @@ fn error_histograms(
         files.push(file);
     }
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::manifest::{ReferenceCell, ReferenceRow};
+
+    fn evaluation(detector: &str, kind: &str) -> Evaluation {
+        Evaluation {
+            detector: detector.to_string(),
+            detector_kind: kind.to_string(),
+            dataset: "test-1.00".to_string(),
+            diffusion: Some(1.0),
+            dataset_key: String::new(),
+            predictions_key: String::new(),
+            score: Score {
+                per_eps: Vec::new(),
+                rmse_top_px: None,
+                frames: 1,
+                frames_without_prediction: 0,
+                fraction_without_prediction: 0.0,
+                predictions: 0,
+                ground_truths: 1,
+            },
+        }
+    }
+
+    fn row(detector: &str, label: &str) -> ReferenceRow {
+        ReferenceRow {
+            detector: detector.to_string(),
+            label: label.to_string(),
+            cells: vec![ReferenceCell {
+                dataset: "test-1.00".to_string(),
+                eps_px: 1.0,
+                auc: 0.5,
+            }],
+        }
+    }
+
+    #[test]
+    fn the_note_says_the_crocker_grier_row_was_fitted_and_the_cnn_row_is_out_of_sample() {
+        let evaluations = [
+            evaluation("trackpy", "crocker_grier"),
+            evaluation("cnn", "cnn"),
+        ];
+        let reference = Reference {
+            source: "Table 1".to_string(),
+            rows: vec![row("trackpy", "TrackPy"), row("cnn", "FCNN")],
+        };
+        let mut markdown = String::new();
+        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        assert!(markdown.contains("N_qd (here 7.5)"), "{markdown}");
+        assert!(
+            markdown.contains("whose TrackPy (trackpy) row comes closest"),
+            "{markdown}"
+        );
+        assert!(markdown.contains("That row was fitted"), "{markdown}");
+        assert!(
+            markdown.contains("Only the FCNN (cnn) row is an out-of-sample comparison"),
+            "{markdown}"
+        );
+
+        // Without an untrained detector's row nothing was fitted: no note.
+        let reference = Reference {
+            source: "Table 1".to_string(),
+            rows: vec![row("cnn", "FCNN")],
+        };
+        let mut markdown = String::new();
+        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        assert!(markdown.is_empty(), "{markdown}");
+    }
 }

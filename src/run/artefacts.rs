@@ -4,24 +4,23 @@
 //!   `(n, H, W)`, the same `.npy` as `scanloc simulate` writes, so numpy can
 //!   open a blob directly) and `truth.csv` (the truth CSV of `simulate`).
 //! - model: `model.bin`, the detector's own serialisation.
-//! - predictions: `predictions.csv`, `frame,x,y,score` (floats in Rust's
-//!   shortest round-trip form, so reading gives back the same bits).
+//! - predictions: `predictions.csv`, `frame,x,y,score` (the predictions CSV
+//!   of `locate`; floats in Rust's shortest round-trip form, so reading
+//!   gives back the same bits).
 //! - evaluation: `score.json`, the metric's [`Score`] (with curves if the
 //!   manifest keeps them).
 //!
-//! Bump [`FORMAT_VERSION`] when an encoding changes: it is part of every
+//! Every encoding is the one writer and reader of its format in
+//! [`crate::io`]. Bump [`FORMAT_VERSION`] when an encoding changes: it is part of every
 //! content key, so old artefacts are then made again rather than misread.
 
 use std::sync::Arc;
 
 use anyhow::Context;
-use npyz::{NpyFile, TypeChar};
 
-use crate::detect::Prediction;
-use crate::frames::FrameStack;
 use crate::io::{csv_tables, npy};
 use crate::metrics::Score;
-use crate::sim::{Dataset, TruthRow};
+use crate::types::{Dataset, Prediction};
 
 /// Version of the blob encodings below.
 pub const FORMAT_VERSION: &str = "scanloc-blobs/1";
@@ -51,11 +50,9 @@ impl Artefact {
             }
             Artefact::Model(bytes) => vec![("model.bin".to_string(), bytes.as_ref().clone())],
             Artefact::Predictions(predictions) => {
-                let mut text = String::from("frame,x,y,score\n");
-                for p in predictions.iter() {
-                    text.push_str(&format!("{},{},{},{}\n", p.frame, p.x, p.y, p.score));
-                }
-                vec![("predictions.csv".to_string(), text.into_bytes())]
+                let mut csv = Vec::new();
+                csv_tables::write_predictions_to(&mut csv, predictions)?;
+                vec![("predictions.csv".to_string(), csv)]
             }
             Artefact::Evaluation(score) => {
                 vec![(
@@ -105,47 +102,15 @@ fn blob<'a>(blobs: &'a [(String, Vec<u8>)], role: &str) -> anyhow::Result<&'a [u
 
 /// Decodes a dataset from its `frames.npy` and `truth.csv` blobs.
 pub fn decode_dataset(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Dataset> {
-    let frames = decode_frames(blob(blobs, "frames.npy")?)?;
-    let mut reader = csv::Reader::from_reader(blob(blobs, "truth.csv")?);
-    let truth = reader
-        .deserialize::<TruthRow>()
-        .collect::<Result<Vec<_>, _>>()
-        .context("decoding truth.csv")?;
+    let frames_npy = blob(blobs, "frames.npy")?;
+    let frames = npy::read_frames_from(frames_npy, frames_npy.len() as u64, "frames.npy")?;
+    let truth = csv_tables::read_truth_from(blob(blobs, "truth.csv")?, "truth.csv")?;
     Ok(Dataset { frames, truth })
-}
-
-fn decode_frames(bytes: &[u8]) -> anyhow::Result<FrameStack> {
-    let npy = NpyFile::new(bytes).context("decoding frames.npy")?;
-    let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-    let [n, height, width] = shape[..] else {
-        anyhow::bail!("frames.npy has shape {shape:?}, expected (n, H, W)");
-    };
-    let npyz::DType::Plain(dtype) = npy.dtype() else {
-        anyhow::bail!("frames.npy has a structured dtype");
-    };
-    let data: Vec<u32> = match (dtype.type_char(), dtype.size_field()) {
-        (TypeChar::Uint, 2) => npy.into_vec::<u16>()?.into_iter().map(u32::from).collect(),
-        (TypeChar::Uint, 4) => npy.into_vec::<u32>()?,
-        _ => anyhow::bail!("frames.npy has dtype {dtype}, expected uint16 or uint32"),
-    };
-    FrameStack::from_vec(n, height, width, data)
 }
 
 /// Decodes predictions from their `predictions.csv` blob.
 pub fn decode_predictions(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Vec<Prediction>> {
-    let mut reader = csv::Reader::from_reader(blob(blobs, "predictions.csv")?);
-    let mut predictions = Vec::new();
-    for record in reader.records() {
-        let record = record.context("decoding predictions.csv")?;
-        let field = |i: usize| record.get(i).context("predictions.csv: short row");
-        predictions.push(Prediction {
-            frame: field(0)?.parse()?,
-            x: field(1)?.parse()?,
-            y: field(2)?.parse()?,
-            score: field(3)?.parse()?,
-        });
-    }
-    Ok(predictions)
+    csv_tables::read_predictions_from(blob(blobs, "predictions.csv")?, "predictions.csv")
 }
 
 /// Decodes an evaluation from its `score.json` blob.
@@ -155,8 +120,12 @@ pub fn decode_score(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Score> {
 
 #[cfg(test)]
 mod tests {
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
     use super::*;
-    use crate::sim::{SimParams, simulate};
+    use crate::registry::hashing::sha256_hex;
+    use crate::sim::{Distribution, RandomDistribution, SimParams, simulate};
 
     #[test]
     fn datasets_and_predictions_round_trip_bit_for_bit() {
@@ -187,5 +156,127 @@ mod tests {
             .encode()
             .unwrap();
         assert_eq!(decode_predictions(&blobs).unwrap(), predictions);
+    }
+
+    /// The SHA-256 of each blob of `dataset`'s artefact, by role.
+    fn dataset_blob_hashes(params: &SimParams, seed: u64, frames: usize) -> Vec<(String, String)> {
+        let dataset = simulate(params, seed, 0..frames, &crate::progress::hidden()).unwrap();
+        Artefact::Dataset(Arc::new(dataset))
+            .encode()
+            .unwrap()
+            .into_iter()
+            .map(|(role, bytes)| (role, sha256_hex(&bytes)))
+            .collect()
+    }
+
+    #[test]
+    fn dataset_blobs_keep_the_bytes_registries_hold() {
+        // Pinned from `scanloc simulate` of the same parameters before the
+        // registry and the CLI shared one encoder per format: stored blobs
+        // must stay byte-identical (uint16 and uint32 frames, with and
+        // without cut-off, several emitters).
+        let pairs = |frames: &str, truth: &str| {
+            vec![
+                ("frames.npy".to_string(), frames.to_string()),
+                ("truth.csv".to_string(), truth.to_string()),
+            ]
+        };
+        assert_eq!(
+            dataset_blob_hashes(&SimParams::default(), 5, 4),
+            pairs(
+                "b87653a5409d32e75e166624ee91f2f0f636cf284be4dc43cf5b8b037b9711c4",
+                "a354dcba605af8adcee6a6b131c8a3c95d2abd5ef2c9fa89e292188361dd66ba"
+            )
+        );
+        let crowded = SimParams {
+            emitters: 3,
+            substeps: 2,
+            margin_px: 4.0,
+            z_start: Distribution::Random(RandomDistribution::Uniform([-0.5, 0.5])),
+            psf_cutoff_sigma: Some(3.0),
+            diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.5, 2.0])),
+            brightness: 300.0,
+            ..SimParams::default()
+        };
+        assert_eq!(
+            dataset_blob_hashes(&crowded, 9, 6),
+            pairs(
+                "2962e0975b9bb1aa077a5be84e2b376bdd68018f157b8eb94498f8d0131f7189",
+                "99911c91b8e2bc33a73c7a3dac466d529b88f904aeadb54eb9902038cbea4334"
+            )
+        );
+        let bright = SimParams {
+            brightness: 100_000.0,
+            ..SimParams::default()
+        };
+        assert_eq!(
+            dataset_blob_hashes(&bright, 3, 2),
+            pairs(
+                "a4c7e630ecae67e0ce3dfc986b0ff3e98b8ba25ad2892981d0c9430174f78d03",
+                "c8b1e0c67c18097f4d03a622cebdb368eb4beccbd2c3e0d1053c47d293c7d502"
+            )
+        );
+    }
+
+    /// The predictions encoder the registry used before it shared
+    /// `csv_tables::write_predictions_to` with `scanloc locate`: the bytes
+    /// existing registries hold.
+    fn encoding_before_sharing(predictions: &[Prediction]) -> Vec<u8> {
+        let mut text = String::from("frame,x,y,score\n");
+        for p in predictions {
+            text.push_str(&format!("{},{},{},{}\n", p.frame, p.x, p.y, p.score));
+        }
+        text.into_bytes()
+    }
+
+    #[test]
+    fn prediction_blobs_keep_the_bytes_registries_hold() {
+        let encode = |predictions: &[Prediction]| {
+            let blobs = Artefact::Predictions(Arc::new(predictions.to_vec()))
+                .encode()
+                .unwrap();
+            assert_eq!(blobs.len(), 1);
+            assert_eq!(blobs[0].0, "predictions.csv");
+            blobs[0].1.clone()
+        };
+        let awkward = [
+            (0, 0.1 + 0.2, -1.0 / 3.0, 1e-300),
+            (3, 12.0, 7.5, 123456.789),
+            (7, -0.0, f64::MIN_POSITIVE, 1e300),
+            (usize::MAX, f64::MAX, -f64::MAX, f64::EPSILON),
+            (1, f64::NAN, f64::INFINITY, f64::NEG_INFINITY),
+        ]
+        .map(|(frame, x, y, score)| Prediction { frame, x, y, score });
+        let two = [
+            Prediction {
+                frame: 0,
+                x: 0.1 + 0.2,
+                y: -1.0 / 3.0,
+                score: 0.5,
+            },
+            Prediction {
+                frame: 3,
+                x: 12.0,
+                y: 7.5,
+                score: 123456.789,
+            },
+        ];
+        assert_eq!(
+            String::from_utf8(encode(&two)).unwrap(),
+            "frame,x,y,score\n0,0.30000000000000004,-0.3333333333333333,0.5\n3,12,7.5,123456.789\n"
+        );
+        assert_eq!(encode(&[]), b"frame,x,y,score\n");
+        assert_eq!(encode(&awkward), encoding_before_sharing(&awkward));
+        // Detector-like values: pixel coordinates and scores of all sizes.
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        let many: Vec<Prediction> = (0..2000)
+            .map(|i| Prediction {
+                frame: i / 3,
+                x: rng.random::<f64>() * 25.0 - 0.5,
+                y: rng.random::<f64>() * 24.0 - 0.5,
+                score: rng.random::<f64>() * 10f64.powi(rng.random_range(-12..12)),
+            })
+            .collect();
+        assert_eq!(encode(&many), encoding_before_sharing(&many));
     }
 }

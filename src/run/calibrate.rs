@@ -1,4 +1,4 @@
-//! `scanloc calibrate` (DESIGN §6): choose the brightness N_qd for which a
+//! `scanloc calibrate` (`docs/metric.md`): choose the brightness N_qd for which a
 //! detector's AUC row comes closest to its reference row.
 //!
 //! Each grid point is an ordinary recorded run (kind `calibrate`) of the
@@ -13,7 +13,7 @@ use serde::Serialize;
 use super::{RunOptions, execute, plan::Plan};
 use crate::error::input_error;
 use crate::manifest::Manifest;
-use crate::registry::Registry;
+use crate::registry::{Registry, RunKind};
 
 /// One grid point of the sweep.
 #[derive(Debug, Clone, Serialize)]
@@ -91,7 +91,7 @@ pub fn calibrate(
             &point_manifest,
             &plan,
             &RunOptions {
-                kind: Some("calibrate".to_string()),
+                kind: RunKind::Calibrate,
                 ..RunOptions::default()
             },
         )?;

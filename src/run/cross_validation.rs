@@ -18,8 +18,8 @@ use serde_json::json;
 
 use super::{RunOptions, RunOutcome, execute, plan::Plan};
 use crate::error::input_error;
-use crate::manifest::{DatasetSpec, DetectorEntry, Manifest, derive_seed};
-use crate::registry::{AucRow, Registry};
+use crate::manifest::{CrossValidation, DatasetSpec, DetectorEntry, Manifest, derive_seed};
+use crate::registry::{AucRow, CrossValidationPlan, Registry, RunKind};
 
 /// Mean and spread of one (dataset, ε) cell over the folds.
 #[derive(Debug, Clone, Serialize)]
@@ -57,80 +57,106 @@ pub fn fold_frames(frames: usize, folds: usize, seed: u64) -> Vec<Vec<usize>> {
         .collect()
 }
 
-/// Name of fold `f`'s model.
-fn fold_detector_name(detector: &str, fold: usize, folds: usize) -> String {
-    format!("{detector}-cv{}of{folds}", fold + 1)
+// The names below are part of the fold artefacts' content keys: they are
+// built here and never parsed (a run's plan is recorded with it).
+
+/// Name of fold `fold`'s (1-based) model: `DETECTOR-cvKofN`.
+fn fold_model_name(detector: &str, fold: usize, folds: usize) -> String {
+    format!("{detector}-cv{fold}of{folds}")
 }
 
-/// Runs k-fold cross-validation of `detector` (which must be trained on a
-/// manifest dataset) and records it as a run of kind `cv`. With
-/// `only_fold` (1-based) just that fold's steps run: the same artefacts,
-/// under the same keys, as in the whole sweep, so with `force` one fold of a
-/// recorded sweep is recomputed and checked against the stored results.
+/// Name of fold `fold`'s (1-based) subset `part` (`train` or `held-out`)
+/// of the training set: `TRAINING-cvKofN-PART`.
+fn fold_subset_name(training_set: &str, fold: usize, folds: usize, part: &str) -> String {
+    format!("{training_set}-cv{fold}of{folds}-{part}")
+}
+
+/// The folds (1-based) `cv` runs: all, or its one fold.
+fn folds_run(cv: &CrossValidationPlan) -> Vec<usize> {
+    match cv.fold {
+        Some(fold) => vec![fold],
+        None => (1..=cv.folds).collect(),
+    }
+}
+
+/// Runs the k-fold cross-validation `cv` (of a detector trained on a
+/// manifest dataset) and records it, with its plan, as a run of kind `cv`.
+/// With `cv.fold` just that fold's steps run: the same artefacts, under the
+/// same keys, as in the whole sweep, so with `force` one fold of a recorded
+/// sweep is recomputed and checked against the stored results.
 pub fn cross_validate(
     registry: &mut Registry,
     manifest: &Manifest,
-    detector: &str,
-    folds: usize,
-    only_fold: Option<usize>,
+    cv: &CrossValidationPlan,
     force: bool,
 ) -> anyhow::Result<CrossValidationOutcome> {
-    let plan = plan(manifest, detector, folds, only_fold)?;
+    let plan = plan(manifest, cv)?;
     let run = execute(
         registry,
         manifest,
         &plan,
         &RunOptions {
             force,
-            kind: Some("cv".to_string()),
+            kind: RunKind::Cv,
             parent_run: None,
+            cross_validation: Some(cv.clone()),
         },
     )?;
 
-    let cells = summarise(&run.auc, detector, folds);
+    let cells = summarise(&run.auc, cv, training_set(manifest, &cv.detector)?);
     Ok(CrossValidationOutcome {
-        detector: detector.to_string(),
-        folds,
+        detector: cv.detector.clone(),
+        folds: cv.folds,
         run,
         cells,
     })
 }
 
-/// The steps of a k-fold cross-validation of `detector` (all folds, or
-/// only fold `only_fold`, 1-based): the training and test datasets, each
-/// fold's training and held-out subsets, its model, and its predictions and
-/// scores on the held-out fold and on every test set.
-pub fn plan(
-    manifest: &Manifest,
-    detector: &str,
-    folds: usize,
-    only_fold: Option<usize>,
-) -> anyhow::Result<Plan> {
+/// The dataset `detector` of `manifest` is trained on; bad input if there
+/// is no such detector or it is not trained.
+pub fn training_set<'a>(manifest: &'a Manifest, detector: &str) -> anyhow::Result<&'a str> {
     let entry = manifest.detector(detector).ok_or_else(|| {
         input_error(format!(
             "{}: detectors.{detector}: no such detector",
             manifest.source
         ))
     })?;
-    let training_name = entry.spec.training_dataset().ok_or_else(|| {
+    entry.spec.training_dataset().ok_or_else(|| {
         input_error(format!(
             "{}: detectors.{detector}: not a trained detector, nothing to cross-validate",
             manifest.source
         ))
+    })
+}
+
+/// The steps of the k-fold cross-validation `cv` (all folds, or only fold
+/// `cv.fold`): the training and test datasets, each fold's training and
+/// held-out subsets, its model, and its predictions and scores on the
+/// held-out fold and on every test set.
+pub fn plan(manifest: &Manifest, cv: &CrossValidationPlan) -> anyhow::Result<Plan> {
+    let (detector, folds) = (cv.detector.as_str(), cv.folds);
+    let entry = manifest.detector(detector).ok_or_else(|| {
+        input_error(format!(
+            "{}: detectors.{detector}: no such detector",
+            manifest.source
+        ))
     })?;
+    let training_name = training_set(manifest, detector)?;
     let training: &DatasetSpec = manifest.dataset(training_name).ok_or_else(|| {
         input_error(format!(
             "{}: datasets.{training_name}: no such dataset",
             manifest.source
         ))
     })?;
-    if !(2..=50).contains(&folds) || folds > training.frames {
+    CrossValidation::check_folds(folds)
+        .map_err(|message| input_error(format!("folds: {message}")))?;
+    if folds > training.frames {
         return Err(input_error(format!(
-            "folds: must be between 2 and 50 and at most the {} training frames, got {folds}",
+            "folds: must be at most the {} training frames, got {folds}",
             training.frames
         )));
     }
-    if let Some(fold) = only_fold
+    if let Some(fold) = cv.fold
         && !(1..=folds).contains(&fold)
     {
         return Err(input_error(format!(
@@ -152,21 +178,19 @@ pub fn plan(
         .iter()
         .map(|d| plan.add_dataset(d).map(|step| (step, *d)))
         .collect::<anyhow::Result<_>>()?;
-    for (fold, held_out) in parts.iter().enumerate() {
-        if only_fold.is_some_and(|only| only != fold + 1) {
-            continue;
-        }
+    for fold in folds_run(cv) {
+        let held_out = &parts[fold - 1];
         let train_frames: Vec<usize> = parts
             .iter()
             .enumerate()
-            .filter(|(other, _)| *other != fold)
+            .filter(|(other, _)| *other + 1 != fold)
             .flat_map(|(_, p)| p.iter().copied())
             .collect();
         let mut train_frames = train_frames;
         train_frames.sort_unstable();
         let description = |part: &str| {
             json!({
-                "fold": fold + 1,
+                "fold": fold,
                 "folds": folds,
                 "part": part,
                 "permutation_seed": permutation_seed.to_string(),
@@ -174,17 +198,17 @@ pub fn plan(
         };
         let train_subset = plan.add_subset(
             training_step,
-            &format!("{training_name}-cv{}of{folds}-train", fold + 1),
+            &fold_subset_name(training_name, fold, folds, "train"),
             train_frames,
             description("train"),
         )?;
         let held_out_subset = plan.add_subset(
             training_step,
-            &format!("{training_name}-cv{}of{folds}-held-out", fold + 1),
+            &fold_subset_name(training_name, fold, folds, "held-out"),
             held_out.clone(),
             description("held-out"),
         )?;
-        let name = fold_detector_name(detector, fold, folds);
+        let name = fold_model_name(detector, fold, folds);
         let fold_entry = DetectorEntry {
             seed: derive_seed(manifest.seed, "detector", &name),
             name: name.clone(),
@@ -212,38 +236,47 @@ pub fn plan(
 /// Label of the held-out folds' column.
 const HELD_OUT_LABEL: &str = "held-out fold";
 
-/// The cells of a cross-validation table from the AUC rows of its run: for
-/// each (dataset, ε), the AUCs of `detector`'s `folds` fold models (named
-/// `DETECTOR-cvKofN`) with their mean and sample standard deviation. Each
-/// fold's own held-out subset is one column, "held-out fold".
-pub fn summarise(auc: &[AucRow], detector: &str, folds: usize) -> Vec<CvCell> {
-    let is_held_out = |row: &AucRow| row.dataset.contains("-held-out");
-    let mut columns: Vec<(String, Option<f64>, f64)> = Vec::new();
-    for row in auc {
-        let dataset = if is_held_out(row) {
+/// The cells of the cross-validation table of `cv` (whose detector is
+/// trained on `training_set`) from the AUC rows of its run: for each
+/// (dataset, ε), the AUCs of the fold models with their mean and sample
+/// standard deviation. Each fold's own held-out subset is one column,
+/// "held-out fold"; every other dataset (whatever its name) is its own.
+pub fn summarise(auc: &[AucRow], cv: &CrossValidationPlan, training_set: &str) -> Vec<CvCell> {
+    let folds = folds_run(cv);
+    // The fold whose model scored `row`, and the column the row belongs in.
+    let place = |row: &AucRow| -> Option<(usize, String)> {
+        let fold = folds
+            .iter()
+            .copied()
+            .find(|&fold| row.detector == fold_model_name(&cv.detector, fold, cv.folds))?;
+        let column = if row.dataset == fold_subset_name(training_set, fold, cv.folds, "held-out") {
             HELD_OUT_LABEL.to_string()
         } else {
             row.dataset.clone()
         };
+        Some((fold, column))
+    };
+    let mut columns: Vec<(String, Option<f64>, f64)> = Vec::new();
+    for row in auc {
+        let Some((_, column)) = place(row) else {
+            continue;
+        };
         if !columns
             .iter()
-            .any(|(d, _, e)| *d == dataset && *e == row.eps_px)
+            .any(|(d, _, e)| *d == column && *e == row.eps_px)
         {
-            columns.push((dataset, row.diffusion, row.eps_px));
+            columns.push((column, row.diffusion, row.eps_px));
         }
     }
     let mut cells = Vec::new();
     for (dataset, diffusion, eps_px) in columns {
-        let per_fold: Vec<f64> = (0..folds)
-            .filter_map(|fold| {
-                let name = fold_detector_name(detector, fold, folds);
-                auc.iter().find(|r| {
-                    r.detector == name
-                        && r.eps_px == eps_px
-                        && (r.dataset == dataset || (dataset == HELD_OUT_LABEL && is_held_out(r)))
-                })
+        let per_fold: Vec<f64> = folds
+            .iter()
+            .filter_map(|&fold| {
+                auc.iter()
+                    .find(|row| row.eps_px == eps_px && place(row) == Some((fold, dataset.clone())))
             })
-            .map(|r| r.auc)
+            .map(|row| row.auc)
             .collect();
         if per_fold.is_empty() {
             continue;
@@ -262,35 +295,6 @@ pub fn summarise(auc: &[AucRow], detector: &str, folds: usize) -> Vec<CvCell> {
         });
     }
     cells
-}
-
-/// The detector, fold (1-based) and fold count a fold model's name
-/// (`DETECTOR-cvKofN`, see [`fold_detector_name`]) stands for.
-fn parse_fold_detector_name(name: &str) -> Option<(&str, usize, usize)> {
-    let (detector, fold) = name.rsplit_once("-cv")?;
-    let (fold, folds) = fold.split_once("of")?;
-    Some((detector, fold.parse().ok()?, folds.parse().ok()?))
-}
-
-/// The detector and fold count of a cross-validation run, read off its fold
-/// models' names (`DETECTOR-cvKofN`).
-pub fn detector_and_folds(auc: &[AucRow]) -> Option<(String, usize)> {
-    auc.iter().find_map(|row| {
-        let (detector, _, folds) = parse_fold_detector_name(&row.detector)?;
-        Some((detector.to_string(), folds))
-    })
-}
-
-/// The folds (1-based, ascending) that have scores among `auc`: all of
-/// them for a whole sweep, one for `scanloc cv --fold K`.
-pub fn scored_folds(auc: &[AucRow]) -> Vec<usize> {
-    let mut folds: Vec<usize> = auc
-        .iter()
-        .filter_map(|row| parse_fold_detector_name(&row.detector).map(|(_, fold, _)| fold))
-        .collect();
-    folds.sort_unstable();
-    folds.dedup();
-    folds
 }
 
 /// A standard deviation for a table: three decimals, `—` when there is
@@ -344,5 +348,52 @@ mod tests {
         assert!(parts.iter().all(|p| p.len() == 20 || p.len() == 21));
         assert_eq!(parts, fold_frames(103, 5, 9));
         assert_ne!(parts, fold_frames(103, 5, 10));
+    }
+
+    fn row(detector: &str, dataset: &str, auc: f64) -> AucRow {
+        AucRow {
+            detector: detector.into(),
+            dataset: dataset.into(),
+            diffusion: None,
+            eps_px: 1.0,
+            auc,
+            evaluation_key: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_test_set_named_like_a_held_out_fold_keeps_its_own_column() {
+        let cv = CrossValidationPlan {
+            detector: "cnn".into(),
+            folds: 2,
+            fold: None,
+        };
+        let auc = [
+            row("cnn-cv1of2", "train-cv1of2-held-out", 0.5),
+            row("cnn-cv1of2", "x-held-out", 0.1),
+            row("cnn-cv2of2", "train-cv2of2-held-out", 0.7),
+            row("cnn-cv2of2", "x-held-out", 0.3),
+        ];
+        let cells = summarise(&auc, &cv, "train");
+        let columns: Vec<(&str, &[f64])> = cells
+            .iter()
+            .map(|c| (c.dataset.as_str(), c.per_fold.as_slice()))
+            .collect();
+        assert_eq!(
+            columns,
+            [
+                (HELD_OUT_LABEL, &[0.5, 0.7][..]),
+                ("x-held-out", &[0.1, 0.3][..])
+            ]
+        );
+        // One fold alone: that fold's values, no spread.
+        let one = CrossValidationPlan {
+            fold: Some(2),
+            ..cv
+        };
+        let cells = summarise(&auc, &one, "train");
+        assert_eq!(cells.len(), 2);
+        assert_eq!(cells[1].per_fold, [0.3]);
+        assert_eq!(cells[1].std, None);
     }
 }

@@ -36,8 +36,8 @@ use crate::error::CheckFailed;
 use crate::manifest::{DetectorSpec, Manifest};
 use crate::registry::hashing::sha256_hex;
 use crate::registry::{
-    ArtefactDetails, AucRow, BlobRef, BlobState, NewArtefact, Registry, RunStart, RunStatus,
-    StepRecord, host_name, utc_now,
+    ArtefactDetails, AucRow, BlobRef, BlobState, CrossValidationPlan, NewArtefact, Registry,
+    RunKind, RunStart, RunStatus, StepCounts, StepOutcome, StepRecord, host_name, utc_now,
 };
 
 /// How to run.
@@ -45,11 +45,12 @@ use crate::registry::{
 pub struct RunOptions {
     /// Recompute every step and check the results equal the stored ones.
     pub force: bool,
-    /// Recorded as the run's kind: `run` unless a command says otherwise
-    /// (`reproduce`, `cv`, …).
-    pub kind: Option<String>,
+    /// Recorded as the run's kind.
+    pub kind: RunKind,
     /// The run this one derives from (e.g. the run being reproduced).
     pub parent_run: Option<String>,
+    /// For a cross-validation, its plan (recorded with the run).
+    pub cross_validation: Option<CrossValidationPlan>,
 }
 
 /// What a run did.
@@ -60,10 +61,10 @@ pub struct RunOutcome {
     pub status: RunStatus,
     /// The AUC table, one row per (detector, dataset, ε), in plan order.
     pub auc: Vec<AucRow>,
-    pub cached_steps: usize,
-    pub computed_steps: usize,
-    /// Steps made again because a stored blob was missing or damaged.
-    pub rebuilt_steps: usize,
+    /// Steps cached, computed, and rebuilt (made again because a stored
+    /// blob was missing or damaged).
+    #[serde(flatten)]
+    pub counts: StepCounts,
     pub steps: Vec<StepRecord>,
     /// Blobs found missing or damaged (and rebuilt).
     pub damaged_blobs: Vec<String>,
@@ -119,7 +120,7 @@ pub fn execute(
     let resolved = serde_json::to_string(manifest)?;
     registry.begin_run(&RunStart {
         id: run_id.clone(),
-        kind: options.kind.clone().unwrap_or_else(|| "run".to_string()),
+        kind: options.kind,
         parent_run: options.parent_run.clone(),
         manifest_name: manifest.name.clone(),
         manifest_path: manifest.source.clone(),
@@ -128,13 +129,14 @@ pub fn execute(
         resolved_json: resolved,
         seeds_json: serde_json::to_string(&plan.seeds())?,
         forced: options.force,
+        cross_validation: options.cross_validation.clone(),
     })?;
     let mut state = Execution {
         run_id: run_id.clone(),
         steps: Vec::new(),
         damaged: Vec::new(),
         mismatches: Vec::new(),
-        counts: (0, 0, 0),
+        counts: StepCounts::default(),
     };
     let result = state.execute(registry, plan, options.force);
     let auc = match &result {
@@ -166,9 +168,7 @@ pub fn execute(
         manifest: manifest.source.clone(),
         status,
         auc,
-        cached_steps: state.counts.0,
-        computed_steps: state.counts.1,
-        rebuilt_steps: state.counts.2,
+        counts: state.counts,
         steps: state.steps,
         damaged_blobs: state.damaged,
         seconds: started.elapsed().as_secs_f64(),
@@ -187,8 +187,7 @@ struct Execution {
     steps: Vec<StepRecord>,
     damaged: Vec<String>,
     mismatches: Vec<String>,
-    /// (cached, computed, rebuilt)
-    counts: (usize, usize, usize),
+    counts: StepCounts,
 }
 
 impl Execution {
@@ -252,11 +251,11 @@ impl Execution {
             let mut verify_seconds = 0.0;
             let (outcome, blobs, detail, artefact) = match (&stored[index], force) {
                 (Stored::Intact(blobs, seconds), false) => {
-                    self.counts.0 += 1;
+                    self.counts.add(StepOutcome::Cached);
                     log(format!("cached    {}", step.id));
                     verify_seconds = *seconds;
                     (
-                        "cached",
+                        StepOutcome::Cached,
                         blobs.clone(),
                         Some(format!("verified in {seconds:.3} s")),
                         None,
@@ -325,12 +324,11 @@ impl Execution {
                         )?;
                     }
                     let outcome = if replace {
-                        self.counts.2 += 1;
-                        "rebuilt"
+                        StepOutcome::Rebuilt
                     } else {
-                        self.counts.1 += 1;
-                        "computed"
+                        StepOutcome::Computed
                     };
+                    self.counts.add(outcome);
                     log(format!(
                         "{outcome:<9} {} in {:.2} s",
                         step.id,
@@ -372,7 +370,7 @@ impl Execution {
                 step: step.id.clone(),
                 kind: step.kind,
                 artefact_key: step.key.clone(),
-                outcome: outcome.to_string(),
+                outcome,
                 // A cached step's time is the re-hashing of its blobs.
                 seconds: clock.elapsed().as_secs_f64() + verify_seconds,
                 blobs,
@@ -408,7 +406,7 @@ pub fn read_blobs(
 
 /// Loads the artefact stored under `key` (blobs re-hashed; a damaged or
 /// missing blob is an error), decoded by its kind. For reports and other
-/// readers of past runs: `registry.run_record(id)["steps"]` gives the keys.
+/// readers of past runs: `registry.run_record(id)?.steps` gives the keys.
 pub fn load_artefact(registry: &Registry, key: &str) -> anyhow::Result<Artefact> {
     let stored = registry
         .artefact(key)?
@@ -507,7 +505,10 @@ fn compute(
                             &spec.architecture,
                             &spec.training,
                             training_set,
-                            validation_set.dataset()?,
+                            crate::detect::cnn::ValidationSet {
+                                dataset: validation_set.dataset()?,
+                                score: &crate::metrics::paper_aucs,
+                            },
                             fresh_frames,
                             detector.seed,
                             &progress,
@@ -518,6 +519,7 @@ fn compute(
                             training_set,
                             fresh_frames,
                             detector.seed,
+                            &crate::metrics::paper_aucs,
                             &progress,
                         ),
                     }
@@ -596,9 +598,9 @@ fn root_dataset(plan: &Plan, mut index: usize) -> Option<&crate::manifest::Datas
 /// Frames `frames` of `source` (renumbered 0, 1, … in the given order) and
 /// their truth rows.
 pub fn subset(
-    source: &crate::sim::Dataset,
+    source: &crate::types::Dataset,
     frames: &[usize],
-) -> anyhow::Result<crate::sim::Dataset> {
+) -> anyhow::Result<crate::types::Dataset> {
     let stack = &source.frames;
     let mut data = Vec::with_capacity(frames.len() * stack.frame_len());
     let mut position = vec![None; stack.n];
@@ -612,7 +614,7 @@ pub fn subset(
         position[old] = Some(new);
         data.extend_from_slice(stack.frame(old));
     }
-    let mut truth: Vec<crate::sim::TruthRow> = source
+    let mut truth: Vec<crate::types::TruthRow> = source
         .truth
         .iter()
         .filter_map(|row| {
@@ -625,8 +627,8 @@ pub fn subset(
         .collect();
     // Frame order, emitters in their original order within a frame.
     truth.sort_by_key(|row| row.frame);
-    Ok(crate::sim::Dataset {
-        frames: crate::frames::FrameStack::from_vec(frames.len(), stack.height, stack.width, data)?,
+    Ok(crate::types::Dataset {
+        frames: crate::types::FrameStack::from_vec(frames.len(), stack.height, stack.width, data)?,
         truth,
     })
 }
@@ -734,9 +736,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut registry = Registry::open(dir.path()).unwrap();
         let first = execute(&mut registry, &manifest, &plan, &RunOptions::default()).unwrap();
-        assert_eq!(first.computed_steps, 2);
+        assert_eq!(first.counts.computed, 2);
         let again = execute(&mut registry, &manifest, &plan, &RunOptions::default()).unwrap();
-        assert_eq!(again.cached_steps, 2);
+        assert_eq!(again.counts.cached, 2);
 
         let all = load_artefact(&registry, &plan.steps[0].key).unwrap();
         let part = load_artefact(&registry, &plan.steps[fold].key).unwrap();

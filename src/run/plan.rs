@@ -28,7 +28,8 @@ use crate::sim::GENERATOR_VERSION;
 /// Version of the frame-subset step (cross-validation folds).
 pub const SUBSET_VERSION: &str = "scanloc-subset/1";
 
-/// Version of the scoring step (DESIGN §3 metric and its `score.json`).
+/// Version of the scoring step (the metric of `docs/metric.md` and its
+/// `score.json`).
 pub const METRIC_VERSION: &str = "scanloc-metric/1";
 
 /// What a step does.

@@ -18,7 +18,10 @@ use serde_json::Value;
 use super::RunOptions;
 use crate::error::CheckFailed;
 use crate::manifest;
-use crate::registry::{BlobRef, BlobState, Registry, RunStart, RunStatus};
+use crate::registry::diff::flatten;
+use crate::registry::{
+    BlobState, Registry, RunKind, RunRecord, RunStart, RunStatus, StepCounts, StepRecord,
+};
 
 /// One blob of one artefact, three ways.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -134,38 +137,6 @@ impl ReproduceReport {
     }
 }
 
-fn parse_blobs(value: &Value) -> Vec<BlobRef> {
-    value
-        .as_object()
-        .map(|map| {
-            map.iter()
-                .map(|(role, sha)| BlobRef {
-                    role: role.clone(),
-                    sha256: sha.as_str().unwrap_or("").to_string(),
-                })
-                .collect()
-        })
-        .unwrap_or_default()
-}
-
-fn flatten_numbers(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
-    match value {
-        Value::Object(map) => {
-            for (k, v) in map {
-                flatten_numbers(&format!("{prefix}.{k}"), v, out);
-            }
-        }
-        Value::Array(items) => {
-            for (i, v) in items.iter().enumerate() {
-                flatten_numbers(&format!("{prefix}[{i}]"), v, out);
-            }
-        }
-        other => {
-            out.insert(prefix.trim_start_matches('.').to_string(), other.clone());
-        }
-    }
-}
-
 /// The numbers that differ between two JSON documents (at most `limit`).
 fn differing_numbers(a: &[u8], b: &[u8], limit: usize) -> Vec<String> {
     let (Ok(a), Ok(b)) = (
@@ -174,9 +145,7 @@ fn differing_numbers(a: &[u8], b: &[u8], limit: usize) -> Vec<String> {
     ) else {
         return vec!["not comparable: a score.json does not parse".to_string()];
     };
-    let (mut fa, mut fb) = (BTreeMap::new(), BTreeMap::new());
-    flatten_numbers("", &a, &mut fa);
-    flatten_numbers("", &b, &mut fb);
+    let (fa, fb) = (flatten(&a), flatten(&b));
     let keys: BTreeSet<&String> = fa.keys().chain(fb.keys()).collect();
     let mut out: Vec<String> = keys
         .into_iter()
@@ -207,38 +176,37 @@ pub fn reproduce(
     scratch: &Path,
 ) -> anyhow::Result<ReproduceReport> {
     let record = registry.run_record(run_id)?;
-    let manifest_text = record["manifest_text"].as_str().unwrap_or_default();
-    let source = format!(
-        "{} (as recorded by run {run_id})",
-        record["manifest_path"].as_str().unwrap_or("manifest")
-    );
-    let manifest = manifest::parse(manifest_text, &source).map_err(|e| {
+    let source = format!("{} (as recorded by run {run_id})", record.manifest_path);
+    let manifest = manifest::parse(&record.manifest_text, &source).map_err(|e| {
         anyhow::Error::new(CheckFailed(format!(
             "the manifest recorded by run {run_id} no longer parses with this scanloc: {e:#}"
         )))
     })?;
     let mut notes = Vec::new();
     let current = crate::registry::CodeVersion::current();
-    for (field, now) in [
-        ("crate_version", &current.crate_version),
-        ("git_commit", &current.git_commit),
-        ("git_dirty", &current.git_dirty),
-        ("rustc", &current.rustc),
+    for (field, recorded, now) in [
+        (
+            "crate_version",
+            &record.code.crate_version,
+            &current.crate_version,
+        ),
+        ("git_commit", &record.code.git_commit, &current.git_commit),
+        ("git_dirty", &record.code.git_dirty, &current.git_dirty),
+        ("rustc", &record.code.rustc, &current.rustc),
     ] {
-        let recorded = record[field].as_str().unwrap_or("");
         if recorded != now {
             notes.push(format!("{field}: recorded {recorded}, now {now}"));
         }
     }
-    let status = record["status"].as_str().unwrap_or("unknown");
-    refuse_incomplete(&record, run_id)?;
-    let recorded_done = status == "done";
+    refuse_incomplete(&record)?;
+    let recorded_done = record.status == RunStatus::Done;
     if !recorded_done {
         notes.push(format!(
-            "the recorded run is {status}: only the steps and AUC values it recorded are compared"
+            "the recorded run is {}: only the steps and AUC values it recorded are compared",
+            record.status
         ));
     }
-    if record["kind"].as_str() == Some("reproduce") {
+    if record.kind == RunKind::Reproduce {
         notes.push("the recorded run is itself a reproduction".into());
     }
 
@@ -248,28 +216,28 @@ pub fn reproduce(
             scratch.display()
         )));
     }
-    let plan = recorded_plan(&record, &manifest, run_id)?;
+    let plan = recorded_plan(&record, &manifest)?;
     let mut fresh = Registry::open(scratch)?;
     let outcome = super::execute(
         &mut fresh,
         &manifest,
         &plan,
         &RunOptions {
-            kind: Some("reproduce".into()),
+            kind: RunKind::Reproduce,
             parent_run: Some(run_id.to_string()),
             force: false,
+            cross_validation: None,
         },
     )
     .context("re-executing the run in the scratch registry")?;
 
-    let reproduced: BTreeMap<&str, &crate::registry::StepRecord> =
+    let reproduced: BTreeMap<&str, &StepRecord> =
         outcome.steps.iter().map(|s| (s.step.as_str(), s)).collect();
     let mut artefacts = Vec::new();
-    let recorded_steps = record["steps"].as_array().cloned().unwrap_or_default();
-    for step in &recorded_steps {
-        let name = step["step"].as_str().unwrap_or("").to_string();
-        let recorded_key = step["artefact_key"].as_str().map(str::to_string);
-        let recorded_blobs = parse_blobs(&step["blobs"]);
+    for step in &record.steps {
+        let name = step.step.clone();
+        let recorded_key = Some(step.artefact_key.clone());
+        let recorded_blobs = &step.blobs;
         let ours = reproduced.get(name.as_str());
         let mut blobs = Vec::new();
         let mut roles: Vec<String> = recorded_blobs.iter().map(|b| b.role.clone()).collect();
@@ -334,15 +302,11 @@ pub fn reproduce(
     }
 
     let mut auc = Vec::new();
-    let recorded_auc = record["auc"].as_array().cloned().unwrap_or_default();
-    let mut cells: Vec<(String, String, f64)> = Vec::new();
-    for row in &recorded_auc {
-        cells.push((
-            row["detector"].as_str().unwrap_or("").to_string(),
-            row["dataset"].as_str().unwrap_or("").to_string(),
-            row["eps_px"].as_f64().unwrap_or(f64::NAN),
-        ));
-    }
+    let recorded_auc = &record.auc;
+    let mut cells: Vec<(String, String, f64)> = recorded_auc
+        .iter()
+        .map(|row| (row.detector.clone(), row.dataset.clone(), row.eps_px))
+        .collect();
     // A run that failed recorded no AUC table: there is nothing to compare
     // the reproduced values with, which is not a difference.
     for row in outcome.auc.iter().filter(|_| recorded_done) {
@@ -356,12 +320,8 @@ pub fn reproduce(
     for (detector, dataset, eps_px) in cells {
         let recorded = recorded_auc
             .iter()
-            .find(|r| {
-                r["detector"] == detector.as_str()
-                    && r["dataset"] == dataset.as_str()
-                    && r["eps_px"].as_f64() == Some(eps_px)
-            })
-            .and_then(|r| r["auc"].as_f64());
+            .find(|r| r.detector == detector && r.dataset == dataset && r.eps_px == eps_px)
+            .map(|r| r.auc);
         let reproduced_value = outcome
             .auc
             .iter()
@@ -401,15 +361,16 @@ pub fn reproduce(
     };
     registry.begin_run(&RunStart {
         id: reproduction_run.clone(),
-        kind: "reproduce".into(),
+        kind: RunKind::Reproduce,
         parent_run: Some(run_id.to_string()),
         manifest_name: manifest.name.clone(),
         manifest_path: source,
         manifest_text: manifest.text.clone(),
         manifest_sha256: manifest.manifest_sha256.clone(),
         resolved_json: serde_json::to_string(&manifest)?,
-        seeds_json: record["seeds"].to_string(),
+        seeds_json: serde_json::to_string(&record.seeds)?,
         forced: false,
+        cross_validation: None,
     })?;
     registry.finish_run(
         &reproduction_run,
@@ -419,7 +380,10 @@ pub fn reproduce(
             RunStatus::Failed
         },
         summary.as_deref(),
-        (0, outcome.computed_steps, 0),
+        StepCounts {
+            computed: outcome.counts.computed,
+            ..StepCounts::default()
+        },
         &outcome.auc,
     )?;
     Ok(ReproduceReport {
@@ -436,57 +400,40 @@ pub fn reproduce(
 /// Refuses (as bad input) a run that has no complete record to compare
 /// with: one still running, and one whose process ended before it finished
 /// (killed), or that recorded no step at all.
-fn refuse_incomplete(record: &Value, run_id: &str) -> anyhow::Result<()> {
-    let who = format!(
-        "pid {} on {}",
-        record["pid"],
-        record["host"].as_str().unwrap_or("an unknown host")
-    );
-    match record["status"].as_str() {
-        Some("running") => Err(crate::error::input_error(format!(
+fn refuse_incomplete(record: &RunRecord) -> anyhow::Result<()> {
+    let (run_id, who) = (&record.id, format!("pid {} on {}", record.pid, record.host));
+    match record.status {
+        RunStatus::Running => Err(crate::error::input_error(format!(
             "run {run_id} has not finished ({who} is still running it, or was killed on another \
              machine): reproduce it once it is done"
         ))),
-        Some("unfinished") => Err(crate::error::input_error(format!(
+        RunStatus::Unfinished => Err(crate::error::input_error(format!(
             "run {run_id} is unfinished: its process ({who}) ended before the run did, so there \
              is no complete record to compare with; rerun its manifest with `scanloc run` (the \
              finished steps are reused) and reproduce that run"
         ))),
-        _ if record["steps"].as_array().is_none_or(|s| s.is_empty()) => {
-            Err(crate::error::input_error(format!(
-                "run {run_id} recorded no step, so there is nothing to reproduce"
-            )))
-        }
+        _ if record.steps.is_empty() => Err(crate::error::input_error(format!(
+            "run {run_id} recorded no step, so there is nothing to reproduce"
+        ))),
         _ => Ok(()),
     }
 }
 
-/// The plan a recorded run executed: its manifest's, or for a run of kind
-/// `cv` the cross-validation's, whose detector, fold count and (for a
-/// `--fold K` run, the only fold scored) single fold are read off the fold
-/// models' names in the recorded AUC rows.
-fn recorded_plan(
-    record: &serde_json::Value,
-    manifest: &manifest::Manifest,
-    run_id: &str,
-) -> anyhow::Result<super::Plan> {
-    use super::cross_validation;
-    if record["kind"].as_str() != Some("cv") {
+/// The plan a recorded run executed: its manifest's, or for a
+/// cross-validation the plan it recorded (detector, folds, and the one fold
+/// of a `cv --fold K` run).
+fn recorded_plan(record: &RunRecord, manifest: &manifest::Manifest) -> anyhow::Result<super::Plan> {
+    if record.kind != RunKind::Cv {
         return super::Plan::from_manifest(manifest);
     }
-    let auc: Vec<crate::registry::AucRow> = serde_json::from_value(record["auc"].clone())
-        .with_context(|| format!("reading the AUC rows recorded by run {run_id}"))?;
-    let (detector, folds) = cross_validation::detector_and_folds(&auc).ok_or_else(|| {
+    let cv = record.cross_validation.as_ref().ok_or_else(|| {
         CheckFailed(format!(
-            "run {run_id} is a cross-validation that recorded no fold scores: \
-             rerun it with `scanloc cv` (it resumes), then reproduce that run"
+            "run {} is a cross-validation that recorded no plan (an interrupted run made \
+             before scanloc recorded plans): rerun it with `scanloc cv`, then reproduce that run",
+            record.id
         ))
     })?;
-    let only_fold = match cross_validation::scored_folds(&auc).as_slice() {
-        [fold] => Some(*fold),
-        _ => None,
-    };
-    cross_validation::plan(manifest, &detector, folds, only_fold)
+    super::cross_validation::plan(manifest, cv)
 }
 
 /// A scratch folder for a reproduction: `dir` if given, else a new

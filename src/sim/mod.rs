@@ -1,4 +1,4 @@
-//! The point-scanning two-photon microscope simulator (DESIGN §1).
+//! The point-scanning two-photon microscope simulator (`docs/simulator.md`).
 //!
 //! The beam sweeps the frame row by row, each row left to right, dwelling
 //! `dwell_us` on every pixel and taking `retrace_ms` to return to the start of
@@ -28,47 +28,17 @@ use indicatif::ProgressBar;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 pub use params::{DetectorNoise, Distribution, RandomDistribution, SimParams};
 
 use crate::error::input_error;
-use crate::frames::FrameStack;
+use crate::types::{Dataset, FrameStack, TruthRow};
 use gaussian::standard_normal_from_bits;
 use noise::Detector;
 
 /// Version of the simulator's output for given parameters and seed. Part of
 /// every dataset's content key: bump it whenever a change alters any frame.
 pub const GENERATOR_VERSION: &str = "scanloc-sim/1";
-
-/// Ground truth of one emitter in one frame, in TrackPy pixel coordinates.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct TruthRow {
-    /// Frame index within its dataset.
-    pub frame: usize,
-    /// Trajectory centroid: mean x (column) over every PSF sample.
-    pub x: f64,
-    /// Trajectory centroid: mean y (row) over every PSF sample.
-    pub y: f64,
-    /// Position at the first sample (the beam at pixel (0, 0)).
-    pub x_start: f64,
-    pub y_start: f64,
-    /// Position at the last sample (the beam at the last pixel).
-    pub x_end: f64,
-    pub y_end: f64,
-    /// Mean depth relative to focus, µm.
-    pub z_mean: f64,
-    /// The frame's diffusion coefficient, µm²/s.
-    pub diffusion: f64,
-}
-
-/// Simulated frames and their ground truth (one row per emitter per frame,
-/// ordered by frame then emitter).
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct Dataset {
-    pub frames: FrameStack,
-    pub truth: Vec<TruthRow>,
-}
 
 /// The per-dataset constants of the inner loop, computed once.
 struct Precomputed {
@@ -111,6 +81,23 @@ impl Precomputed {
             retrace_s: params.retrace_ms * 1e-3,
             seed,
         }
+    }
+
+    /// Expected photons one PSF sample adds to its pixel, for an emitter at
+    /// lateral offset `(dx, dy)` µm from the beam and depth `z` µm; 0 beyond
+    /// the cut-off. The one place the scanned PSF is evaluated: the
+    /// simulator and [`static_emitter_image`] both go through it.
+    #[inline(always)]
+    fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
+        let dy2 = dy * dy;
+        if dy2 > self.cutoff2 {
+            return 0.0;
+        }
+        let r2 = dx * dx + dy2;
+        if r2 > self.cutoff2 {
+            return 0.0;
+        }
+        self.amplitude * (-(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2).exp()
     }
 }
 
@@ -183,18 +170,7 @@ fn render_signal(
                 if let Some(path) = path.as_mut() {
                     path.push((x / a - 0.5, y / a - 0.5));
                 }
-                let dy = y - beam_y;
-                let dy2 = dy * dy;
-                if dy2 > pre.cutoff2 {
-                    continue;
-                }
-                let dx = x - beam_x;
-                let r2 = dx * dx + dy2;
-                if r2 > pre.cutoff2 {
-                    continue;
-                }
-                pixels[k / s] += pre.amplitude
-                    * (-(r2 * pre.inv_two_sigma_xy2) - z * z * pre.inv_two_sigma_z2).exp();
+                pixels[k / s] += pre.sample_photons(x - beam_x, y - beam_y, z);
             }
         }
         truth.push(TruthRow {
@@ -257,6 +233,59 @@ pub fn expected_frame(params: &SimParams, seed: u64, index: usize) -> (Vec<f64>,
 /// frame). For figures; costs one frame's simulation.
 pub fn trajectories(params: &SimParams, seed: u64, index: usize) -> Vec<Path> {
     replay_frame(params, seed, index).2
+}
+
+/// The expected image of one static emitter and its sensitivity to the
+/// emitter's position: what the Cramér–Rao bound of a localiser is computed
+/// from. Row-major, `height · width` values each.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StaticEmitterImage {
+    /// Expected photons per pixel: the scanned PSF plus the background.
+    pub expected: Vec<f64>,
+    /// ∂ expected / ∂x, photons per pixel of emitter displacement along x
+    /// (columns).
+    pub d_dx: Vec<f64>,
+    /// ∂ expected / ∂y, photons per pixel of displacement along y (rows).
+    pub d_dy: Vec<f64>,
+}
+
+/// The simulator's forward model for an emitter that does not move (D = 0)
+/// at `(x, y)` in TrackPy pixel coordinates and depth `z_um` µm: the
+/// expected photon image before detector noise (the scanned PSF averaged
+/// over `substeps` samples per pixel, with the PSF cut-off, plus the
+/// background) and its derivatives with respect to `x` and `y`. For a
+/// static emitter of a simulated frame this is the frame's
+/// [`expected_frame`].
+pub fn static_emitter_image(params: &SimParams, x: f64, y: f64, z_um: f64) -> StaticEmitterImage {
+    let pre = Precomputed::new(params, 0);
+    let a = params.pixel_size_um;
+    let s = params.substeps as usize;
+    // The emitter in µm, as the simulator places it.
+    let (x_um, y_um) = ((x + 0.5) * a, (y + 0.5) * a);
+    // d/dx of exp(−r²/(2σ²)) is −(x − beam_x)/σ², per µm; × a per pixel.
+    let slope = -2.0 * pre.inv_two_sigma_xy2 * a;
+    let len = params.height * params.width;
+    let mut image = StaticEmitterImage {
+        expected: vec![0.0; len],
+        d_dx: vec![0.0; len],
+        d_dy: vec![0.0; len],
+    };
+    for row in 0..params.height {
+        let beam_y = (row as f64 + 0.5) * a;
+        for (k, &beam_x) in pre.beam_x.iter().enumerate() {
+            let (dx, dy) = (x_um - beam_x, y_um - beam_y);
+            let photons = pre.sample_photons(dx, dy, z_um);
+            let pixel = row * params.width + k / s;
+            image.expected[pixel] += photons;
+            image.d_dx[pixel] += photons * dx * slope;
+            image.d_dy[pixel] += photons * dy * slope;
+        }
+    }
+    // Added last, as `expected_frame` does, so the sums round alike.
+    for value in &mut image.expected {
+        *value += params.background;
+    }
+    image
 }
 
 /// A uniform on [0, 1) from the upper 53 bits of a word, as rand's
@@ -367,4 +396,102 @@ pub fn simulate(
         frames: FrameStack::from_vec(n, params.height, params.width, data)?,
         truth: truths.into_iter().flatten().collect(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::params::RandomDistribution;
+
+    /// A static emitter's frame, as the simulator renders it, and the
+    /// emitter's truth row.
+    fn static_frame(params: &SimParams, seed: u64, index: usize) -> (Vec<f64>, TruthRow) {
+        let (expected, truth) = expected_frame(params, seed, index);
+        assert_eq!(truth.len(), 1);
+        (expected, truth[0])
+    }
+
+    #[test]
+    fn static_emitter_image_is_the_simulators_expected_frame() {
+        // In focus: the forward model is the simulator's sum, bit for bit,
+        // with and without cut-off and sub-sampling.
+        for (substeps, cutoff) in [(1, Some(6.0)), (4, None), (3, Some(2.0))] {
+            let params = SimParams {
+                height: 20,
+                width: 23,
+                diffusion_um2_s: Distribution::Fixed(0.0),
+                substeps,
+                psf_cutoff_sigma: cutoff,
+                background: 0.3,
+                ..SimParams::default()
+            };
+            for index in 0..5 {
+                let (expected, truth) = static_frame(&params, 11, index);
+                let image = static_emitter_image(&params, truth.x_start, truth.y_start, 0.0);
+                assert_eq!(
+                    image.expected, expected,
+                    "substeps {substeps}, frame {index}"
+                );
+            }
+        }
+        // Out of focus (depth drawn per frame): equal to rounding.
+        let params = SimParams {
+            height: 16,
+            width: 16,
+            diffusion_um2_s: Distribution::Fixed(0.0),
+            z_start: Distribution::Random(RandomDistribution::Uniform([-0.5, 0.5])),
+            ..SimParams::default()
+        };
+        for index in 0..5 {
+            let (expected, truth) = static_frame(&params, 12, index);
+            assert!(truth.z_mean.abs() > 1e-3);
+            let image = static_emitter_image(&params, truth.x_start, truth.y_start, truth.z_mean);
+            for (model, simulated) in image.expected.iter().zip(&expected) {
+                assert!((model - simulated).abs() <= 1e-12 * simulated.abs().max(1.0));
+            }
+        }
+    }
+
+    #[test]
+    fn static_emitter_image_derivatives_match_finite_differences() {
+        let params = SimParams {
+            height: 12,
+            width: 14,
+            substeps: 2,
+            psf_cutoff_sigma: None,
+            ..SimParams::default()
+        };
+        let (x, y, z) = (6.3, 5.6, 0.2);
+        let image = static_emitter_image(&params, x, y, z);
+        let h = 1e-5;
+        let central = |plus: &StaticEmitterImage, minus: &StaticEmitterImage| -> Vec<f64> {
+            plus.expected
+                .iter()
+                .zip(&minus.expected)
+                .map(|(p, m)| (p - m) / (2.0 * h))
+                .collect()
+        };
+        let d_dx = central(
+            &static_emitter_image(&params, x + h, y, z),
+            &static_emitter_image(&params, x - h, y, z),
+        );
+        let d_dy = central(
+            &static_emitter_image(&params, x, y + h, z),
+            &static_emitter_image(&params, x, y - h, z),
+        );
+        let peak = image.d_dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(peak > 0.0);
+        for (analytic, numeric) in image.d_dx.iter().zip(&d_dx) {
+            assert!(
+                (analytic - numeric).abs() < 1e-6 * peak,
+                "{analytic} vs {numeric}"
+            );
+        }
+        for (analytic, numeric) in image.d_dy.iter().zip(&d_dy) {
+            assert!(
+                (analytic - numeric).abs() < 1e-6 * peak,
+                "{analytic} vs {numeric}"
+            );
+        }
+    }
 }

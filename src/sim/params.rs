@@ -1,4 +1,4 @@
-//! Parameters of the simulated microscope and scene (DESIGN §1).
+//! Parameters of the simulated microscope and scene (`docs/simulator.md`).
 //!
 //! Units: micrometres, seconds (as named in each field), photons. Every field
 //! has the paper's default, so an empty YAML mapping is the paper's

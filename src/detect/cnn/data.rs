@@ -20,8 +20,7 @@
 
 use burn::prelude::*;
 
-use crate::frames::FrameStack;
-use crate::sim::TruthRow;
+use crate::types::{FrameStack, TruthRow};
 
 /// The normalised input of a batch of `height × width` frames, row-major
 /// `[n, channels, H, W]`.

@@ -5,8 +5,7 @@ use indicatif::ProgressBar;
 use super::data::input_tensor;
 use super::model::{Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL};
 use super::{CnnArchitecture, TrainedCnn, inference_device};
-use crate::detect::Prediction;
-use crate::frames::FrameStack;
+use crate::types::{FrameStack, Prediction};
 
 /// Frames per forward pass in [`TrainedCnn::locate`].
 pub const INFERENCE_BATCH: usize = 256;

@@ -1,4 +1,4 @@
-//! The CNN localiser (DESIGN §2, detector `cnn`): a small fully
+//! The CNN localiser (detector `cnn`, `docs/detectors.md`): a small fully
 //! convolutional network, trained on simulated frames, that outputs a
 //! per-pixel centre score and a sub-pixel offset to the QD's *trajectory
 //! centroid* (the label of the simulator's ground truth), not to the
@@ -6,11 +6,11 @@
 //!
 //! Layout (as burn's mnist example): [`model`] the network, [`data`] frames
 //! → normalised tensors and truth → targets, [`training`] the loop,
-//! [`inference`] batched prediction and peak finding, [`bench`] throughput
-//! measurements. Runs on burn's `flex` CPU backend, which is bit-deterministic
-//! whatever the thread count; weights are initialised from ChaCha streams of
-//! the training seed, so the same data, settings and seed give bit-identical
-//! weights.
+//! [`inference`] batched prediction and peak finding (throughput and AUC
+//! benchmarks: the `bench` module). Runs on burn's `flex` CPU backend,
+//! which is bit-deterministic whatever the thread count; weights are
+//! initialised from ChaCha streams of the training seed, so the same data,
+//! settings and seed give bit-identical weights.
 //!
 //! Predictions (TrackPy pixel coordinates, `x` column, `y` row, pixel centres
 //! at integers) are the local maxima of the score map (within
@@ -18,7 +18,6 @@
 //! in (0, 1)) is at least `score_floor`; position = pixel centre + predicted
 //! offset, score = the map's value.
 
-pub mod bench;
 pub mod data;
 pub mod inference;
 pub mod model;
@@ -33,7 +32,7 @@ use burn::store::ModuleRecord;
 use serde::{Deserialize, Serialize};
 
 use crate::error::input_error;
-pub use training::{train, train_selecting_on};
+pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
 /// The network's shape. Serialised with the model; every field has a
 /// default (the best setting measured on the paper task).

@@ -64,7 +64,7 @@ pub struct Net {
 impl Net {
     /// Builds the network described by `arch` on `device`, with weights drawn
     /// from ChaCha8 seeded by `seed` (He-normal for the ReLU layers, small
-    /// normal for the head, score bias set from [`INITIAL_CENTRE_PRIOR`]).
+    /// normal for the head, score bias set from `INITIAL_CENTRE_PRIOR`).
     ///
     /// Parameter ids are numbered 1, 2, … in construction order (burn would
     /// draw them at random), so the saved record of a model is a pure

@@ -14,9 +14,25 @@ use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{INFERENCE_BATCH, locate_with};
 use super::model::Net;
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
-use crate::frames::FrameStack;
-use crate::metrics::{self, PAPER_EPS_PX};
-use crate::sim::{self, Dataset, SimParams, TruthRow};
+use crate::sim::{self, SimParams};
+use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
+
+/// The score a validation pass judges an epoch by: from a model's
+/// predictions on the validation dataset, one AUC per matching radius (in
+/// [0, 1], higher is better); the epoch with the best mean is kept. The
+/// caller chooses the metric (the paper's is `metrics::paper_aucs`), so the
+/// detector does not depend on the metric's layer.
+pub type ValidationScore = dyn Fn(&[Prediction], &Dataset) -> anyhow::Result<Vec<f64>>;
+
+/// How the epoch to keep is chosen: the score, and the frames it is
+/// computed on.
+#[derive(Clone, Copy)]
+struct Selection<'a> {
+    score: &'a ValidationScore,
+    /// A validation dataset of its own; `None`: split
+    /// `settings.validation_fraction` of the training frames off.
+    external: Option<&'a Dataset>,
+}
 
 /// Purposes of the random streams derived from the training seed.
 const STREAM_INIT: u64 = 1;
@@ -137,12 +153,14 @@ fn batch_loss(
     (total, score_loss, offset_loss)
 }
 
-/// Mean AUC over ε = 1, 2, 3 px of `net` on `validation` (None when empty).
+/// The validation score of `net` on `validation`, one value per matching
+/// radius (empty when there are no validation frames).
 fn validate(
     net: &Net,
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
     validation: &Dataset,
+    score: &ValidationScore,
 ) -> anyhow::Result<Vec<f64>> {
     if validation.frames.n == 0 {
         return Ok(Vec::new());
@@ -155,14 +173,7 @@ fn validate(
         INFERENCE_BATCH,
         &ProgressBar::hidden(),
     )?;
-    let score = metrics::score(
-        &predictions,
-        &validation.truth,
-        validation.frames.n,
-        &PAPER_EPS_PX,
-        false,
-    )?;
-    Ok(score.per_eps.iter().map(|e| e.auc).collect())
+    score(&predictions, validation)
 }
 
 /// Trains a localiser.
@@ -177,8 +188,9 @@ fn validate(
 ///   the fresh frames' seeds. Same inputs and seed → bit-identical weights,
 ///   whatever the thread count.
 ///
-/// Each epoch ends with a validation pass; the weights of the epoch with the
-/// best mean AUC over ε = 1, 2, 3 px are kept (the earliest on ties; the
+/// Each epoch ends with a validation pass scored by `score` (the paper's
+/// metric: `metrics::paper_aucs`, the AUC at ε = 1, 2, 3 px); the weights
+/// of the epoch with the best mean score are kept (the earliest on ties; the
 /// last epoch without validation frames). `progress` counts optimiser steps
 /// and shows the latest loss and validation AUC. Fails with an error naming
 /// the epoch and batch if the loss is not finite.
@@ -188,24 +200,49 @@ pub fn train(
     training: &Dataset,
     fresh_frames: Option<&SimParams>,
     seed: u64,
+    score: &ValidationScore,
     progress: &ProgressBar,
 ) -> anyhow::Result<TrainedCnn> {
-    train_and_select(arch, settings, training, None, fresh_frames, seed, progress)
+    let selection = Selection {
+        score,
+        external: None,
+    };
+    train_and_select(
+        arch,
+        settings,
+        training,
+        selection,
+        fresh_frames,
+        seed,
+        progress,
+    )
+}
+
+/// A validation dataset and the score it judges each epoch by (see
+/// [`ValidationScore`]).
+#[derive(Clone, Copy)]
+pub struct ValidationSet<'a> {
+    pub dataset: &'a Dataset,
+    pub score: &'a ValidationScore,
 }
 
 /// Trains a localiser on every frame of `training` and keeps the epoch with
-/// the best mean AUC on `validation`, a dataset of its own (e.g. the
+/// the best mean score on `validation`, a dataset of its own (e.g. the
 /// held-out fold of a cross-validation). `settings.validation_fraction` is
 /// not used: nothing of `training` is held out. Otherwise as [`train`].
 pub fn train_selecting_on(
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
     training: &Dataset,
-    validation: &Dataset,
+    validation: ValidationSet<'_>,
     fresh_frames: Option<&SimParams>,
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<TrainedCnn> {
+    let ValidationSet {
+        dataset: validation,
+        score,
+    } = validation;
     if validation.frames.n > 0
         && training.frames.n > 0
         && (validation.frames.height, validation.frames.width)
@@ -219,11 +256,15 @@ pub fn train_selecting_on(
             training.frames.width
         );
     }
+    let selection = Selection {
+        score,
+        external: Some(validation),
+    };
     train_and_select(
         arch,
         settings,
         training,
-        Some(validation),
+        selection,
         fresh_frames,
         seed,
         progress,
@@ -231,12 +272,12 @@ pub fn train_selecting_on(
 }
 
 /// The training loop behind [`train`] (validation split off `training`) and
-/// [`train_selecting_on`] (`external_validation` given).
+/// [`train_selecting_on`] (`selection.external` given).
 fn train_and_select(
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
     training: &Dataset,
-    external_validation: Option<&Dataset>,
+    selection: Selection<'_>,
     fresh_frames: Option<&SimParams>,
     seed: u64,
     progress: &ProgressBar,
@@ -261,7 +302,7 @@ fn train_and_select(
     // the validation frames are given).
     let mut order: Vec<usize> = (0..n).collect();
     shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
-    let n_split_off = match external_validation {
+    let n_split_off = match selection.external {
         Some(_) => 0,
         None => settings.held_out_frames(n),
     };
@@ -269,7 +310,7 @@ fn train_and_select(
     validation_indices.sort_unstable();
     let training_indices = order[n_split_off..].to_vec();
     let split_off = subset(training, &validation_indices)?;
-    let validation = external_validation.unwrap_or(&split_off);
+    let validation = selection.external.unwrap_or(&split_off);
     let n_validation = validation.frames.n;
 
     let samples_per_epoch = training_indices.len() + settings.fresh_frames_per_epoch;
@@ -352,7 +393,7 @@ fn train_and_select(
         }
         let batches = steps_per_epoch as f64;
         let valid_net = net.valid();
-        let validation_auc = validate(&valid_net, arch, settings, validation)?;
+        let validation_auc = validate(&valid_net, arch, settings, validation, selection.score)?;
         let validation_mean_auc = (!validation_auc.is_empty())
             .then(|| validation_auc.iter().sum::<f64>() / validation_auc.len() as f64);
         let record = EpochRecord {

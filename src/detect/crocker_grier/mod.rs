@@ -1,7 +1,7 @@
 //! The Crocker–Grier locator, step for step as TrackPy 0.7's `locate`
 //! (Crocker & Grier, J. Colloid Interface Sci. 179:298, 1996).
 //!
-//! 1. Band pass ([`filters::bandpass`]): a Gaussian low pass of width
+//! 1. Band pass (`filters::bandpass`): a Gaussian low pass of width
 //!    `noise_size` minus a boxcar background of side `smoothing_size`, values
 //!    below `threshold` set to 0.
 //! 2. Integer rescaling: the band-passed image is scaled so its maximum is
@@ -30,9 +30,8 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::detect::Prediction;
 use crate::error::{input_error, require_finite};
-use crate::frames::FrameStack;
+use crate::types::{FrameStack, Prediction};
 
 /// Version of the locator's output, part of the content key of every
 /// prediction it makes in the registry: bump it whenever a change alters any
@@ -182,6 +181,37 @@ pub struct Feature {
     /// Static localisation error estimate, pixels; NaN when the frame has
     /// too little background to measure its noise (as TrackPy).
     pub ep: f64,
+}
+
+/// The columns a localisation file gets for each [`Feature`] beside
+/// `frame,x,y,score` (score = mass): TrackPy's, in the order of
+/// [`Feature::column_values`]. `ep` is `NaN` where TrackPy's would be (no
+/// background to measure the noise on).
+pub const FEATURE_COLUMNS: [&str; 6] = ["mass", "size", "ecc", "signal", "raw_mass", "ep"];
+
+impl Feature {
+    /// The prediction this feature makes on `frame`: its centroid, scored
+    /// by its mass.
+    pub fn prediction(&self, frame: usize) -> Prediction {
+        Prediction {
+            frame,
+            x: self.x,
+            y: self.y,
+            score: self.mass,
+        }
+    }
+
+    /// The feature's values of [`FEATURE_COLUMNS`], in order.
+    pub fn column_values(&self) -> [f64; 6] {
+        [
+            self.mass,
+            self.size,
+            self.ecc,
+            self.signal,
+            self.raw_mass,
+            self.ep,
+        ]
+    }
 }
 
 /// The circular mask of radius `r` and its moments, shared by all features.
@@ -561,11 +591,6 @@ pub fn locate_stack(
 pub fn to_predictions(features: &[(usize, Feature)]) -> Vec<Prediction> {
     features
         .iter()
-        .map(|&(frame, f)| Prediction {
-            frame,
-            x: f.x,
-            y: f.y,
-            score: f.mass,
-        })
+        .map(|(frame, f)| f.prediction(*frame))
         .collect()
 }

@@ -1,4 +1,4 @@
-//! The simulator against the physics of DESIGN §1: statistics with stated
+//! The simulator against the physics of docs/simulator.md: statistics with stated
 //! tolerances, the analytic PSF, the cut-off bound and determinism.
 
 use scanloc::progress::hidden;
@@ -243,7 +243,7 @@ fn several_emitters_give_one_truth_row_each() {
         &hidden(),
     )
     .unwrap();
-    let total = |d: &sim::Dataset| d.frames.data.iter().map(|&c| c as f64).sum::<f64>();
+    let total = |d: &scanloc::types::Dataset| d.frames.data.iter().map(|&c| c as f64).sum::<f64>();
     let background = params.background * (10 * 40 * 40) as f64;
     let ratio = (total(&dataset) - background) / (total(&one) - background);
     // Signal per QD ≈ 420 photons × 10 frames, shot noise of the whole
@@ -285,6 +285,7 @@ fn start_positions_respect_the_margin() {
         ..paper(1.0)
     };
     let dataset = simulate(&params, 3, 0..2000, &hidden()).unwrap();
+    assert_eq!(dataset.truth.len(), 2000);
     for t in &dataset.truth {
         assert!((3.5..=20.5).contains(&t.x_start), "x_start {}", t.x_start);
         assert!((3.5..=19.5).contains(&t.y_start), "y_start {}", t.y_start);

@@ -1,8 +1,6 @@
-//! `scanloc calibrate` (DESIGN §6) and `scanloc cv` on small manifests.
+//! `scanloc calibrate` (docs/metric.md) and `scanloc cv` on small manifests.
 
-mod common;
-
-use common::{scanloc, smoke, stderr, stdout, write_manifest};
+use crate::common::{scanloc, smoke, stderr, stdout, write_manifest};
 
 const REFERENCE: &str = "
 reference:

@@ -2,7 +2,7 @@
 //! tries to write or to run forever, reproductions of runs that never
 //! finished.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Output;

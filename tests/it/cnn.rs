@@ -4,12 +4,12 @@
 //! Everything here uses a tiny network (8 channels) and a few hundred
 //! 24×25 frames so the whole file runs in seconds.
 
-use scanloc::detect::Prediction;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
+use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings, ValidationSet};
 use scanloc::error::InputError;
-use scanloc::frames::FrameStack;
+use scanloc::metrics;
 use scanloc::progress::hidden;
-use scanloc::sim::{self, Dataset, Distribution, RandomDistribution, SimParams};
+use scanloc::sim::{self, Distribution, RandomDistribution, SimParams};
+use scanloc::types::{Dataset, FrameStack, Prediction};
 
 fn params(brightness: f64) -> SimParams {
     SimParams {
@@ -49,6 +49,7 @@ fn train_tiny(data: &Dataset, epochs: usize, seed: u64) -> TrainedCnn {
         data,
         None,
         seed,
+        &metrics::paper_aucs,
         &hidden(),
     )
     .unwrap()
@@ -177,7 +178,18 @@ fn fresh_frames_are_used_and_seeded() {
         ..tiny_settings(2)
     };
     let arch = tiny_architecture();
-    let run = || cnn::train(&arch, &settings, &data, Some(&params(40.0)), 9, &hidden()).unwrap();
+    let run = || {
+        cnn::train(
+            &arch,
+            &settings,
+            &data,
+            Some(&params(40.0)),
+            9,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
     let model = run();
     assert_eq!(model.record.training_frames, 0);
     assert_eq!(model.record.validation_frames, 60);
@@ -304,13 +316,30 @@ fn bad_settings_are_refused_naming_the_field() {
         ),
     ];
     for (settings, architecture, field) in cases {
-        let error = cnn::train(&architecture, &settings, &data, None, 0, &hidden()).unwrap_err();
+        let error = cnn::train(
+            &architecture,
+            &settings,
+            &data,
+            None,
+            0,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap_err();
         assert!(is_input_error(&error), "{field}: {error:#}");
         assert!(format!("{error:#}").contains(field), "{field}: {error:#}");
     }
     // Unknown fields in a serialised config are refused too.
-    assert!(serde_json::from_str::<TrainingSettings>(r#"{"epoch": 3}"#).is_err());
-    assert!(serde_json::from_str::<CnnArchitecture>(r#"{"channel": 3}"#).is_err());
+    let error = serde_json::from_str::<TrainingSettings>(r#"{"epoch": 3}"#).unwrap_err();
+    assert!(
+        error.to_string().contains("unknown field `epoch`"),
+        "{error}"
+    );
+    let error = serde_json::from_str::<CnnArchitecture>(r#"{"channel": 3}"#).unwrap_err();
+    assert!(
+        error.to_string().contains("unknown field `channel`"),
+        "{error}"
+    );
 }
 
 #[test]
@@ -321,7 +350,16 @@ fn a_diverging_loss_stops_training_naming_epoch_and_batch() {
         cosine_decay: false,
         ..tiny_settings(3)
     };
-    let error = cnn::train(&tiny_architecture(), &settings, &data, None, 1, &hidden()).unwrap_err();
+    let error = cnn::train(
+        &tiny_architecture(),
+        &settings,
+        &data,
+        None,
+        1,
+        &metrics::paper_aucs,
+        &hidden(),
+    )
+    .unwrap_err();
     let message = format!("{error:#}");
     assert!(
         message.contains("epoch") && message.contains("batch"),
@@ -332,27 +370,37 @@ fn a_diverging_loss_stops_training_naming_epoch_and_batch() {
 #[test]
 fn all_zero_and_huge_count_frames_give_finite_scores() {
     let data = dataset(40.0, 80, 51);
-    let model = train_tiny(&data, 1, 5);
-    for value in [0u32, 1_000_000_000, u32::MAX] {
-        let frames = FrameStack::from_vec(2, 24, 25, vec![value; 2 * 24 * 25]).unwrap();
+    let mut model = train_tiny(&data, 1, 5);
+    // Without a score floor every frame's highest peak is a prediction, so
+    // the checks below cannot pass on an empty list (on these frames the
+    // trained floor may well leave none).
+    model.settings.score_floor = 0.0;
+    let mut one_huge_pixel = vec![0u32; 24 * 25];
+    one_huge_pixel[12 * 25 + 12] = u32::MAX;
+    let stacks = [0u32, 1_000_000_000, u32::MAX]
+        .map(|value| (format!("{value} everywhere"), vec![value; 2 * 24 * 25]))
+        .into_iter()
+        .chain([("one u32::MAX pixel among zeros".to_string(), one_huge_pixel)]);
+    for (what, counts) in stacks {
+        let n = counts.len() / (24 * 25);
+        let frames = FrameStack::from_vec(n, 24, 25, counts).unwrap();
+        let raw = model.raw_output(&frames).unwrap();
+        assert_eq!(raw.len(), n * 3 * 24 * 25, "{what}");
+        assert!(raw.iter().all(|v| v.is_finite()), "{what}: raw output");
         let predictions = model.locate(&frames, &hidden()).unwrap();
+        for frame in 0..n {
+            assert!(
+                predictions.iter().any(|p| p.frame == frame),
+                "{what}: no prediction in frame {frame}"
+            );
+        }
         for p in &predictions {
             assert!(
                 p.x.is_finite() && p.y.is_finite() && p.score.is_finite(),
-                "{value}: {p:?}"
+                "{what}: {p:?}"
             );
         }
     }
-    // One huge pixel among zeros: still finite.
-    let mut counts = vec![0u32; 24 * 25];
-    counts[12 * 25 + 12] = u32::MAX;
-    let frames = FrameStack::from_vec(1, 24, 25, counts).unwrap();
-    let predictions = model.locate(&frames, &hidden()).unwrap();
-    assert!(
-        predictions
-            .iter()
-            .all(|p| p.x.is_finite() && p.y.is_finite() && p.score.is_finite())
-    );
 }
 
 #[test]
@@ -363,7 +411,10 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
         &tiny_architecture(),
         &tiny_settings(3),
         &training,
-        &validation,
+        ValidationSet {
+            dataset: &validation,
+            score: &metrics::paper_aucs,
+        },
         None,
         8,
         &hidden(),
@@ -409,7 +460,10 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
         &tiny_architecture(),
         &tiny_settings(1),
         &training,
-        &other_size,
+        ValidationSet {
+            dataset: &other_size,
+            score: &metrics::paper_aucs,
+        },
         None,
         8,
         &hidden(),

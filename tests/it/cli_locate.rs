@@ -1,8 +1,6 @@
 //! `scanloc locate` and `scanloc score` as a user runs them.
 
-mod common;
-
-use common::scanloc;
+use crate::common::scanloc;
 
 #[test]
 fn simulate_locate_score_round_trip() {

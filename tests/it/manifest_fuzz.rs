@@ -2,13 +2,13 @@
 //! every refusal is bad input (exit code 2) naming the file. A fuzzing test:
 //! `make fuzz` runs it with `SCANLOC_FUZZ_CASES` cases per property.
 
-mod common;
+use crate::common;
 
 use proptest::prelude::*;
 use scanloc::error::exit_code;
 use scanloc::manifest;
 
-const SMOKE: &str = include_str!("../experiments/smoke.yaml");
+const SMOKE: &str = include_str!("../../experiments/smoke.yaml");
 
 fn check(text: &str) {
     match manifest::parse(text, "fuzz.yaml") {

@@ -5,11 +5,9 @@
 //! each file is `# expect: FRAGMENT`, the part of the error expected after
 //! `error: PATH` (starting with `:LINE:`).
 
-mod common;
-
 use std::path::PathBuf;
 
-use common::*;
+use crate::common::*;
 
 fn corpus() -> Vec<(PathBuf, String)> {
     let dir = root().join("tests/fixtures/manifests/bad");
@@ -101,10 +99,17 @@ fn check_prints_the_resolved_manifest_with_defaults_and_seeds() {
     let resolved: serde_yaml::Value = serde_yaml::from_str(&text).unwrap();
     let datasets = resolved["datasets"].as_sequence().unwrap();
     assert_eq!(datasets.len(), 4);
+    let mut seeds = Vec::new();
     for dataset in datasets {
-        assert!(dataset["seed"].as_u64().is_some());
+        seeds.push(dataset["seed"].as_u64().unwrap());
         assert_eq!(dataset["params"]["margin_px"].as_f64(), Some(4.0));
     }
+    // Each dataset draws from a seed of its own, derived from the
+    // manifest's.
+    seeds.sort();
+    seeds.dedup();
+    assert_eq!(seeds.len(), 4, "{seeds:?}");
+    assert!(!seeds.contains(&20240613), "{seeds:?}");
     assert!(resolved["plan"].as_sequence().unwrap().len() >= 4);
     let missing = scanloc(&["check", "experiments/does-not-exist.yaml"]);
     assert_eq!(missing.status.code(), Some(2));

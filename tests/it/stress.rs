@@ -4,16 +4,16 @@
 //! reader tests are fuzzing tests: `make fuzz` runs them with
 //! `SCANLOC_FUZZ_CASES` cases each.
 
-mod common;
+use crate::common;
 
 use proptest::prelude::*;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use scanloc::error::exit_code;
-use scanloc::frames::FrameStack;
 use scanloc::io;
 use scanloc::progress::hidden;
 use scanloc::sim::{Distribution, SimParams, noise, simulate};
+use scanloc::types::FrameStack;
 
 fn log_uniform(low: f64, high: f64) -> impl Strategy<Value = f64> {
     (low.ln()..high.ln()).prop_map(f64::exp)

@@ -1,12 +1,10 @@
 //! A registry survives what users do to runs: SIGKILL mid-run, and several
 //! runs started at once on one registry.
 
-mod common;
-
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 
 fn json(args: &[&str]) -> Value {

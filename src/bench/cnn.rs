@@ -1,14 +1,20 @@
 //! Evaluation and throughput measurements of the CNN, for `scanloc train
 //! --test-frames` and the `scanloc bench` sub-benchmarks.
+//!
+//! Seeds: every data set and training run draws from
+//! [`derive_seed`]`(seed, kind, name)` of the seed it is given, as the
+//! artefacts of a manifest do.
 
 use std::time::Instant;
 
 use indicatif::ProgressBar;
 use serde::Serialize;
 
-use super::{CnnArchitecture, TrainedCnn, TrainingSettings};
+use crate::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
+use crate::manifest::derive_seed;
 use crate::metrics::{self, PAPER_EPS_PX};
 use crate::sim::{self, Distribution, SimParams};
+use crate::types::Dataset;
 
 /// The paper's FCNN row of Table 1 (AUC at ε = 1, 2, 3 px for D = 0.75,
 /// 1.0, 1.75 µm²/s).
@@ -34,8 +40,9 @@ pub struct TestRow {
 }
 
 /// Simulates one test set per `diffusions` value (the microscope of
-/// `params`, fixed D; set `i` with seed `seed + i`) of `frames` frames and
-/// scores `model` on each.
+/// `params`, fixed D; the set of D = d µm²/s with seed
+/// [`test_set_seed`]`(seed, d)`) of `frames` frames and scores `model` on
+/// each.
 pub fn auc_table(
     model: &TrainedCnn,
     params: &SimParams,
@@ -44,12 +51,12 @@ pub fn auc_table(
     seed: u64,
 ) -> anyhow::Result<Vec<TestRow>> {
     let mut rows = Vec::with_capacity(diffusions.len());
-    for (i, &diffusion) in diffusions.iter().enumerate() {
+    for &diffusion in diffusions {
         let test_params = SimParams {
             diffusion_um2_s: Distribution::Fixed(diffusion),
             ..params.clone()
         };
-        let test_seed = seed.wrapping_add(i as u64);
+        let test_seed = test_set_seed(seed, diffusion);
         let dataset = sim::simulate(&test_params, test_seed, 0..frames, &ProgressBar::hidden())?;
         let started = Instant::now();
         let predictions = model.locate(&dataset.frames, &ProgressBar::hidden())?;
@@ -70,6 +77,12 @@ pub fn auc_table(
         });
     }
     Ok(rows)
+}
+
+/// The seed of [`auc_table`]'s test set of D = `diffusion` µm²/s:
+/// `derive_seed(seed, "dataset", "test-D{diffusion}")`.
+pub fn test_set_seed(seed: u64, diffusion: f64) -> u64 {
+    derive_seed(seed, "dataset", &format!("test-D{diffusion}"))
 }
 
 /// The table as text, with the paper's FCNN row beside each D it has.
@@ -117,6 +130,8 @@ pub struct Throughput {
 /// Measures training and inference throughput of `arch` on paper-sized
 /// frames (brightness 7, margin 4, D uniform [0.75, 1.75]): trains one epoch
 /// on `train_samples` fresh frames, then locates `locate_frames` frames.
+/// The training seed is `derive_seed(seed, "detector", "throughput")`, the
+/// located frames' `derive_seed(seed, "dataset", "throughput-locate")`.
 pub fn throughput(
     arch: &CnnArchitecture,
     batch_size: usize,
@@ -137,20 +152,22 @@ pub fn throughput(
         fresh_frames_per_epoch: train_samples,
         ..TrainingSettings::default()
     };
-    let empty = sim::Dataset::default();
+    let empty = Dataset::default();
     let started = Instant::now();
-    let model = super::train(
+    // No validation frames: the score is never computed.
+    let model = cnn::train(
         arch,
         &settings,
         &empty,
         Some(&params),
-        seed,
+        derive_seed(seed, "detector", "throughput"),
+        &metrics::paper_aucs,
         &ProgressBar::hidden(),
     )?;
     let train_seconds = started.elapsed().as_secs_f64();
     let test = sim::simulate(
         &params,
-        seed.wrapping_add(1),
+        derive_seed(seed, "dataset", "throughput-locate"),
         0..locate_frames,
         &ProgressBar::hidden(),
     )?;

@@ -1,8 +1,7 @@
-//! The Table-1 metric (DESIGN §3) on cases worked out by hand.
+//! The Table-1 metric (docs/metric.md) on cases worked out by hand.
 
-use scanloc::detect::Prediction;
 use scanloc::metrics::score;
-use scanloc::sim::TruthRow;
+use scanloc::types::{Prediction, TruthRow};
 
 fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
     TruthRow {
@@ -148,9 +147,11 @@ fn non_finite_values_and_bad_radii_are_refused() {
         assert_eq!(scanloc::error::exit_code(&error), 2, "{error}");
     }
     let nan_truth = [truth(0, f64::NAN, 0.0)];
-    assert!(score(&[], &nan_truth, 1, &[1.0], false).is_err());
+    let error = score(&[], &nan_truth, 1, &[1.0], false).unwrap_err();
+    assert_eq!(scanloc::error::exit_code(&error), 2, "{error}");
     for eps in [0.0, -1.0, f64::NAN] {
-        assert!(score(&[], &truths, 1, &[eps], false).is_err());
+        let error = score(&[], &truths, 1, &[eps], false).unwrap_err();
+        assert_eq!(scanloc::error::exit_code(&error), 2, "ε {eps}: {error}");
     }
 }
 
@@ -191,7 +192,11 @@ fn top_prediction_errors_are_per_frame_and_root_mean_square_to_the_rmse() {
     assert_eq!(result.frames_without_prediction, 1);
     // The same refusals as the score.
     let nan = [prediction(0, f64::NAN, 0.0, 1.0)];
-    assert!(top_prediction_errors(&nan, &truths, 3).is_err());
-    assert!(top_prediction_errors(&predictions, &[], 3).is_err());
-    assert!(top_prediction_errors(&predictions, &truths, 1).is_err());
+    for error in [
+        top_prediction_errors(&nan, &truths, 3).unwrap_err(),
+        top_prediction_errors(&predictions, &[], 3).unwrap_err(),
+        top_prediction_errors(&predictions, &truths, 1).unwrap_err(),
+    ] {
+        assert_eq!(scanloc::error::exit_code(&error), 2, "{error}");
+    }
 }

@@ -1,9 +1,7 @@
 //! `scanloc run` over a registry: caching, recomputation of exactly what
 //! changed, `--force`, damaged blobs, `reproduce`, and the audit commands.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 
 fn steps(run: &Value) -> Vec<(String, String)> {
@@ -155,7 +153,10 @@ fn force_recomputes_and_checks_identity() {
     let forced = run_json(&smoke(), &registry, &["--force"]);
     assert_eq!(forced["cached_steps"], 0);
     assert_eq!(forced["computed_steps"], first["computed_steps"]);
-    for step in forced["steps"].as_array().unwrap() {
+    let steps = forced["steps"].as_array().unwrap();
+    assert_eq!(steps.len(), first["steps"].as_array().unwrap().len());
+    assert!(!steps.is_empty());
+    for step in steps {
         assert_eq!(
             step["detail"], "recomputed: identical to the stored artefact",
             "{step}"
@@ -234,6 +235,7 @@ fn reproduce_passes_on_a_fresh_run_and_fails_loudly_on_an_altered_blob() {
         report["artefacts"].as_array().unwrap().len(),
         first["steps"].as_array().unwrap().len()
     );
+    assert!(!report["artefacts"].as_array().unwrap().is_empty());
     for artefact in report["artefacts"].as_array().unwrap() {
         assert_eq!(artefact["identical"], true, "{artefact}");
     }
@@ -296,27 +298,81 @@ fn audit_commands_list_show_diff_and_query() {
     assert_eq!(runs[0]["status"], "done");
     let datasets = json(&["registry", "datasets"]);
     assert_eq!(datasets.as_array().unwrap().len(), 8, "4 per seed");
+    // One CNN per run (the seed changes its training set), each listed
+    // with the training set its run used.
     let models = json(&["registry", "models"]);
-    assert!(models.as_array().is_some());
+    let model_step = |run: &Value, id: &str| -> String {
+        run["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["step"] == id)
+            .unwrap_or_else(|| panic!("no step {id}: {run}"))["artefact_key"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    let listed: Vec<(&str, &str, &str)> = models
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| {
+            (
+                m["key"].as_str().unwrap(),
+                m["detector"].as_str().unwrap(),
+                m["training_dataset_key"].as_str().unwrap(),
+            )
+        })
+        .collect();
+    let (first_model, second_model) = (
+        model_step(&first, "model/cnn"),
+        model_step(&second, "model/cnn"),
+    );
+    let (first_train, second_train) = (
+        model_step(&first, "dataset/train"),
+        model_step(&second, "dataset/train"),
+    );
+    assert_eq!(
+        listed,
+        [
+            (first_model.as_str(), "cnn", first_train.as_str()),
+            (second_model.as_str(), "cnn", second_train.as_str()),
+        ],
+        "{models}"
+    );
 
     let shown = json(&["registry", "show", a]);
     assert_eq!(shown["id"], a);
     assert_eq!(shown["status"], "done");
     assert_eq!(shown["manifest_text"], original.as_str());
+    // The recorded seeds are the ones `check` resolves for the manifest.
     let seeds = shown["seeds"].as_object().unwrap();
-    for dataset in ["train", "test-0.75", "test-1.00", "test-1.75"] {
-        assert!(
-            seeds[&format!("dataset/{dataset}")]
-                .as_str()
-                .unwrap()
-                .parse::<u64>()
-                .is_ok()
+    let check = scanloc(&["check", smoke().to_str().unwrap()]);
+    assert!(check.status.success(), "{}", stderr(&check));
+    let resolved: serde_yaml::Value = serde_yaml::from_str(&stdout(&check)).unwrap();
+    let datasets = resolved["datasets"].as_sequence().unwrap();
+    assert_eq!(datasets.len(), 4);
+    for dataset in datasets {
+        let name = dataset["name"].as_str().unwrap();
+        let seed = dataset["seed"].as_u64().unwrap();
+        assert_eq!(
+            seeds[&format!("dataset/{name}")].as_str(),
+            Some(seed.to_string().as_str()),
+            "{name}"
         );
     }
     assert!(shown["git_commit"].as_str().is_some_and(|c| !c.is_empty()));
     assert!(shown["rustc"].as_str().unwrap().contains("rustc"));
     assert!(shown["threads"].as_i64().unwrap() >= 1);
-    assert!(shown["ended_at"].as_str().is_some());
+    // ISO 8601 UTC times: ordered as text.
+    let (started, ended) = (
+        shown["started_at"].as_str().unwrap(),
+        shown["ended_at"].as_str().unwrap(),
+    );
+    assert!(
+        !started.is_empty() && ended >= started,
+        "{started} .. {ended}"
+    );
     let key = first["steps"][0]["artefact_key"].as_str().unwrap();
     let artefact = json(&["registry", "show", &key[..10]]);
     assert_eq!(artefact["key"], key);
@@ -368,6 +424,44 @@ fn audit_commands_list_show_diff_and_query() {
     assert!(!blob_path(&registry, &orphan).exists());
     let verify = scanloc(&["registry", "verify", "--registry", reg]);
     assert!(verify.status.success());
+
+    // For people, `show` is a summary read top-down that ends with the
+    // AUC grid exactly as `run` prints it.
+    let shown = scanloc(&["registry", "show", a, "--registry", reg]);
+    assert!(shown.status.success(), "{}", stderr(&shown));
+    let shown = stdout(&shown);
+    assert!(shown.starts_with(&format!("run {a}: done\n")), "{shown}");
+    let headings: Vec<&str> = shown
+        .lines()
+        .filter(|line| !line.starts_with(' '))
+        .take(6)
+        .collect();
+    let counts = format!(
+        "steps: 0 cached, {} computed, 0 rebuilt",
+        steps(&first).len()
+    );
+    assert_eq!(
+        headings[1..5],
+        ["manifest", "code", "seeds", counts.as_str()],
+        "{shown}"
+    );
+    assert!(headings[5].starts_with("AUC "), "{shown}");
+    for (step, _) in steps(&first) {
+        assert!(
+            shown
+                .lines()
+                .any(|line| line.trim_start().starts_with("computed")
+                    && line.contains(&format!(" {step} "))),
+            "{step}: {shown}"
+        );
+    }
+    let rerun = scanloc(&["run", smoke().to_str().unwrap(), "--registry", reg]);
+    let rerun = stdout(&rerun);
+    let grid = &rerun[..rerun.trim_end().rfind('\n').unwrap() + 1];
+    assert!(
+        !grid.is_empty() && shown.ends_with(grid),
+        "{grid}\n---\n{shown}"
+    );
 
     // Unknown ids and missing registries are bad input.
     let output = scanloc(&["registry", "show", "zzzzzzzz", "--registry", reg]);

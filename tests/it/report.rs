@@ -2,9 +2,7 @@
 
 use std::path::Path;
 
-mod common;
-
-use common::scanloc;
+use crate::common::scanloc;
 
 #[test]
 fn report_of_a_smoke_run_has_the_table_and_every_figure() {
@@ -77,6 +75,8 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
         .collect();
     cells.sort();
     cells.dedup();
+    // Three test sets at three radii in the smoke manifest.
+    assert_eq!(cells.len(), 9, "{cells:?}");
     assert_eq!(pr_curves, 2 * cells.len());
 
     // `latest` names the run just made.

@@ -1,20 +1,11 @@
 //! `scanloc simulate` as a user runs it: outputs, formats and bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 
 use scanloc::io::{self, csv_tables};
 
-fn scanloc(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_scanloc"))
-        .args(args)
-        .output()
-        .expect("run scanloc")
-}
-
-fn stderr(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stderr).into_owned()
-}
+use crate::common::{scanloc, stderr};
 
 fn files_in(dir: &Path) -> Vec<String> {
     let mut names: Vec<String> = std::fs::read_dir(dir)

@@ -1,7 +1,5 @@
-//! Helpers shared by the registry and manifest tests: run the binary, read
-//! its JSON, snapshot a registry folder.
-
-#![allow(dead_code)]
+//! Helpers shared by the test modules: run the binary, read its JSON,
+//! snapshot a registry folder, size a fuzzing run.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

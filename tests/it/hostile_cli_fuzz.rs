@@ -9,7 +9,7 @@
 //! cheap; hostile values are out of range, malformed or extreme. `make
 //! fuzz` runs these with `SCANLOC_FUZZ_CASES` cases per property.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};

@@ -3,9 +3,7 @@
 //! (the refusals themselves are in the bad-manifest corpus,
 //! tests/fixtures/manifests/bad/, which runs both commands on each).
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 /// `text` with a UTF-8 byte-order mark in front.
 fn with_bom(text: &str) -> String {

@@ -1,0 +1,113 @@
+//! `registry show RUN`: a run record as a person reads it, top-down:
+//! status, manifest, code version, seeds, each step with its outcome and
+//! time, and the AUC table as the same grid `scanloc run` prints.
+
+use std::fmt::Write as _;
+
+use super::recorded::RecordedManifest;
+use crate::registry::RunRecord;
+use crate::registry::dates::seconds_between;
+use crate::run::table;
+
+/// `record` as text, for people (programs read the record as JSON).
+pub fn run_summary(record: &RunRecord) -> String {
+    let mut out = String::new();
+    write_summary(&mut out, record).expect("writing to a String cannot fail");
+    out
+}
+
+fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
+    writeln!(out, "run {}: {}", record.id, record.status)?;
+    let field = |out: &mut String, label: &str, value: &str| writeln!(out, "  {label:<10} {value}");
+    field(out, "kind", record.kind.as_str())?;
+    if let Some(parent) = &record.parent_run {
+        field(out, "of run", parent)?;
+    }
+    if let Some(cv) = &record.cross_validation {
+        let folds = match cv.fold {
+            Some(fold) => format!("fold {fold} of {}", cv.folds),
+            None => format!("{} folds", cv.folds),
+        };
+        field(out, "cv", &format!("{}, {folds}", cv.detector))?;
+    }
+    field(out, "started", &record.started_at)?;
+    match &record.ended_at {
+        Some(ended) => {
+            let took = seconds_between(&record.started_at, ended)
+                .map_or(String::new(), |s| format!(" ({s:.2} s)"));
+            field(out, "ended", &format!("{ended}{took}"))?;
+        }
+        None => field(out, "ended", "-")?,
+    }
+    if record.forced {
+        field(
+            out,
+            "forced",
+            "yes (--force: every step recomputed and compared)",
+        )?;
+    }
+    if let Some(error) = &record.error {
+        field(out, "error", error)?;
+    }
+
+    writeln!(out, "manifest")?;
+    field(out, "name", &record.manifest_name)?;
+    field(out, "sha256", &record.manifest_sha256)?;
+    field(out, "path", &record.manifest_path)?;
+
+    writeln!(out, "code")?;
+    let code = &record.code;
+    field(
+        out,
+        "scanloc",
+        &format!(
+            "{}, commit {} (dirty: {})",
+            code.crate_version, code.git_commit, code.git_dirty
+        ),
+    )?;
+    field(out, "rustc", &code.rustc)?;
+    field(
+        out,
+        "machine",
+        &format!(
+            "{}, pid {}, {} threads",
+            record.host, record.pid, record.threads
+        ),
+    )?;
+
+    writeln!(out, "seeds")?;
+    let width = record.seeds.keys().map(|s| s.len()).max().unwrap_or(0);
+    for (step, seed) in &record.seeds {
+        writeln!(out, "  {step:<width$}  {seed}")?;
+    }
+
+    let counts = &record.counts;
+    writeln!(
+        out,
+        "steps: {} cached, {} computed, {} rebuilt",
+        counts.cached, counts.computed, counts.rebuilt
+    )?;
+    let width = record.steps.iter().map(|s| s.step.len()).max().unwrap_or(0);
+    for step in &record.steps {
+        let detail = step
+            .detail
+            .as_ref()
+            .map_or(String::new(), |d| format!("  ({d})"));
+        writeln!(
+            out,
+            "  {:<9} {:<width$}  {:>8.2} s{detail}",
+            step.outcome, step.step, step.seconds
+        )?;
+    }
+
+    // The grid opens with its own `AUC` heading.
+    let reference = match RecordedManifest::of(record) {
+        Ok(manifest) => manifest.reference,
+        Err(e) => {
+            writeln!(out, "(reference rows not shown: {e:#})")?;
+            None
+        }
+    };
+    out.push_str(&table::render(&record.auc, reference.as_ref()));
+    Ok(())
+}

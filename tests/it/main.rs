@@ -1,0 +1,25 @@
+//! The integration tests, as one test binary with a module per feature:
+//! one link of the library and its dependencies (burn, rusqlite,
+//! plotters) instead of one per file. `common` holds the helpers the
+//! modules share.
+
+mod common;
+
+mod bench_tradeoffs;
+mod calibrate_cv;
+mod cli_locate;
+mod cli_simulate;
+mod cnn;
+mod crocker_grier;
+mod figures;
+mod hostile_cli_fuzz;
+mod hostile_manifest;
+mod hostile_registry;
+mod manifest_errors;
+mod manifest_fuzz;
+mod metric;
+mod registry_crash;
+mod registry_runs;
+mod report;
+mod simulator;
+mod stress;
