@@ -5,6 +5,11 @@
 //! manifest) and makes the command exit with code 2; a [`CheckFailed`] means a
 //! verification found a difference (exit 1). Anything else is an internal
 //! failure (exit 1 too, but reported as such).
+//!
+//! Parameter checks (`validate` methods) return a [`FieldError`] instead:
+//! which field is wrong and why, as data, so a manifest can place the field
+//! under its own path and line. Passed on with `?` it becomes an
+//! [`InputError`].
 
 use std::fmt;
 
@@ -58,31 +63,166 @@ pub fn exit_code(error: &anyhow::Error) -> i32 {
     }
 }
 
+/// One step of the path to a field: a mapping key or a list index.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum Segment {
+    /// A mapping key (a field name, or the name of a dataset or detector).
+    Key(String),
+    /// A list index (0-based).
+    Index(usize),
+}
+
+impl Segment {
+    /// The key `name`.
+    pub fn key(name: &str) -> Self {
+        Segment::Key(name.to_string())
+    }
+}
+
+/// Formats a path the way errors print it: keys joined by `.`, indices as
+/// `[i]` (`evaluations[0].detector`).
+pub fn display_path(path: &[Segment]) -> String {
+    let mut text = String::new();
+    for segment in path {
+        match segment {
+            Segment::Key(key) => {
+                if !text.is_empty() {
+                    text.push('.');
+                }
+                text.push_str(key);
+            }
+            Segment::Index(index) => text.push_str(&format!("[{index}]")),
+        }
+    }
+    text
+}
+
+/// A field that failed a check: where it is and what is wrong with it.
+///
+/// `path` is relative to the value that was checked (`training.epochs` for
+/// [`TrainingSettings`](crate::detect::cnn::TrainingSettings)); whoever holds
+/// that value puts its own path in front with [`FieldError::under`]
+/// (`detectors.cnn.cnn.training.epochs`). It prints as `path: message`, and
+/// turned into an [`anyhow::Error`] (by `?`) it is an [`InputError`] with
+/// that text.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FieldError {
+    /// From the outermost field in; empty for the checked value itself.
+    pub path: Vec<Segment>,
+    /// What is wrong, e.g. `must be ≥ 1, got 0`.
+    pub message: String,
+}
+
+impl FieldError {
+    /// An error in field `field`, which may be a dotted path
+    /// (`detector_noise.pmt.excess_noise_factor`).
+    pub fn new(field: &str, message: impl Into<String>) -> Self {
+        Self {
+            path: field.split('.').map(Segment::key).collect(),
+            message: message.into(),
+        }
+    }
+
+    /// An error at `path` (segments from the outermost in).
+    pub fn at(path: &[Segment], message: impl Into<String>) -> Self {
+        Self {
+            path: path.to_vec(),
+            message: message.into(),
+        }
+    }
+
+    /// The same error seen from the value that holds the checked one at
+    /// `outer`: `outer` goes in front of the path.
+    pub fn under(mut self, outer: &[Segment]) -> Self {
+        self.path.splice(0..0, outer.iter().cloned());
+        self
+    }
+
+    /// The path as errors print it (`datasets.a.brightness`).
+    pub fn field(&self) -> String {
+        display_path(&self.path)
+    }
+}
+
+impl fmt::Display for FieldError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.path.is_empty() {
+            f.write_str(&self.message)
+        } else {
+            write!(f, "{}: {}", self.field(), self.message)
+        }
+    }
+}
+
+/// Bad input: a failed field check ends the command with exit code 2 like
+/// any other [`InputError`].
+impl From<FieldError> for anyhow::Error {
+    fn from(error: FieldError) -> Self {
+        input_error(error.to_string())
+    }
+}
+
 /// Checks that a parameter is a finite number, naming it in the error.
-pub fn require_finite(name: &str, value: f64) -> anyhow::Result<f64> {
+pub fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
     if value.is_finite() {
         Ok(value)
     } else {
-        Err(input_error(format!(
-            "{name}: must be a finite number, got {value}"
-        )))
+        Err(FieldError::new(
+            name,
+            format!("must be a finite number, got {value}"),
+        ))
     }
 }
 
 /// Checks that a parameter is finite and ≥ 0, naming it in the error.
-pub fn require_non_negative(name: &str, value: f64) -> anyhow::Result<f64> {
+pub fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value < 0.0 {
-        return Err(input_error(format!("{name}: must be ≥ 0, got {value}")));
+        return Err(FieldError::new(name, format!("must be ≥ 0, got {value}")));
     }
     Ok(value)
 }
 
 /// Checks that a parameter is finite and > 0, naming it in the error.
-pub fn require_positive(name: &str, value: f64) -> anyhow::Result<f64> {
+pub fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value <= 0.0 {
-        return Err(input_error(format!("{name}: must be > 0, got {value}")));
+        return Err(FieldError::new(name, format!("must be > 0, got {value}")));
     }
     Ok(value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn field_errors_take_the_path_of_the_value_that_holds_them() {
+        let error = FieldError::new("training.epochs", "must be ≥ 1, got 0").under(&[
+            Segment::key("detectors"),
+            Segment::key("cnn.v2"),
+            Segment::key("cnn"),
+        ]);
+        assert_eq!(error.field(), "detectors.cnn.v2.cnn.training.epochs");
+        assert_eq!(error.path.len(), 5, "a dotted name stays one segment");
+        assert_eq!(
+            error.to_string(),
+            "detectors.cnn.v2.cnn.training.epochs: must be ≥ 1, got 0"
+        );
+        let listed = FieldError::at(
+            &[
+                Segment::key("metrics"),
+                Segment::key("eps_px"),
+                Segment::Index(2),
+            ],
+            "duplicate radius 1",
+        );
+        assert_eq!(listed.to_string(), "metrics.eps_px[2]: duplicate radius 1");
+        let converted: anyhow::Error = listed.into();
+        assert_eq!(exit_code(&converted), 2);
+        assert_eq!(
+            converted.to_string(),
+            "metrics.eps_px[2]: duplicate radius 1"
+        );
+    }
 }

@@ -11,6 +11,7 @@
 
 pub mod bench;
 pub mod detect;
+pub mod env_vars;
 pub mod error;
 pub mod io;
 pub mod manifest;

@@ -29,9 +29,8 @@ pub struct CalibrateArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
 }
 
 pub fn run(args: CalibrateArgs) -> anyhow::Result<ExitCode> {

@@ -39,9 +39,8 @@ pub struct CvArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
 }
 
 pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {

@@ -15,9 +15,12 @@ mod score;
 mod simulate;
 mod train;
 
+use std::ops::Deref;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
+use scanloc::env_vars;
 
 /// scanloc: simulate two-photon raster-scan frames of diffusing quantum dots,
 /// localise the dots, and score localisations, reproducibly.
@@ -65,5 +68,32 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Report(args) => report::run(args),
         Command::Calibrate(args) => calibrate::run(args),
         Command::Cv(args) => cv::run(args),
+    }
+}
+
+/// The `--registry DIR` option, shared by every subcommand that reads or
+/// writes the registry (flattened into their arguments).
+///
+/// Dereferences to the folder's path, so a subcommand passes
+/// `&args.registry` wherever a `&Path` is wanted.
+#[derive(Debug, Clone, Args)]
+pub struct RegistryDir {
+    /// Registry folder (registry.sqlite and blobs/; see docs/registry.md).
+    #[arg(
+        id = "registry",
+        long = "registry",
+        value_name = "DIR",
+        global = true,
+        env = env_vars::SCANLOC_REGISTRY,
+        default_value = "registry"
+    )]
+    pub dir: PathBuf,
+}
+
+impl Deref for RegistryDir {
+    type Target = Path;
+
+    fn deref(&self) -> &Path {
+        &self.dir
     }
 }

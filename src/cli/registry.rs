@@ -1,6 +1,5 @@
 //! `scanloc registry`: audit what has been run and stored.
 
-use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Args, Subcommand};
@@ -17,14 +16,8 @@ use scanloc::report::summary::run_summary;
 pub struct RegistryArgs {
     #[command(subcommand)]
     command: RegistryCommand,
-    /// Registry folder.
-    #[arg(
-        long,
-        global = true,
-        env = "SCANLOC_REGISTRY",
-        default_value = "registry"
-    )]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Print JSON instead of text.
     #[arg(long, global = true)]
     json: bool,

@@ -21,9 +21,8 @@ pub struct ReportArgs {
     /// Output folder.
     #[arg(long, default_value = "reports/latest")]
     out: PathBuf,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
 }
 
 pub fn run(args: ReportArgs) -> anyhow::Result<ExitCode> {

@@ -25,9 +25,8 @@ pub struct ReproduceArgs {
     /// removed afterwards).
     #[arg(long)]
     scratch: Option<PathBuf>,
-    /// Registry folder.
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
 }
 
 pub fn run(args: ReproduceArgs) -> anyhow::Result<ExitCode> {

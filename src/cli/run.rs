@@ -31,9 +31,8 @@ pub struct RunArgs {
     /// identical to the stored one.
     #[arg(long)]
     force: bool,
-    /// Registry folder (database registry.sqlite and blobs/).
-    #[arg(long, env = "SCANLOC_REGISTRY", default_value = "registry")]
-    registry: PathBuf,
+    #[command(flatten)]
+    registry: super::RegistryDir,
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {

@@ -8,29 +8,16 @@
 //! one parameter block stay with its type (`SimParams::validate`,
 //! `CrockerGrierParams::validate`, …).
 
-use super::locate::Segment;
 use super::{DetectorSpec, Manifest};
+use crate::error::{FieldError, Segment};
 
-/// A field that makes the manifest impossible to run, and why.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Problem {
-    pub path: Vec<Segment>,
-    pub message: String,
-}
-
-fn key(k: &str) -> Segment {
-    Segment::Key(k.to_string())
-}
-
-fn problem(path: &[&str], message: String) -> Problem {
-    Problem {
-        path: path.iter().map(|p| key(p)).collect(),
-        message,
-    }
+fn problem(path: &[&str], message: String) -> FieldError {
+    let path: Vec<Segment> = path.iter().map(|p| Segment::key(p)).collect();
+    FieldError::at(&path, message)
 }
 
 /// The first problem of `manifest` that its run would only find by running.
-pub fn check(manifest: &Manifest) -> Result<(), Problem> {
+pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
     // Every dataset that gets scored, and by what (for the message).
     let mut scored: Vec<(&str, String)> = manifest
         .evaluations

@@ -11,32 +11,7 @@
 
 use std::collections::HashMap;
 
-/// One step of a path into a YAML document.
-#[derive(Debug, Clone, PartialEq, Eq, Hash)]
-pub enum Segment {
-    /// A mapping key.
-    Key(String),
-    /// A sequence index (0-based).
-    Index(usize),
-}
-
-/// Formats a path the way errors print it: keys joined by `.`, indices as
-/// `[i]` (`evaluations[0].detector`).
-pub fn display_path(path: &[Segment]) -> String {
-    let mut text = String::new();
-    for segment in path {
-        match segment {
-            Segment::Key(key) => {
-                if !text.is_empty() {
-                    text.push('.');
-                }
-                text.push_str(key);
-            }
-            Segment::Index(index) => text.push_str(&format!("[{index}]")),
-        }
-    }
-    text
-}
+use crate::error::Segment;
 
 /// The line (1-based) of every key and sequence item of a document.
 pub struct LineIndex {
@@ -143,9 +118,10 @@ fn mapping_key(content: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::display_path;
 
     fn key(k: &str) -> Segment {
-        Segment::Key(k.to_string())
+        Segment::key(k)
     }
 
     #[test]

@@ -21,7 +21,7 @@ use crate::error::input_error;
 pub const EMBEDDED_FONT: &[u8] = include_bytes!("../../assets/fonts/Roboto-Regular.ttf");
 
 /// The environment variable naming a TrueType font file to draw text with.
-pub const FONT_VARIABLE: &str = "SCANLOC_FONT";
+pub const FONT_VARIABLE: &str = crate::env_vars::SCANLOC_FONT;
 
 /// Registers the font figures are drawn with, as plotters' `sans-serif`:
 /// the file `requested` (the value of `SCANLOC_FONT`) if it is a readable

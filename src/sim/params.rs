@@ -10,7 +10,7 @@ use std::str::FromStr;
 use rand::{Rng, RngExt};
 use serde::{Deserialize, Serialize};
 
-use crate::error::{input_error, require_finite, require_non_negative, require_positive};
+use crate::error::{FieldError, require_finite, require_non_negative, require_positive};
 
 /// A scalar parameter that is either fixed or drawn once per frame.
 ///
@@ -59,7 +59,7 @@ impl Distribution {
 
     /// Checks every value is finite (and ≥ 0 when `non_negative`), naming the
     /// parameter in the error.
-    pub fn validate(&self, name: &str, non_negative: bool) -> anyhow::Result<()> {
+    pub fn validate(&self, name: &str, non_negative: bool) -> Result<(), FieldError> {
         let (low, high) = self.bounds();
         for value in [low, high] {
             if non_negative {
@@ -69,9 +69,10 @@ impl Distribution {
             }
         }
         if low > high {
-            return Err(input_error(format!(
-                "{name}: uniform bounds must be ordered (low ≤ high), got [{low}, {high}]"
-            )));
+            return Err(FieldError::new(
+                name,
+                format!("uniform bounds must be ordered (low ≤ high), got [{low}, {high}]"),
+            ));
         }
         Ok(())
     }
@@ -217,14 +218,15 @@ pub const DEFAULT_PSF_CUTOFF_SIGMA: f64 = 6.0;
 pub const MAX_FRAME_SIDE: usize = 16_384;
 
 impl SimParams {
-    /// Checks every parameter; errors name the parameter (prefixed by
-    /// `context`, e.g. a manifest path) and say what is allowed.
-    pub fn validate(&self) -> anyhow::Result<()> {
-        let check_side = |name: &str, value: usize| -> anyhow::Result<()> {
+    /// Checks every parameter; an error names the parameter and says what
+    /// is allowed.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        let check_side = |name: &str, value: usize| -> Result<(), FieldError> {
             if value == 0 || value > MAX_FRAME_SIDE {
-                return Err(input_error(format!(
-                    "{name}: must be between 1 and {MAX_FRAME_SIDE} pixels, got {value}"
-                )));
+                return Err(FieldError::new(
+                    name,
+                    format!("must be between 1 and {MAX_FRAME_SIDE} pixels, got {value}"),
+                ));
             }
             Ok(())
         };
@@ -241,22 +243,25 @@ impl SimParams {
         self.z_start.validate("z_start", false)?;
         require_non_negative("margin_px", self.margin_px)?;
         if 2.0 * self.margin_px >= self.width.min(self.height) as f64 {
-            return Err(input_error(format!(
-                "margin_px: {} leaves no room for start positions in a {}×{} frame",
-                self.margin_px, self.height, self.width
-            )));
+            return Err(FieldError::new(
+                "margin_px",
+                format!(
+                    "{} leaves no room for start positions in a {}×{} frame",
+                    self.margin_px, self.height, self.width
+                ),
+            ));
         }
         if self.substeps == 0 || self.substeps > 1024 {
-            return Err(input_error(format!(
-                "substeps: must be between 1 and 1024, got {}",
-                self.substeps
-            )));
+            return Err(FieldError::new(
+                "substeps",
+                format!("must be between 1 and 1024, got {}", self.substeps),
+            ));
         }
         if self.emitters > 10_000 {
-            return Err(input_error(format!(
-                "emitters: must be at most 10000, got {}",
-                self.emitters
-            )));
+            return Err(FieldError::new(
+                "emitters",
+                format!("must be at most 10000, got {}", self.emitters),
+            ));
         }
         if let DetectorNoise::Pmt {
             excess_noise_factor,
@@ -267,9 +272,10 @@ impl SimParams {
                 excess_noise_factor,
             )?;
             if excess_noise_factor <= 1.0 {
-                return Err(input_error(format!(
-                    "detector_noise.pmt.excess_noise_factor: must be > 1 (1 is plain Poisson), got {excess_noise_factor}"
-                )));
+                return Err(FieldError::new(
+                    "detector_noise.pmt.excess_noise_factor",
+                    format!("must be > 1 (1 is plain Poisson), got {excess_noise_factor}"),
+                ));
             }
         }
         if let Some(cutoff) = self.psf_cutoff_sigma {
@@ -278,24 +284,30 @@ impl SimParams {
         // Refused here, before any frame is simulated, rather than when the
         // first oversized count is drawn.
         if self.background > MAX_EXPECTED_PHOTONS_PER_PIXEL {
-            return Err(input_error(format!(
-                "background: {} photons per pixel cannot be recorded in a uint32 count with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e})",
-                readable(self.background)
-            )));
+            return Err(FieldError::new(
+                "background",
+                format!(
+                    "{} photons per pixel cannot be recorded in a uint32 count with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e})",
+                    readable(self.background)
+                ),
+            ));
         }
         let brightest = match self.emitters {
             0 => self.background,
             n => f64::from(n) * self.psf_peak() + self.background,
         };
         if brightest.is_nan() || brightest > MAX_EXPECTED_PHOTONS_PER_PIXEL {
-            return Err(input_error(format!(
-                "brightness: {} emitter(s) of brightness {} with sigma_xy_um {} and sigma_z_um {} expect up to {} photons in one pixel, more than a uint32 count holds with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e}); lower brightness or widen the PSF",
-                self.emitters,
-                readable(self.brightness),
-                readable(self.sigma_xy_um),
-                readable(self.sigma_z_um),
-                readable(brightest)
-            )));
+            return Err(FieldError::new(
+                "brightness",
+                format!(
+                    "{} emitter(s) of brightness {} with sigma_xy_um {} and sigma_z_um {} expect up to {} photons in one pixel, more than a uint32 count holds with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e}); lower brightness or widen the PSF",
+                    self.emitters,
+                    readable(self.brightness),
+                    readable(self.sigma_xy_um),
+                    readable(self.sigma_z_um),
+                    readable(brightest)
+                ),
+            ));
         }
         Ok(())
     }

@@ -18,7 +18,7 @@ pub fn scanloc(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_scanloc"))
         .args(args)
         .current_dir(root())
-        .env_remove("SCANLOC_REGISTRY")
+        .env_remove(scanloc::env_vars::SCANLOC_REGISTRY)
         .output()
         .expect("run scanloc")
 }
@@ -110,7 +110,7 @@ pub fn blob_path(dir: &Path, sha256: &str) -> PathBuf {
 /// Cases per fuzzing property test: `default` in `make test`, or the
 /// number in `SCANLOC_FUZZ_CASES` for a long run (`make fuzz`).
 pub fn fuzz_cases(default: u32) -> u32 {
-    match std::env::var("SCANLOC_FUZZ_CASES") {
+    match std::env::var(scanloc::env_vars::SCANLOC_FUZZ_CASES) {
         // A mistyped count must not quietly shrink a long fuzzing run to the
         // default.
         Ok(cases) => cases

@@ -46,7 +46,8 @@ fn png_size(path: &std::path::Path) -> (u32, u32) {
 fn example_frames_curves_and_histograms_are_written_in_both_formats() {
     let temporary = tempfile::tempdir().unwrap();
     // SCANLOC_KEEP_FIGURES=DIR keeps the figures for a person to look at.
-    let kept = std::env::var_os("SCANLOC_KEEP_FIGURES").map(std::path::PathBuf::from);
+    let kept =
+        std::env::var_os(scanloc::env_vars::SCANLOC_KEEP_FIGURES).map(std::path::PathBuf::from);
     let dir = kept.as_deref().unwrap_or(temporary.path());
     let frames = dir.join("example_frames");
     frame_panels(&frames, &example_panels()).unwrap();

@@ -478,7 +478,7 @@ fn the_registry_can_come_from_the_environment() {
     let registry = dir.path().join("from-env");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_scanloc"))
         .args(["run", smoke().to_str().unwrap(), "--json"])
-        .env("SCANLOC_REGISTRY", &registry)
+        .env(scanloc::env_vars::SCANLOC_REGISTRY, &registry)
         .output()
         .unwrap();
     assert!(output.status.success(), "{}", stderr(&output));

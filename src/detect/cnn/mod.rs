@@ -31,7 +31,7 @@ use burn::prelude::Device;
 use burn::store::ModuleRecord;
 use serde::{Deserialize, Serialize};
 
-use crate::error::input_error;
+use crate::error::{FieldError, input_error};
 pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
 /// The network's shape. Serialised with the model; every field has a
@@ -77,34 +77,38 @@ const MAX_CHANNELS: usize = 1024;
 const MAX_DILATION: usize = 256;
 
 impl CnnArchitecture {
-    /// Checks every field; the error is an [`InputError`](crate::error::InputError)
-    /// naming the field.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    /// Checks every field; the error names the field and says what is
+    /// allowed.
+    pub fn validate(&self) -> Result<(), FieldError> {
         if self.channels == 0 || self.channels > MAX_CHANNELS {
-            crate::bail_input!(
-                "architecture.channels: must be in 1..={MAX_CHANNELS}, got {}",
-                self.channels
-            );
+            return Err(FieldError::new(
+                "architecture.channels",
+                format!("must be in 1..={MAX_CHANNELS}, got {}", self.channels),
+            ));
         }
         if self.dilations.is_empty() {
-            crate::bail_input!("architecture.dilations: needs at least one layer");
+            return Err(FieldError::new(
+                "architecture.dilations",
+                "needs at least one layer",
+            ));
         }
         if let Some(bad) = self.dilations.iter().find(|&&d| d == 0 || d > MAX_DILATION) {
-            crate::bail_input!(
-                "architecture.dilations: each must be in 1..={MAX_DILATION}, got {bad}"
-            );
+            return Err(FieldError::new(
+                "architecture.dilations",
+                format!("each must be in 1..={MAX_DILATION}, got {bad}"),
+            ));
         }
         if self.peak_radius_px == 0 || self.peak_radius_px > 64 {
-            crate::bail_input!(
-                "architecture.peak_radius_px: must be in 1..=64, got {}",
-                self.peak_radius_px
-            );
+            return Err(FieldError::new(
+                "architecture.peak_radius_px",
+                format!("must be in 1..=64, got {}", self.peak_radius_px),
+            ));
         }
         if self.refine_radius_px > 16 {
-            crate::bail_input!(
-                "architecture.refine_radius_px: must be in 0..=16, got {}",
-                self.refine_radius_px
-            );
+            return Err(FieldError::new(
+                "architecture.refine_radius_px",
+                format!("must be in 0..=16, got {}", self.refine_radius_px),
+            ));
         }
         Ok(())
     }
@@ -177,50 +181,53 @@ impl TrainingSettings {
         ((frames as f64) * self.validation_fraction).round() as usize
     }
 
-    /// Checks every field; the error is an [`InputError`](crate::error::InputError)
-    /// naming the field.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    /// Checks every field; the error names the field and says what is
+    /// allowed.
+    pub fn validate(&self) -> Result<(), FieldError> {
         if self.epochs == 0 {
-            crate::bail_input!("training.epochs: must be ≥ 1, got 0");
+            return Err(FieldError::new("training.epochs", "must be ≥ 1, got 0"));
         }
         if self.batch_size == 0 {
-            crate::bail_input!("training.batch_size: must be ≥ 1, got 0");
+            return Err(FieldError::new("training.batch_size", "must be ≥ 1, got 0"));
         }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
-            crate::bail_input!(
-                "training.learning_rate: must be a finite number > 0, got {}",
-                self.learning_rate
-            );
+            return Err(FieldError::new(
+                "training.learning_rate",
+                format!("must be a finite number > 0, got {}", self.learning_rate),
+            ));
         }
         if !(0.0..=1.0).contains(&self.validation_fraction) {
-            crate::bail_input!(
-                "training.validation_fraction: must be in [0, 1], got {}",
-                self.validation_fraction
-            );
+            return Err(FieldError::new(
+                "training.validation_fraction",
+                format!("must be in [0, 1], got {}", self.validation_fraction),
+            ));
         }
         if !(self.score_floor.is_finite() && (0.0..1.0).contains(&self.score_floor)) {
-            crate::bail_input!(
-                "training.score_floor: must be in [0, 1), got {}",
-                self.score_floor
-            );
+            return Err(FieldError::new(
+                "training.score_floor",
+                format!("must be in [0, 1), got {}", self.score_floor),
+            ));
         }
         if !(self.heatmap_sigma_px.is_finite() && self.heatmap_sigma_px > 0.0) {
-            crate::bail_input!(
-                "training.heatmap_sigma_px: must be a finite number > 0, got {}",
-                self.heatmap_sigma_px
-            );
+            return Err(FieldError::new(
+                "training.heatmap_sigma_px",
+                format!("must be a finite number > 0, got {}", self.heatmap_sigma_px),
+            ));
         }
         if self.offset_radius_px > 16 {
-            crate::bail_input!(
-                "training.offset_radius_px: must be in 0..=16, got {}",
-                self.offset_radius_px
-            );
+            return Err(FieldError::new(
+                "training.offset_radius_px",
+                format!("must be in 0..=16, got {}", self.offset_radius_px),
+            ));
         }
         if !(self.offset_loss_weight.is_finite() && self.offset_loss_weight >= 0.0) {
-            crate::bail_input!(
-                "training.offset_loss_weight: must be a finite number ≥ 0, got {}",
-                self.offset_loss_weight
-            );
+            return Err(FieldError::new(
+                "training.offset_loss_weight",
+                format!(
+                    "must be a finite number ≥ 0, got {}",
+                    self.offset_loss_weight
+                ),
+            ));
         }
         Ok(())
     }
@@ -333,10 +340,10 @@ impl TrainedCnn {
     ) -> anyhow::Result<Self> {
         architecture
             .validate()
-            .with_context(|| format!("{source}: architecture"))?;
+            .map_err(|e| input_error(format!("{source}: architecture: {e}")))?;
         settings
             .validate()
-            .with_context(|| format!("{source}: training settings"))?;
+            .map_err(|e| input_error(format!("{source}: training settings: {e}")))?;
         let device = inference_device();
         let net = model::Net::new(&architecture, 0, &device)
             .try_load_record(weights)

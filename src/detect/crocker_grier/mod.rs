@@ -30,7 +30,7 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::error::{input_error, require_finite};
+use crate::error::{FieldError, input_error, require_finite};
 use crate::types::{FrameStack, Prediction};
 
 /// Version of the locator's output, part of the content key of every
@@ -88,12 +88,12 @@ impl Default for CrockerGrierParams {
 
 impl CrockerGrierParams {
     /// Checks every parameter, naming the one at fault.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub fn validate(&self) -> Result<(), FieldError> {
         if self.diameter < 3 || self.diameter.is_multiple_of(2) {
-            return Err(input_error(format!(
-                "diameter: must be an odd integer ≥ 3, got {}",
-                self.diameter
-            )));
+            return Err(FieldError::new(
+                "diameter",
+                format!("must be an odd integer ≥ 3, got {}", self.diameter),
+            ));
         }
         if let Some(minmass) = self.minmass {
             // Negative values would let empty (mass 0, size NaN) features through.
@@ -105,45 +105,50 @@ impl CrockerGrierParams {
         if let Some(separation) = self.separation {
             require_finite("separation", separation)?;
             if separation < 0.0 {
-                return Err(input_error(format!(
-                    "separation: must be ≥ 0, got {separation}"
-                )));
+                return Err(FieldError::new(
+                    "separation",
+                    format!("must be ≥ 0, got {separation}"),
+                ));
             }
         }
         require_finite("noise_size", self.noise_size)?;
         if self.noise_size < 0.0 {
-            return Err(input_error(format!(
-                "noise_size: must be ≥ 0, got {}",
-                self.noise_size
-            )));
+            return Err(FieldError::new(
+                "noise_size",
+                format!("must be ≥ 0, got {}", self.noise_size),
+            ));
         }
         let smoothing = self.smoothing_size();
         if smoothing == 0 || smoothing.is_multiple_of(2) {
-            return Err(input_error(format!(
-                "smoothing_size: must be a positive odd integer, got {smoothing}"
-            )));
+            return Err(FieldError::new(
+                "smoothing_size",
+                format!("must be a positive odd integer, got {smoothing}"),
+            ));
         }
         if self.preprocess && self.noise_size >= smoothing as f64 {
-            return Err(input_error(format!(
-                "noise_size: must be smaller than smoothing_size ({smoothing}), got {}",
-                self.noise_size
-            )));
+            return Err(FieldError::new(
+                "noise_size",
+                format!(
+                    "must be smaller than smoothing_size ({smoothing}), got {}",
+                    self.noise_size
+                ),
+            ));
         }
         if let Some(threshold) = self.threshold {
             require_finite("threshold", threshold)?;
         }
         require_finite("percentile", self.percentile)?;
         if !(0.0..=100.0).contains(&self.percentile) {
-            return Err(input_error(format!(
-                "percentile: must be between 0 and 100, got {}",
-                self.percentile
-            )));
+            return Err(FieldError::new(
+                "percentile",
+                format!("must be between 0 and 100, got {}", self.percentile),
+            ));
         }
         if self.topn == Some(0) {
-            return Err(input_error("topn: must be at least 1"));
+            return Err(FieldError::new("topn", "must be at least 1"));
         }
         if self.max_iterations == 0 {
-            return Err(input_error("max_iterations: must be at least 1"));
+            return Err(FieldError::new("max_iterations", "must be at least 1"));
         }
         Ok(())
     }

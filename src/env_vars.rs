@@ -1,0 +1,29 @@
+//! The environment variables scanloc reads, named once.
+//!
+//! Code refers to these constants instead of writing the names as string
+//! literals, so a name is spelt in one place and this list is complete.
+//!
+//! Not listed: `SCANLOC_GIT_COMMIT`, `SCANLOC_GIT_DIRTY` and
+//! `SCANLOC_RUSTC_VERSION`, which `build.rs` sets at compile time for
+//! `env!` (a macro that needs the name as a literal); setting them when
+//! running scanloc has no effect.
+
+/// The registry folder, when `--registry` is not given (default
+/// `registry`).
+pub const SCANLOC_REGISTRY: &str = "SCANLOC_REGISTRY";
+
+/// What the log on standard error shows, as a `tracing` filter
+/// (`warn` by default; e.g. `info` or `scanloc=debug`).
+pub const SCANLOC_LOG: &str = "SCANLOC_LOG";
+
+/// A TrueType font file for the text of figures, tried before the fonts
+/// scanloc looks for itself.
+pub const SCANLOC_FONT: &str = "SCANLOC_FONT";
+
+/// Cases per property of the fuzzing tests (`make fuzz` sets it; without
+/// it `make test` runs a short default). Read by the test suite only.
+pub const SCANLOC_FUZZ_CASES: &str = "SCANLOC_FUZZ_CASES";
+
+/// A folder in which the figures test keeps the figures it draws, for a
+/// person to look at. Read by the test suite only.
+pub const SCANLOC_KEEP_FIGURES: &str = "SCANLOC_KEEP_FIGURES";

@@ -1,0 +1,59 @@
+//! The manifest as written: the serde targets YAML is first read into,
+//! before names are checked, references followed and defaults filled in
+//! (by [`super::resolve`]).
+//!
+//! Sections whose fields are checked one by one (the microscope and the
+//! datasets' overrides of it) stay YAML mappings here.
+
+use serde::Deserialize;
+
+use super::serde_adapters::{Named, SingletonMap};
+use super::{CrossValidation, DetectorSpec, MetricsSpec};
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawManifest {
+    pub name: String,
+    #[serde(default)]
+    pub description: Option<String>,
+    pub seed: u64,
+    #[serde(default)]
+    pub microscope: serde_yaml::Mapping,
+    pub datasets: Named<serde_yaml::Mapping>,
+    #[serde(default)]
+    pub detectors: Named<SingletonMap<DetectorSpec>>,
+    #[serde(default)]
+    pub metrics: MetricsSpec,
+    #[serde(default)]
+    pub evaluations: Vec<RawEvaluation>,
+    #[serde(default)]
+    pub cross_validation: Option<CrossValidation>,
+    #[serde(default)]
+    pub reference: Option<RawReference>,
+}
+
+/// One entry of `evaluations`: a detector and the datasets it is scored on.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawEvaluation {
+    pub detector: String,
+    pub datasets: Vec<String>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawReference {
+    #[serde(default)]
+    pub source: String,
+    pub rows: Vec<RawReferenceRow>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawReferenceRow {
+    pub detector: String,
+    #[serde(default)]
+    pub label: Option<String>,
+    /// dataset name → one AUC per ε of `metrics.eps_px`.
+    pub auc: Named<Vec<f64>>,
+}

@@ -1,0 +1,37 @@
+//! The `metrics` section: the matching radii of the AUC table.
+
+use crate::error::{FieldError, Segment};
+use crate::manifest::MetricsSpec;
+
+/// Most radii a manifest may list (columns of the AUC table per dataset).
+const MAX_RADII: usize = 32;
+
+/// Checks the radii: 1 to [`MAX_RADII`] distinct positive numbers of pixels.
+pub(super) fn check_metrics(metrics: &MetricsSpec) -> Result<(), FieldError> {
+    let path = super::path_of(&["metrics", "eps_px"]);
+    if metrics.eps_px.is_empty() {
+        return Err(FieldError::at(&path, "must list at least one radius"));
+    }
+    if metrics.eps_px.len() > MAX_RADII {
+        return Err(FieldError::at(
+            &path,
+            format!("must list at most {MAX_RADII} radii"),
+        ));
+    }
+    for (index, &eps) in metrics.eps_px.iter().enumerate() {
+        let radius_path: Vec<Segment> = super::item(&path, index);
+        if !(eps.is_finite() && eps > 0.0 && eps <= 1e6) {
+            return Err(FieldError::at(
+                &radius_path,
+                format!("must be a positive number of pixels (at most 1e6), got {eps}"),
+            ));
+        }
+        if metrics.eps_px[..index].contains(&eps) {
+            return Err(FieldError::at(
+                &radius_path,
+                format!("duplicate radius {eps}"),
+            ));
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,85 @@
+//! The `microscope` section, and the simulator parameters datasets
+//! override on top of it.
+
+use crate::error::{FieldError, Segment};
+use crate::manifest::serde_adapters::as_tagged_enum;
+use crate::sim::SimParams;
+
+/// The `microscope` section: the simulator's defaults with the section's
+/// fields on top, checked.
+pub(super) fn resolve_microscope(section: &serde_yaml::Mapping) -> Result<SimParams, FieldError> {
+    let path = super::path_of(&["microscope"]);
+    let microscope = apply_sim_overrides(&path, &SimParams::default(), section, &[])?;
+    microscope.validate().map_err(|e| e.under(&path))?;
+    Ok(microscope)
+}
+
+/// Applies `overrides` (a YAML mapping of [`SimParams`] fields, found at
+/// `path`) on top of `base`, reading each field on its own so an error
+/// names the field. Keys in `skip` belong to the caller (a dataset's
+/// `frames`) and are left alone. The result is not yet checked with
+/// [`SimParams::validate`].
+pub(super) fn apply_sim_overrides(
+    path: &[Segment],
+    base: &SimParams,
+    overrides: &serde_yaml::Mapping,
+    skip: &[&str],
+) -> Result<SimParams, FieldError> {
+    let fields = sim_field_names();
+    let mut merged = as_mapping(base);
+    for (field, value) in overrides {
+        let Some(name) = field.as_str() else {
+            return Err(FieldError::at(path, "field names must be strings"));
+        };
+        if skip.contains(&name) {
+            continue;
+        }
+        let field_path = super::field(path, name);
+        if !fields.iter().any(|f| f == name) {
+            return Err(FieldError::at(
+                &field_path,
+                format!(
+                    "unknown field `{name}`, expected one of: {}",
+                    skip.iter()
+                        .map(|s| s.to_string())
+                        .chain(fields.iter().cloned())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            ));
+        }
+        let value = as_tagged_enum(value);
+        let mut single = merged.clone();
+        single.insert(field.clone(), value.clone());
+        if let Err(error) = serde_yaml::from_value::<SimParams>(serde_yaml::Value::Mapping(single))
+        {
+            let message = error.to_string();
+            let message = if message.contains("untagged enum Distribution") {
+                "must be a number or {uniform: [LOW, HIGH]}".to_string()
+            } else {
+                message
+            };
+            return Err(FieldError::at(&field_path, message));
+        }
+        merged.insert(field.clone(), value);
+    }
+    serde_yaml::from_value(serde_yaml::Value::Mapping(merged))
+        .map_err(|e| FieldError::at(path, e.to_string()))
+}
+
+/// `params` as a YAML mapping of its fields.
+fn as_mapping(params: &SimParams) -> serde_yaml::Mapping {
+    match serde_yaml::to_value(params) {
+        Ok(serde_yaml::Value::Mapping(mapping)) => mapping,
+        // A struct of numbers and enums always serialises to a mapping.
+        other => unreachable!("SimParams serialised to {other:?}"),
+    }
+}
+
+/// The field names of [`SimParams`], from its serialised default.
+fn sim_field_names() -> Vec<String> {
+    as_mapping(&SimParams::default())
+        .keys()
+        .filter_map(|k| k.as_str().map(str::to_string))
+        .collect()
+}

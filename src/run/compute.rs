@@ -1,0 +1,270 @@
+//! Making a step's artefact: one function per kind of step, reading its
+//! inputs from memory or from the registry.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use anyhow::Context;
+
+use super::artefacts::Artefact;
+use super::plan::{Action, Plan, Step};
+use super::stored::load_step_artefact;
+use crate::manifest::{CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, MetricsSpec};
+use crate::registry::Registry;
+
+/// Artefacts held in memory for the steps still to come, each dropped after
+/// the last step that reads it.
+pub(super) struct LoadedArtefacts {
+    artefacts: HashMap<usize, Artefact>,
+    /// For each step, the index of the last step reading its artefact.
+    last_use: Vec<usize>,
+}
+
+impl LoadedArtefacts {
+    pub(super) fn new(plan: &Plan) -> Self {
+        let mut last_use = vec![0usize; plan.steps.len()];
+        for (index, step) in plan.steps.iter().enumerate() {
+            for input in step.inputs() {
+                last_use[input] = index;
+            }
+        }
+        Self {
+            artefacts: HashMap::new(),
+            last_use,
+        }
+    }
+
+    /// Keeps the artefact step `index` made if a later step reads it.
+    pub(super) fn keep_if_read_later(&mut self, index: usize, artefact: Artefact) {
+        if self.last_use[index] > index {
+            self.artefacts.insert(index, artefact);
+        }
+    }
+
+    /// Drops every artefact no step after `index` reads.
+    pub(super) fn drop_unread_after(&mut self, index: usize) {
+        let last_use = &self.last_use;
+        self.artefacts.retain(|&i, _| last_use[i] > index);
+    }
+}
+
+/// Makes the artefact of step `index`.
+pub(super) fn compute(
+    registry: &Registry,
+    plan: &Plan,
+    index: usize,
+    loaded: &mut LoadedArtefacts,
+) -> anyhow::Result<Artefact> {
+    let step = &plan.steps[index];
+    let mut read_input = |index: usize| input(registry, plan, index, loaded);
+    match &step.action {
+        Action::Simulate { dataset } => simulate(dataset),
+        Action::Subset { source, frames } => {
+            let source = read_input(*source)?;
+            Ok(Artefact::Dataset(Arc::new(subset(
+                source.dataset()?,
+                frames,
+            )?)))
+        }
+        Action::Train {
+            detector,
+            training,
+            validation,
+        } => {
+            let training_set = read_input(*training)?;
+            let validation_set = validation.map(&mut read_input).transpose()?;
+            let fresh_frames = root_dataset(plan, *training).map(|d| &d.params);
+            train(
+                detector,
+                &training_set,
+                validation_set.as_ref(),
+                fresh_frames,
+            )
+        }
+        Action::Locate {
+            detector,
+            dataset,
+            model,
+        } => {
+            let dataset = read_input(*dataset)?;
+            let model = model.map(&mut read_input).transpose()?;
+            locate(step, detector, &dataset, model.as_ref())
+        }
+        Action::Score {
+            dataset,
+            predictions,
+            metrics,
+            ..
+        } => {
+            let dataset = read_input(*dataset)?;
+            let predictions = read_input(*predictions)?;
+            score(step, &dataset, &predictions, metrics)
+        }
+    }
+}
+
+/// The artefact of step `index`, from memory or from the registry (then
+/// kept in memory until its last reader is done).
+fn input(
+    registry: &Registry,
+    plan: &Plan,
+    index: usize,
+    loaded: &mut LoadedArtefacts,
+) -> anyhow::Result<Artefact> {
+    if let Some(artefact) = loaded.artefacts.get(&index) {
+        return Ok(artefact.clone());
+    }
+    let artefact = load_step_artefact(registry, plan, index)?;
+    loaded.artefacts.insert(index, artefact.clone());
+    Ok(artefact)
+}
+
+fn simulate(dataset: &DatasetSpec) -> anyhow::Result<Artefact> {
+    let progress = crate::progress::bar(dataset.frames as u64, &dataset.name);
+    let made = crate::sim::simulate(&dataset.params, dataset.seed, 0..dataset.frames, &progress)
+        .with_context(|| format!("simulating dataset {}", dataset.name))?;
+    progress.finish_and_clear();
+    Ok(Artefact::Dataset(Arc::new(made)))
+}
+
+/// Trains `detector` on `training_set`, selecting its epoch on
+/// `validation_set` if given (else on a split of the training set).
+fn train(
+    detector: &DetectorEntry,
+    training_set: &Artefact,
+    validation_set: Option<&Artefact>,
+    fresh_frames: Option<&crate::sim::SimParams>,
+) -> anyhow::Result<Artefact> {
+    let spec: &CnnSpec = match &detector.spec {
+        DetectorSpec::CrockerGrier(_) => {
+            anyhow::bail!("{}: crocker_grier is not a trained detector", detector.name)
+        }
+        DetectorSpec::Cnn(spec) => spec,
+    };
+    let training_set = training_set.dataset()?;
+    let progress = crate::progress::bar(0, &format!("train {}", detector.name));
+    let model = match validation_set {
+        Some(validation_set) => crate::detect::cnn::train_selecting_on(
+            &spec.architecture,
+            &spec.training,
+            training_set,
+            crate::detect::cnn::ValidationSet {
+                dataset: validation_set.dataset()?,
+                score: &crate::metrics::paper_aucs,
+            },
+            fresh_frames,
+            detector.seed,
+            &progress,
+        ),
+        None => crate::detect::cnn::train(
+            &spec.architecture,
+            &spec.training,
+            training_set,
+            fresh_frames,
+            detector.seed,
+            &crate::metrics::paper_aucs,
+            &progress,
+        ),
+    }
+    .with_context(|| format!("training {}", detector.name))?;
+    progress.finish_and_clear();
+    Ok(Artefact::Model(Arc::new(model.to_bytes()?)))
+}
+
+/// Runs `detector` (with its trained `model`, if it is trained) on the
+/// frames of `dataset`.
+fn locate(
+    step: &Step,
+    detector: &DetectorEntry,
+    dataset: &Artefact,
+    model: Option<&Artefact>,
+) -> anyhow::Result<Artefact> {
+    let frames = &dataset.dataset()?.frames;
+    let progress = crate::progress::bar(frames.n as u64, &step.name);
+    let predictions = match &detector.spec {
+        DetectorSpec::CrockerGrier(params) => {
+            let features = crate::detect::crocker_grier::locate_stack(frames, params, &progress)
+                .with_context(|| format!("locating with {}", detector.name))?;
+            crate::detect::crocker_grier::to_predictions(&features)
+        }
+        DetectorSpec::Cnn(_) => {
+            let bytes = model
+                .context("the cnn detector needs its trained model")?
+                .model()?;
+            crate::detect::cnn::TrainedCnn::from_bytes(bytes)?
+                .locate(frames, &progress)
+                .with_context(|| format!("locating with {}", detector.name))?
+        }
+    };
+    progress.finish_and_clear();
+    Ok(Artefact::Predictions(Arc::new(predictions)))
+}
+
+/// Scores `predictions` against the truth of `dataset`.
+fn score(
+    step: &Step,
+    dataset: &Artefact,
+    predictions: &Artefact,
+    metrics: &MetricsSpec,
+) -> anyhow::Result<Artefact> {
+    let dataset = dataset.dataset()?;
+    let score = crate::metrics::score(
+        predictions.predictions()?,
+        &dataset.truth,
+        dataset.frames.n,
+        &metrics.eps_px,
+        metrics.keep_curves,
+    )
+    .with_context(|| format!("scoring {}", step.name))?;
+    Ok(Artefact::Evaluation(Arc::new(score)))
+}
+
+/// The simulated dataset step `index` comes from (itself, or the source of
+/// a subset).
+pub(super) fn root_dataset(plan: &Plan, mut index: usize) -> Option<&DatasetSpec> {
+    while let Action::Subset { source, .. } = &plan.steps[index].action {
+        index = *source;
+    }
+    match &plan.steps[index].action {
+        Action::Simulate { dataset } => Some(dataset),
+        _ => None,
+    }
+}
+
+/// Frames `frames` of `source` (renumbered 0, 1, … in the given order) and
+/// their truth rows.
+pub fn subset(
+    source: &crate::types::Dataset,
+    frames: &[usize],
+) -> anyhow::Result<crate::types::Dataset> {
+    let stack = &source.frames;
+    let mut data = Vec::with_capacity(frames.len() * stack.frame_len());
+    let mut position = vec![None; stack.n];
+    for (new, &old) in frames.iter().enumerate() {
+        anyhow::ensure!(
+            old < stack.n,
+            "subset: frame {old} of a {}-frame dataset",
+            stack.n
+        );
+        anyhow::ensure!(position[old].is_none(), "subset: frame {old} twice");
+        position[old] = Some(new);
+        data.extend_from_slice(stack.frame(old));
+    }
+    let mut truth: Vec<crate::types::TruthRow> = source
+        .truth
+        .iter()
+        .filter_map(|row| {
+            position.get(row.frame).copied().flatten().map(|new| {
+                let mut row = *row;
+                row.frame = new;
+                row
+            })
+        })
+        .collect();
+    // Frame order, emitters in their original order within a frame.
+    truth.sort_by_key(|row| row.frame);
+    Ok(crate::types::Dataset {
+        frames: crate::types::FrameStack::from_vec(frames.len(), stack.height, stack.width, data)?,
+        truth,
+    })
+}

@@ -1,0 +1,89 @@
+//! The typed registry row recorded with each new artefact.
+
+use super::artefacts::Artefact;
+use super::compute::root_dataset;
+use super::plan::{Action, Plan};
+use crate::registry::ArtefactDetails;
+
+/// The typed registry row of step `index`'s new artefact.
+pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> ArtefactDetails {
+    let step = &plan.steps[index];
+    match (&step.action, artefact) {
+        (Action::Simulate { dataset }, _) => ArtefactDetails::Dataset {
+            frames: dataset.frames,
+            height: dataset.params.height,
+            width: dataset.params.width,
+            seed: dataset.seed,
+            diffusion: dataset.fixed_diffusion(),
+            brightness: dataset.params.brightness,
+            params_json: serde_json::to_string(&dataset.params).unwrap_or_default(),
+        },
+        (Action::Subset { source, frames }, _) => {
+            let root = root_dataset(plan, *source);
+            let (seed, params) = (root.map_or(0, |d| d.seed), root.map(|d| &d.params));
+            ArtefactDetails::Dataset {
+                frames: frames.len(),
+                height: params.map_or(0, |p| p.height),
+                width: params.map_or(0, |p| p.width),
+                seed,
+                diffusion: None,
+                brightness: params.map_or(0.0, |p| p.brightness),
+                params_json: step.spec.clone(),
+            }
+        }
+        (
+            Action::Train {
+                detector, training, ..
+            },
+            _,
+        ) => ArtefactDetails::Model {
+            detector: detector.name.clone(),
+            detector_kind: detector.spec.kind().to_string(),
+            training_dataset_key: plan.steps[*training].key.clone(),
+            seed: detector.seed,
+        },
+        (
+            Action::Locate {
+                detector,
+                dataset,
+                model,
+            },
+            artefact,
+        ) => ArtefactDetails::Predictions {
+            detector: detector.name.clone(),
+            dataset_key: plan.steps[*dataset].key.clone(),
+            model_key: model.map(|m| plan.steps[m].key.clone()),
+            count: artefact.predictions().map(|p| p.len()).unwrap_or(0),
+        },
+        (
+            Action::Score {
+                detector,
+                dataset_name,
+                dataset,
+                predictions,
+                ..
+            },
+            artefact,
+        ) => {
+            let score = artefact.evaluation().ok();
+            ArtefactDetails::Evaluation {
+                detector: detector.clone(),
+                dataset: dataset_name.clone(),
+                dataset_key: plan.steps[*dataset].key.clone(),
+                predictions_key: plan.steps[*predictions].key.clone(),
+                rmse_top_px: score.and_then(|s| s.rmse_top_px),
+                fraction_without_prediction: score
+                    .map(|s| s.fraction_without_prediction)
+                    .unwrap_or(0.0),
+                auc: score
+                    .map(|s| {
+                        s.per_eps
+                            .iter()
+                            .map(|e| (e.eps_px, e.auc, e.true_positives, e.false_positives))
+                            .collect()
+                    })
+                    .unwrap_or_default(),
+            }
+        }
+    }
+}

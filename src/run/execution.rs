@@ -1,0 +1,278 @@
+//! The step loop of a run: each step's artefact reused if stored intact,
+//! otherwise computed and stored (or, with `--force`, compared with the
+//! stored one); the AUC rows of evaluations collected; every step recorded.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::artefacts::{self, Artefact};
+use super::compute::{LoadedArtefacts, compute};
+use super::details::details;
+use super::log;
+use super::plan::{Action, Plan, Step};
+use super::stored::{Stored, check_stored_artefacts, read_blobs};
+use crate::registry::hashing::sha256_hex;
+use crate::registry::{
+    AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
+};
+
+/// What a run has done so far.
+pub(super) struct Execution {
+    pub run_id: String,
+    pub steps: Vec<StepRecord>,
+    /// One line per missing or damaged blob found (its step was rebuilt).
+    pub damaged: Vec<String>,
+    /// With `--force`: one line per recomputed artefact that differs from
+    /// the stored one.
+    pub mismatches: Vec<String>,
+    pub counts: StepCounts,
+}
+
+/// One step done: how, with which blobs, and its artefact if it was made
+/// (a cached artefact is not loaded unless a later step reads it).
+struct StepDone {
+    outcome: StepOutcome,
+    blobs: Vec<BlobRef>,
+    detail: Option<String>,
+    artefact: Option<Artefact>,
+    /// Time spent re-hashing a cached artefact's blobs before the loop.
+    verify_seconds: f64,
+}
+
+/// With `--force`, how a recomputed artefact compares with the intact one
+/// already stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Recomputed {
+    Identical,
+    Differs,
+}
+
+impl Recomputed {
+    /// What the step's record says about it.
+    fn detail(self) -> &'static str {
+        match self {
+            Recomputed::Identical => "recomputed: identical to the stored artefact",
+            Recomputed::Differs => "recomputed: DIFFERS from the stored artefact",
+        }
+    }
+}
+
+impl Execution {
+    pub(super) fn new(run_id: String) -> Self {
+        Self {
+            run_id,
+            steps: Vec::new(),
+            damaged: Vec::new(),
+            mismatches: Vec::new(),
+            counts: StepCounts::default(),
+        }
+    }
+
+    /// Runs every step of `plan` in order; returns the AUC table.
+    pub(super) fn execute(
+        &mut self,
+        registry: &mut Registry,
+        plan: &Plan,
+        force: bool,
+    ) -> anyhow::Result<Vec<AucRow>> {
+        let stored = check_stored_artefacts(registry, plan)?;
+        let mut loaded = LoadedArtefacts::new(plan);
+        let mut auc = Vec::new();
+        for (index, step) in plan.steps.iter().enumerate() {
+            let clock = Instant::now();
+            let done = match (&stored[index], force) {
+                (Stored::Intact(blobs, seconds), false) => self.reuse(step, blobs, *seconds),
+                (stored, _) => self.make(registry, plan, index, stored, &mut loaded, clock)?,
+            };
+            auc.extend(auc_rows(registry, step, &done)?);
+            if let Some(artefact) = &done.artefact {
+                loaded.keep_if_read_later(index, artefact.clone());
+            }
+            loaded.drop_unread_after(index);
+            self.record_step(registry, index, step, done, clock)?;
+        }
+        Ok(auc)
+    }
+
+    /// A step whose artefact is stored intact: nothing to do.
+    fn reuse(&mut self, step: &Step, blobs: &[BlobRef], verify_seconds: f64) -> StepDone {
+        self.counts.add(StepOutcome::Cached);
+        log(format!("cached    {}", step.id));
+        StepDone {
+            outcome: StepOutcome::Cached,
+            blobs: blobs.to_vec(),
+            detail: Some(format!("verified in {verify_seconds:.3} s")),
+            artefact: None,
+            verify_seconds,
+        }
+    }
+
+    /// Computes step `index`'s artefact and stores it, unless `--force`
+    /// recomputed an intact stored artefact and got different blobs (then
+    /// the stored one is kept and the mismatch reported).
+    fn make(
+        &mut self,
+        registry: &mut Registry,
+        plan: &Plan,
+        index: usize,
+        stored: &Stored,
+        loaded: &mut LoadedArtefacts,
+        clock: Instant,
+    ) -> anyhow::Result<StepDone> {
+        let step = &plan.steps[index];
+        let replace = match stored {
+            Stored::Damaged(problems) => {
+                self.report_damage(step, problems);
+                true
+            }
+            Stored::Absent | Stored::Intact(..) => false,
+        };
+        let artefact = compute(registry, plan, index, loaded)?;
+        let encoded = artefact.encode()?;
+        let blobs = blob_refs(&encoded);
+        // With --force the artefact may be stored intact: the recomputation
+        // must then match it, and a mismatch keeps the stored one.
+        let recomputed = match stored {
+            Stored::Intact(previous, _) => Some(self.compare_with_stored(step, &blobs, previous)),
+            Stored::Absent | Stored::Damaged(_) => None,
+        };
+        if recomputed != Some(Recomputed::Differs) {
+            // Blobs first: a row never names a blob that is not there.
+            for (_, bytes) in &encoded {
+                registry.blobs().put(bytes)?;
+            }
+            let row = NewArtefact {
+                key: step.key.clone(),
+                kind: step.kind,
+                name: step.name.clone(),
+                spec: step.spec.clone(),
+                code_version: step.code_version.clone(),
+                run_id: Some(self.run_id.clone()),
+                compute_seconds: clock.elapsed().as_secs_f64(),
+                blobs: blobs.clone(),
+                details: details(plan, index, &artefact),
+            };
+            registry.record_artefact(&row, replace)?;
+        }
+        let outcome = if replace {
+            StepOutcome::Rebuilt
+        } else {
+            StepOutcome::Computed
+        };
+        self.counts.add(outcome);
+        log(format!(
+            "{outcome:<9} {} in {:.2} s",
+            step.id,
+            clock.elapsed().as_secs_f64()
+        ));
+        Ok(StepDone {
+            outcome,
+            blobs,
+            detail: recomputed.map(|r| r.detail().to_string()),
+            artefact: Some(artefact),
+            verify_seconds: 0.0,
+        })
+    }
+
+    /// Warns about each missing or damaged blob of `step`'s stored artefact
+    /// and remembers it for the run's outcome.
+    fn report_damage(&mut self, step: &Step, problems: &[String]) {
+        for problem in problems {
+            let message = format!("{} ({}): {problem}; rebuilding it", step.id, step.key);
+            eprintln!("warning: {message}");
+            self.damaged.push(message);
+        }
+    }
+
+    /// `--force`: compares the recomputed `blobs` with the `stored` ones
+    /// (which are in role order); a difference is reported and fails the
+    /// run at its end.
+    fn compare_with_stored(
+        &mut self,
+        step: &Step,
+        blobs: &[BlobRef],
+        stored: &[BlobRef],
+    ) -> Recomputed {
+        let mut ours = blobs.to_vec();
+        ours.sort_by(|a, b| a.role.cmp(&b.role));
+        if ours == stored {
+            return Recomputed::Identical;
+        }
+        let message = format!(
+            "{} ({}): recomputed blobs {:?} differ from the stored {:?}",
+            step.id, step.key, ours, stored
+        );
+        eprintln!("error: {message}");
+        self.mismatches.push(message);
+        Recomputed::Differs
+    }
+
+    /// Records step `index` of the run, in the registry and in memory.
+    fn record_step(
+        &mut self,
+        registry: &mut Registry,
+        index: usize,
+        step: &Step,
+        done: StepDone,
+        clock: Instant,
+    ) -> anyhow::Result<()> {
+        let record = StepRecord {
+            ordinal: index,
+            step: step.id.clone(),
+            kind: step.kind,
+            artefact_key: step.key.clone(),
+            outcome: done.outcome,
+            // A cached step's time is the re-hashing of its blobs.
+            seconds: clock.elapsed().as_secs_f64() + done.verify_seconds,
+            blobs: done.blobs,
+            detail: done.detail,
+        };
+        registry.record_step(&self.run_id, &record)?;
+        self.steps.push(record);
+        Ok(())
+    }
+}
+
+/// The blob references of encoded blobs: (role, sha256), in the same order.
+fn blob_refs(encoded: &[(String, Vec<u8>)]) -> Vec<BlobRef> {
+    encoded
+        .iter()
+        .map(|(role, bytes)| BlobRef {
+            role: role.clone(),
+            sha256: sha256_hex(bytes),
+        })
+        .collect()
+}
+
+/// The AUC table rows of a scoring step (one per ε), none for other steps.
+/// A cached evaluation is read from its `score.json` blob.
+fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result<Vec<AucRow>> {
+    let Action::Score {
+        detector,
+        dataset_name,
+        diffusion,
+        ..
+    } = &step.action
+    else {
+        return Ok(Vec::new());
+    };
+    let score = match &done.artefact {
+        Some(artefact) => artefact.evaluation()?.clone(),
+        None => Arc::new(artefacts::decode_score(&read_blobs(
+            registry,
+            &done.blobs,
+        )?)?),
+    };
+    Ok(score
+        .per_eps
+        .iter()
+        .map(|per_eps| AucRow {
+            detector: detector.clone(),
+            dataset: dataset_name.clone(),
+            diffusion: *diffusion,
+            eps_px: per_eps.eps_px,
+            auc: per_eps.auc,
+            evaluation_key: step.key.clone(),
+        })
+        .collect())
+}
