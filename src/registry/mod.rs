@@ -216,24 +216,27 @@ impl Registry {
                 dir.display()
             ))
         })?;
-        Self::connect(dir)
+        Self::connect(dir, Integrity::CheckBeforeWriting)
     }
 
     /// Opens an existing registry; a folder without a database is bad input.
     pub fn open_existing(dir: &Path) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
         if !dir.join(DATABASE_FILE).is_file() {
             return Err(input_error(format!(
                 "{}: no registry here (no {DATABASE_FILE}); `scanloc run` creates one",
                 dir.display()
             )));
         }
-        Self::connect(dir)
+        Self::connect(dir, Integrity::Unchecked)
     }
 
-    fn connect(dir: &Path) -> anyhow::Result<Self> {
+    fn connect(dir: &Path, integrity: Integrity) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
         let path = dir.join(DATABASE_FILE);
-        let conn =
-            Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let conn = Connection::open(&path).map_err(|e| {
+            input_error(format!("{}: cannot open the registry: {e}", path.display()))
+        })?;
         conn.busy_timeout(BUSY_TIMEOUT)?;
         // Switching to WAL needs a moment without other connections; retry
         // while a concurrent first open holds the file.
@@ -247,7 +250,29 @@ impl Registry {
                     attempts += 1;
                     std::thread::sleep(Duration::from_millis(50));
                 }
-                Err(e) => return Err(e).context("setting WAL mode"),
+                Err(e) if is_damage(&e) => return Err(damaged(dir, &e.to_string())),
+                Err(e) => {
+                    return Err(input_error(format!(
+                        "{}: cannot open the registry database for shared use: {e}",
+                        path.display()
+                    )));
+                }
+            }
+        }
+        if integrity == Integrity::CheckBeforeWriting {
+            // Milliseconds for a registry's database (it holds records, not
+            // data); a damaged one would take every later write with it.
+            let verdict: String = conn
+                .query_row("PRAGMA quick_check(1)", [], |row| row.get(0))
+                .or_else(|e| {
+                    if is_damage(&e) {
+                        Ok(e.to_string())
+                    } else {
+                        Err(e)
+                    }
+                })?;
+            if verdict != "ok" {
+                return Err(damaged(dir, &verdict));
             }
         }
         conn.execute_batch("PRAGMA synchronous = NORMAL; PRAGMA foreign_keys = ON;")?;
@@ -713,6 +738,67 @@ fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result
         )?;
     }
     Ok(())
+}
+
+/// Whether a registry is checked for damage when opened.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Integrity {
+    /// Before anything is written (runs): a damaged database is refused.
+    CheckBeforeWriting,
+    /// For reading and auditing (`registry verify` must open a damaged one).
+    Unchecked,
+}
+
+/// Whether SQLite says the database file is not a sound database.
+fn is_damage(error: &rusqlite::Error) -> bool {
+    matches!(
+        error.sqlite_error_code(),
+        Some(rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase)
+    )
+}
+
+/// The refusal to write into a damaged registry database.
+fn damaged(dir: &Path, problem: &str) -> anyhow::Error {
+    let path = dir.join(DATABASE_FILE);
+    input_error(format!(
+        "{}: the registry database is damaged ({}), so nothing is written to it; \
+         `scanloc registry verify --registry {}` shows what is wrong; restore {DATABASE_FILE} \
+         from a backup, or save what still reads with `sqlite3 {} .recover`",
+        path.display(),
+        problem.lines().next().unwrap_or(problem),
+        dir.display(),
+        path.display()
+    ))
+}
+
+/// Refuses to start a new database in a registry whose database is gone or
+/// empty while its blob store holds artefacts: that database was lost (a
+/// truncation, a bad copy), and a new one would silently forget every run.
+fn refuse_lost_database(dir: &Path) -> anyhow::Result<()> {
+    let path = dir.join(DATABASE_FILE);
+    let state = match std::fs::metadata(&path) {
+        Ok(metadata) if metadata.len() > 0 => return Ok(()),
+        Ok(_) => "is empty (0 bytes)",
+        Err(_) => "is missing",
+    };
+    let blobs = dir.join("blobs");
+    let holds_blobs = std::fs::read_dir(&blobs)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .any(|prefix| {
+            std::fs::read_dir(prefix.path()).is_ok_and(|mut files| files.next().is_some())
+        });
+    if !holds_blobs {
+        return Ok(());
+    }
+    Err(input_error(format!(
+        "{}: {DATABASE_FILE} {state} but {} holds stored artefacts: the record of the runs was \
+         lost, and scanloc will not start a new one over it; restore {DATABASE_FILE} from a \
+         backup, or move the folder aside to start a new registry",
+        dir.display(),
+        blobs.display()
+    )))
 }
 
 fn is_busy(error: &rusqlite::Error) -> bool {

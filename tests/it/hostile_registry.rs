@@ -248,3 +248,95 @@ fn a_failed_run_is_compared_on_what_it_recorded_and_the_verdict_matches_the_line
     assert!(out.contains("DIFFERENT"), "{out}");
     assert!(out.contains("DIFFERS"), "{out}");
 }
+
+/// Runs `scanloc ARGS --registry DIR`.
+fn on_registry(registry: &Path, args: &[&str]) -> Output {
+    let mut all = args.to_vec();
+    all.extend(["--registry", registry.to_str().unwrap()]);
+    scanloc(&all)
+}
+
+#[test]
+fn a_database_with_garbage_pages_is_not_written_into() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let database = registry.join("registry.sqlite");
+    // Garbage over every page but the first (the header and schema stay
+    // readable, the tables' b-trees do not).
+    let mut bytes = std::fs::read(&database).unwrap();
+    assert!(bytes.len() > 3 * 4096, "{} bytes", bytes.len());
+    for (i, byte) in bytes.iter_mut().enumerate().skip(4096) {
+        *byte = (i * 7919 % 251) as u8;
+    }
+    std::fs::write(&database, &bytes).unwrap();
+    let before = snapshot(&registry);
+
+    let manifest = dir.path().join("tiny.yaml");
+    let run = on_registry(&registry, &["run", manifest.to_str().unwrap()]);
+    let error = stderr(&run);
+    assert_eq!(run.status.code(), Some(2), "{error}");
+    assert!(error.contains("damaged"), "{error}");
+    assert!(error.contains("registry verify"), "{error}");
+    assert_eq!(error.trim_end().lines().count(), 1, "{error}");
+    assert!(!error.contains("WAL"), "{error}");
+    assert_eq!(
+        snapshot(&registry),
+        before,
+        "the damaged registry was written"
+    );
+    let verify = on_registry(&registry, &["registry", "verify"]);
+    assert_ne!(verify.status.code(), Some(0), "{}", stdout(&verify));
+}
+
+#[test]
+fn a_lost_database_beside_stored_blobs_is_not_silently_recreated() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let database = registry.join("registry.sqlite");
+    let manifest = dir.path().join("tiny.yaml");
+    for lose in ["truncate", "delete"] {
+        match lose {
+            "truncate" => std::fs::write(&database, b"").unwrap(),
+            _ => std::fs::remove_file(&database).unwrap(),
+        }
+        for name in ["registry.sqlite-wal", "registry.sqlite-shm"] {
+            std::fs::remove_file(registry.join(name)).ok();
+        }
+        let before = snapshot(&registry);
+        for args in [
+            vec!["run", manifest.to_str().unwrap()],
+            vec!["registry", "runs"],
+        ] {
+            let output = on_registry(&registry, &args);
+            let error = stderr(&output);
+            assert_eq!(output.status.code(), Some(2), "{lose} {args:?}: {error}");
+            assert!(error.contains("restore registry.sqlite"), "{error}");
+            assert_eq!(error.trim_end().lines().count(), 1, "{error}");
+        }
+        assert_eq!(snapshot(&registry), before, "{lose}: the registry changed");
+    }
+    // A folder with no blobs is a new registry, as before.
+    let fresh = dir.path().join("fresh");
+    std::fs::create_dir_all(fresh.join("blobs")).unwrap();
+    run_json(&manifest, &fresh, &[]);
+}
+
+#[test]
+fn an_artefact_whose_spec_no_longer_hashes_to_its_key_fails_verify() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let verify = on_registry(&registry, &["registry", "verify"]);
+    assert!(verify.status.success(), "{}", stdout(&verify));
+    tamper(
+        &registry,
+        "UPDATE artefacts SET spec = replace(spec, '\"frames\":6', '\"frames\":7')
+         WHERE kind = 'dataset' AND name = 'a';",
+    );
+    let verify = on_registry(&registry, &["registry", "verify"]);
+    assert_eq!(verify.status.code(), Some(1), "{}", stdout(&verify));
+    let out = stdout(&verify);
+    assert!(out.contains("BAD spec of dataset a"), "{out}");
+}
