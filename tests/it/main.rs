@@ -15,6 +15,7 @@ mod figures;
 mod hostile_cli_fuzz;
 mod hostile_manifest;
 mod hostile_registry;
+mod layers;
 mod manifest_errors;
 mod manifest_fuzz;
 mod metric;
