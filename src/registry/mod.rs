@@ -29,7 +29,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
-use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
+use rusqlite::{Connection, OpenFlags, OptionalExtension, TransactionBehavior, params};
 use serde::{Deserialize, Serialize};
 
 pub use blobs::{BlobState, BlobStore};
@@ -204,6 +204,9 @@ pub struct Registry {
     dir: PathBuf,
     conn: Connection,
     blobs: BlobStore,
+    /// Opened from a folder this process cannot write (a read-only mount,
+    /// no write permission): artefacts are served, runs are not recorded.
+    read_only: bool,
 }
 
 impl Registry {
@@ -216,7 +219,67 @@ impl Registry {
                 dir.display()
             ))
         })?;
+        if !writable(dir) {
+            return Self::connect_read_only(dir);
+        }
         Self::connect(dir, Integrity::CheckBeforeWriting)
+    }
+
+    /// Opens the registry in `dir`, which cannot be written, read-only: as
+    /// it is (`mode=ro`), or, when SQLite cannot even share it for reading
+    /// (no write-ahead-log index beside it on a read-only mount), as an
+    /// immutable file.
+    fn connect_read_only(dir: &Path) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
+        let path = dir.join(DATABASE_FILE);
+        if !path.is_file() {
+            return Err(input_error(format!(
+                "{}: cannot create a registry here (the folder is read-only)",
+                dir.display()
+            )));
+        }
+        let uri = |options: &str| {
+            let escaped = path
+                .display()
+                .to_string()
+                .replace('%', "%25")
+                .replace('?', "%3f")
+                .replace('#', "%23");
+            format!("file:{escaped}?{options}")
+        };
+        let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_URI;
+        let version = |conn: &Connection| -> rusqlite::Result<i64> {
+            conn.query_row("PRAGMA user_version", [], |row| row.get(0))
+        };
+        let mut conn = Connection::open_with_flags(uri("mode=ro"), flags)?;
+        let schema = match version(&conn) {
+            Ok(v) => v,
+            Err(_) => {
+                conn = Connection::open_with_flags(uri("mode=ro&immutable=1"), flags)?;
+                version(&conn).map_err(|e| {
+                    input_error(format!("{}: cannot read the registry: {e}", path.display()))
+                })?
+            }
+        };
+        if schema != SCHEMA_VERSION {
+            return Err(input_error(format!(
+                "{}: the registry is read-only and its schema (version {schema}) is not this scanloc's ({SCHEMA_VERSION}); open it once where it can be written",
+                dir.display()
+            )));
+        }
+        conn.busy_timeout(BUSY_TIMEOUT)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            conn,
+            blobs: BlobStore::open(dir)?,
+            read_only: true,
+        })
+    }
+
+    /// Whether this registry was opened read-only (see [`Registry::open`]):
+    /// run records are then not kept.
+    pub fn is_read_only(&self) -> bool {
+        self.read_only
     }
 
     /// Opens an existing registry; a folder without a database is bad input.
@@ -280,6 +343,7 @@ impl Registry {
             dir: dir.to_path_buf(),
             conn,
             blobs: BlobStore::open(dir)?,
+            read_only: false,
         };
         registry.migrate()?;
         Ok(registry)
@@ -372,6 +436,14 @@ impl Registry {
     /// superseded; otherwise that is an error (the step is not
     /// deterministic, or two builds disagree).
     pub fn record_artefact(&mut self, artefact: &NewArtefact, replace: bool) -> anyhow::Result<()> {
+        if self.read_only {
+            return Err(input_error(format!(
+                "{}: the registry is read-only: {} ({}) cannot be stored",
+                self.dir.display(),
+                artefact.name,
+                artefact.key
+            )));
+        }
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -544,6 +616,9 @@ impl Registry {
     /// Records as `unfinished` every run whose status in effect is
     /// (see [`RunStatus::in_effect`]).
     pub fn mark_abandoned_runs(&mut self) -> anyhow::Result<usize> {
+        if self.read_only {
+            return Ok(0);
+        }
         let candidates: Vec<(String, String, i64)> = {
             let mut statement = self
                 .conn
@@ -574,6 +649,9 @@ impl Registry {
 
     /// Records the start of a run (status `running`).
     pub fn begin_run(&mut self, start: &RunStart) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let code = CodeVersion::current();
         let cv = start.cross_validation.as_ref();
         let tx = self
@@ -615,6 +693,9 @@ impl Registry {
 
     /// Records one finished step of a running run.
     pub fn record_step(&mut self, run_id: &str, step: &StepRecord) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let blobs: serde_json::Map<String, serde_json::Value> = step
             .blobs
             .iter()
@@ -651,6 +732,9 @@ impl Registry {
         counts: StepCounts,
         auc: &[AucRow],
     ) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -738,6 +822,21 @@ fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result
         )?;
     }
     Ok(())
+}
+
+/// Whether this process can create files in `dir` (tried, not inferred
+/// from permission bits, which do not apply to root or to a read-only mount).
+fn writable(dir: &Path) -> bool {
+    match tempfile::Builder::new()
+        .prefix(".scanloc-write-probe-")
+        .tempfile_in(dir)
+    {
+        Ok(_) => true,
+        Err(e) => !matches!(
+            e.kind(),
+            std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
+        ),
+    }
 }
 
 /// Whether a registry is checked for damage when opened.

@@ -340,3 +340,87 @@ fn an_artefact_whose_spec_no_longer_hashes_to_its_key_fails_verify() {
     let out = stdout(&verify);
     assert!(out.contains("BAD spec of dataset a"), "{out}");
 }
+
+/// `dir` bound read-only at `at` for as long as it lives (a real read-only
+/// mount: writes fail with EROFS whoever the user is, root included).
+struct ReadOnlyMount {
+    at: std::path::PathBuf,
+}
+
+impl ReadOnlyMount {
+    /// `None` where this process may not mount (not root, no mount
+    /// namespace rights): the caller then says so and skips.
+    fn bind(dir: &Path, at: &Path) -> Option<Self> {
+        std::fs::create_dir_all(at).unwrap();
+        let mount = |args: &[&str]| {
+            std::process::Command::new("mount")
+                .args(args)
+                .stderr(std::process::Stdio::null())
+                .status()
+                .is_ok_and(|s| s.success())
+        };
+        let (dir, at_text) = (dir.to_str().unwrap(), at.to_str().unwrap());
+        if !mount(&["--bind", dir, at_text]) {
+            return None;
+        }
+        let mounted = Self {
+            at: at.to_path_buf(),
+        };
+        assert!(
+            mount(&["-o", "remount,ro,bind", at_text]),
+            "bound {dir} but could not make it read-only"
+        );
+        Some(mounted)
+    }
+}
+
+impl Drop for ReadOnlyMount {
+    fn drop(&mut self) {
+        std::process::Command::new("umount")
+            .arg(&self.at)
+            .status()
+            .ok();
+    }
+}
+
+#[test]
+fn a_fully_cached_run_on_a_read_only_registry_is_served_and_says_it_was_not_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let manifest = dir.path().join("tiny.yaml");
+    let recorded = run_json(&manifest, &registry, &[]);
+    let Some(mount) = ReadOnlyMount::bind(&registry, &dir.path().join("ro")) else {
+        eprintln!("skipped: cannot mount here (needs root and mount rights)");
+        return;
+    };
+    assert!(
+        std::fs::write(mount.at.join("probe"), b"x").is_err(),
+        "the mount is writable"
+    );
+    let before = snapshot(&registry);
+    let output = on_registry(&mount.at, &["run", manifest.to_str().unwrap(), "--json"]);
+    let error = stderr(&output);
+    assert!(output.status.success(), "{error}");
+    let served: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    assert_eq!(served["auc"], recorded["auc"]);
+    assert_eq!(served["cached_steps"], recorded["cached_steps"]);
+    assert!(error.contains("read-only"), "{error}");
+    assert!(error.contains("could not be recorded"), "{error}");
+    // What is not stored cannot be served: refused before any work.
+    let more = write_manifest(
+        dir.path(),
+        "more.yaml",
+        &TINY.replace("b: {frames: 6,", "b: {frames: 7,"),
+    );
+    let output = on_registry(&mount.at, &["run", more.to_str().unwrap()]);
+    let error = stderr(&output);
+    assert_eq!(output.status.code(), Some(2), "{error}");
+    assert!(error.contains("not stored intact"), "{error}");
+    drop(mount);
+    assert_eq!(
+        snapshot(&registry),
+        before,
+        "the read-only registry changed"
+    );
+}
