@@ -130,6 +130,8 @@ pub fn execute(
     let mut execution = Execution::new(run_id.clone());
     let result = execution.execute(registry, plan, options.force);
     let auc = result.as_ref().cloned().unwrap_or_default();
+    // Whatever happened, this run computes nothing any more.
+    registry.release_claims(&run_id, None)?;
     let (status, error) = verdict(&result, &execution.mismatches);
     registry
         .finish_run(&run_id, status, error.as_deref(), execution.counts, &auc)

@@ -424,3 +424,112 @@ fn a_fully_cached_run_on_a_read_only_registry_is_served_and_says_it_was_not_reco
         "the read-only registry changed"
     );
 }
+
+/// A run whose first step takes a few seconds (the others are quick).
+const SHARED: &str = "\
+name: shared
+seed: 3
+datasets:
+  a: {frames: 40000}
+detectors:
+  trackpy:
+    crocker_grier: {diameter: 7, minmass: 0}
+evaluations:
+  - {detector: trackpy, datasets: [a]}
+";
+
+fn spawn_run(manifest: &Path, registry: &Path) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_scanloc"))
+        .args(["run", manifest.to_str().unwrap(), "--json", "--registry"])
+        .arg(registry)
+        .env_remove("SCANLOC_REGISTRY")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+#[test]
+fn identical_runs_wait_for_a_step_another_run_computes_and_reuse_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let registry = dir.path().join("registry");
+    let manifest = write_manifest(dir.path(), "shared.yaml", SHARED);
+    let first = spawn_run(&manifest, &registry);
+    // Once the first run has claimed its first step, start two more.
+    let database = registry.join("registry.sqlite");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        assert!(
+            Instant::now() < deadline,
+            "the first run never claimed a step"
+        );
+        let claimed = rusqlite::Connection::open_with_flags(
+            &database,
+            rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY,
+        )
+        .and_then(|c| {
+            c.query_row("SELECT count(*) FROM step_claims", [], |r| {
+                r.get::<_, i64>(0)
+            })
+        })
+        .is_ok_and(|n| n > 0);
+        if claimed {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let others = [
+        spawn_run(&manifest, &registry),
+        spawn_run(&manifest, &registry),
+    ];
+    let mut computed = 0;
+    let mut waited = 0;
+    let mut tables = Vec::new();
+    for child in std::iter::once(first).chain(others) {
+        let output = child.wait_with_output().unwrap();
+        assert!(output.status.success(), "{}", stderr(&output));
+        let run: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+        computed += run["computed_steps"].as_u64().unwrap();
+        tables.push(run["auc"].clone());
+        let error = stderr(&output);
+        if error.contains("waiting for dataset/a: run ") {
+            waited += 1;
+            assert!(error.contains("is computing it"), "{error}");
+        }
+    }
+    assert_eq!(computed, 3, "each of the 3 steps computed once, by one run");
+    assert_eq!(waited, 2, "both later runs waited for the first");
+    assert!(tables.windows(2).all(|w| w[0] == w[1]));
+    let rows = sql(&registry, "SELECT count(*) AS n FROM step_claims");
+    assert_eq!(stdout(&rows).trim(), r#"[{"n":0}]"#, "claims are released");
+}
+
+#[test]
+fn a_claim_left_by_a_killed_run_is_taken_over() {
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let manifest = write_manifest(
+        dir.path(),
+        "more.yaml",
+        &TINY.replace("a: {frames: 6,", "a: {frames: 7,"),
+    );
+    let check = scanloc(&["check", manifest.to_str().unwrap(), "--json"]);
+    let plan: serde_json::Value = serde_json::from_str(&stdout(&check)).unwrap();
+    let key = plan["plan"][0]["key"].as_str().unwrap().to_string();
+    tamper(
+        &registry,
+        &format!(
+            "INSERT INTO step_claims (key, run_id, host, pid, claimed_at)
+             VALUES ('{key}', 'killed-run', '{}', {}, '2026-01-01T00:00:00.000Z');",
+            scanloc::registry::host_name(),
+            dead_pid()
+        ),
+    );
+    let output = on_registry(&registry, &["run", manifest.to_str().unwrap(), "--json"]);
+    let error = stderr(&output);
+    assert!(output.status.success(), "{error}");
+    assert!(!error.contains("waiting"), "{error}");
+    let run: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    assert_eq!(run["status"], "done");
+}
