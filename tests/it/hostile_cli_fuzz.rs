@@ -22,7 +22,7 @@ use proptest::prelude::*;
 /// needs, far below what would disturb the machine.
 const MEMORY_LIMIT_BYTES: u64 = 4 << 30;
 /// Time a case may take; accepted cases take milliseconds.
-const TIME_LIMIT: Duration = Duration::from_secs(20);
+const TIME_LIMIT: Duration = Duration::from_secs(10);
 
 /// How one invocation ended.
 #[derive(Debug)]
@@ -520,10 +520,11 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
 }
 
 proptest! {
-    // Few shrinking steps: a failing case may take the whole time limit.
+    // Little shrinking: a failing case may take the whole time limit.
     #![proptest_config(ProptestConfig {
         cases: common::fuzz_cases(48),
         max_shrink_iters: 32,
+        max_shrink_time: 60_000,
         ..ProptestConfig::default()
     })]
 
