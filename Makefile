@@ -65,9 +65,11 @@ bench-registry: build
 	@for i in 1 2 3; do /usr/bin/env time -f "cached run: %e s wall, %M KB max RSS" \
 		$(BIN) run $(MANIFEST) --registry target/bench-registry --json > /dev/null; done
 
-# Fuzzing: the manifest loader on arbitrary, YAML-like and mutated text, and
-# the .npy/.tif readers on damaged and random files, FUZZ_CASES cases per
-# property (proptest; `make test` runs a few hundred to a few thousand).
+# Fuzzing: the manifest loader on arbitrary, YAML-like and mutated text,
+# the .npy/.tif readers on damaged and random files, and the binary itself
+# on random simulate/locate/score arguments and CSV/TIFF/.npy bytes,
+# FUZZ_CASES cases per property (proptest; `make test` runs a few dozen to
+# a few thousand).
 FUZZ_CASES ?= 300000
 fuzz:
 	SCANLOC_FUZZ_CASES=$(FUZZ_CASES) $(CARGO) test --release --locked \

@@ -172,6 +172,12 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
                         }
                     );
                 }
+                for bad in &report.bad_specs {
+                    println!(
+                        "BAD spec of {}: it hashes to {}, not to its key",
+                        bad.artefact, bad.spec_sha256
+                    );
+                }
                 for file in &report.unrecorded_files {
                     println!(
                         "note: unrecorded blob file {file} (left by an interrupted run; gc removes it)"
@@ -183,8 +189,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
             }
             if !report.ok() {
                 return Err(anyhow::Error::new(CheckFailed(format!(
-                    "{} blob(s) missing or damaged (the next run rebuilds them); database: {}",
+                    "{} blob(s) missing or damaged (the next run rebuilds them); {} artefact spec(s) not matching their key; database: {}",
                     report.bad.len(),
+                    report.bad_specs.len(),
                     report.database_integrity
                 ))));
             }

@@ -45,6 +45,7 @@
 //! involved.
 
 mod errors;
+pub mod feasibility;
 pub mod locate;
 mod raw;
 mod resolve;
@@ -346,6 +347,9 @@ pub fn load(path: &Path) -> anyhow::Result<Manifest> {
 
 /// Parses and resolves manifest `text`; `source` names it in errors.
 pub fn parse(text: &str, source: &str) -> anyhow::Result<Manifest> {
+    // Editors on Windows save UTF-8 with a byte-order mark; YAML allows it
+    // but serde_yaml takes it for the start of a second document.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     // First as plain YAML: syntax errors and duplicate keys, with lines.
     let document: serde_yaml::Value =
         serde_yaml::from_str(text).map_err(|e| errors::located_yaml_error(source, e))?;

@@ -22,6 +22,7 @@ pub mod hashing;
 pub mod record;
 pub mod shard;
 pub mod sql;
+pub mod sql_guard;
 pub mod table;
 pub mod verify;
 
@@ -29,7 +30,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
-use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
+use rusqlite::{Connection, OpenFlags, OptionalExtension, TransactionBehavior, params};
 use serde::{Deserialize, Serialize};
 
 pub use blobs::{BlobState, BlobStore};
@@ -204,6 +205,9 @@ pub struct Registry {
     dir: PathBuf,
     conn: Connection,
     blobs: BlobStore,
+    /// Opened from a folder this process cannot write (a read-only mount,
+    /// no write permission): artefacts are served, runs are not recorded.
+    read_only: bool,
 }
 
 impl Registry {
@@ -216,24 +220,87 @@ impl Registry {
                 dir.display()
             ))
         })?;
-        Self::connect(dir)
+        if !writable(dir) {
+            return Self::connect_read_only(dir);
+        }
+        Self::connect(dir, Integrity::CheckBeforeWriting)
+    }
+
+    /// Opens the registry in `dir`, which cannot be written, read-only: as
+    /// it is (`mode=ro`), or, when SQLite cannot even share it for reading
+    /// (no write-ahead-log index beside it on a read-only mount), as an
+    /// immutable file.
+    fn connect_read_only(dir: &Path) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
+        let path = dir.join(DATABASE_FILE);
+        if !path.is_file() {
+            return Err(input_error(format!(
+                "{}: cannot create a registry here (the folder is read-only)",
+                dir.display()
+            )));
+        }
+        let uri = |options: &str| {
+            let escaped = path
+                .display()
+                .to_string()
+                .replace('%', "%25")
+                .replace('?', "%3f")
+                .replace('#', "%23");
+            format!("file:{escaped}?{options}")
+        };
+        let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_URI;
+        let version = |conn: &Connection| -> rusqlite::Result<i64> {
+            conn.query_row("PRAGMA user_version", [], |row| row.get(0))
+        };
+        let mut conn = Connection::open_with_flags(uri("mode=ro"), flags)?;
+        let schema = match version(&conn) {
+            Ok(v) => v,
+            Err(_) => {
+                conn = Connection::open_with_flags(uri("mode=ro&immutable=1"), flags)?;
+                version(&conn).map_err(|e| {
+                    input_error(format!("{}: cannot read the registry: {e}", path.display()))
+                })?
+            }
+        };
+        if schema != SCHEMA_VERSION {
+            return Err(input_error(format!(
+                "{}: the registry is read-only and its schema (version {schema}) is not this scanloc's ({SCHEMA_VERSION}); open it once where it can be written",
+                dir.display()
+            )));
+        }
+        conn.busy_timeout(BUSY_TIMEOUT)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            conn,
+            blobs: BlobStore::open(dir)?,
+            read_only: true,
+        })
+    }
+
+    /// Whether this registry was opened read-only (see [`Registry::open`]):
+    /// run records are then not kept.
+    pub fn is_read_only(&self) -> bool {
+        self.read_only
     }
 
     /// Opens an existing registry; a folder without a database is bad input.
     pub fn open_existing(dir: &Path) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
         if !dir.join(DATABASE_FILE).is_file() {
             return Err(input_error(format!(
                 "{}: no registry here (no {DATABASE_FILE}); `scanloc run` creates one",
                 dir.display()
             )));
         }
-        Self::connect(dir)
+        Self::connect(dir, Integrity::Unchecked)
     }
 
-    fn connect(dir: &Path) -> anyhow::Result<Self> {
+    fn connect(dir: &Path, integrity: Integrity) -> anyhow::Result<Self> {
+        refuse_lost_database(dir)?;
         let path = dir.join(DATABASE_FILE);
-        let conn =
-            Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let conn = Connection::open(&path).map_err(|e| {
+            input_error(format!("{}: cannot open the registry: {e}", path.display()))
+        })?;
         conn.busy_timeout(BUSY_TIMEOUT)?;
         // Switching to WAL needs a moment without other connections; retry
         // while a concurrent first open holds the file.
@@ -247,14 +314,41 @@ impl Registry {
                     attempts += 1;
                     std::thread::sleep(Duration::from_millis(50));
                 }
-                Err(e) => return Err(e).context("setting WAL mode"),
+                Err(e) if is_damage(&e) => return Err(damaged(dir, &e.to_string())),
+                Err(e) => {
+                    return Err(input_error(format!(
+                        "{}: cannot open the registry database for shared use: {e}",
+                        path.display()
+                    )));
+                }
+            }
+        }
+        if integrity == Integrity::CheckBeforeWriting {
+            // Milliseconds for a registry's database (it holds records, not
+            // data); a damaged one would take every later write with it.
+            let verdict: String = conn
+                .query_row("PRAGMA quick_check(1)", [], |row| row.get(0))
+                .or_else(|e| {
+                    if is_damage(&e) {
+                        Ok(e.to_string())
+                    } else {
+                        Err(e)
+                    }
+                })?;
+            if verdict != "ok" {
+                return Err(damaged(dir, &verdict));
             }
         }
         conn.execute_batch("PRAGMA synchronous = NORMAL; PRAGMA foreign_keys = ON;")?;
+        // Who is computing which step now: a table of the moment, not of the
+        // record (rows live while a step is computed), so it needs no schema
+        // version and older scanloc versions ignore it.
+        conn.execute_batch(STEP_CLAIMS)?;
         let mut registry = Self {
             dir: dir.to_path_buf(),
             conn,
             blobs: BlobStore::open(dir)?,
+            read_only: false,
         };
         registry.migrate()?;
         Ok(registry)
@@ -347,6 +441,14 @@ impl Registry {
     /// superseded; otherwise that is an error (the step is not
     /// deterministic, or two builds disagree).
     pub fn record_artefact(&mut self, artefact: &NewArtefact, replace: bool) -> anyhow::Result<()> {
+        if self.read_only {
+            return Err(input_error(format!(
+                "{}: the registry is read-only: {} ({}) cannot be stored",
+                self.dir.display(),
+                artefact.name,
+                artefact.key
+            )));
+        }
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -509,6 +611,9 @@ impl Registry {
     /// Records as `unfinished` every run whose status in effect is
     /// (see [`RunStatus::in_effect`]).
     pub fn mark_abandoned_runs(&mut self) -> anyhow::Result<usize> {
+        if self.read_only {
+            return Ok(0);
+        }
         let candidates: Vec<(String, String, i64)> = {
             let mut statement = self
                 .conn
@@ -539,6 +644,9 @@ impl Registry {
 
     /// Records the start of a run (status `running`).
     pub fn begin_run(&mut self, start: &RunStart) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let code = CodeVersion::current();
         let cv = start.cross_validation.as_ref();
         let tx = self
@@ -580,6 +688,9 @@ impl Registry {
 
     /// Records one finished step of a running run.
     pub fn record_step(&mut self, run_id: &str, step: &StepRecord) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let blobs: serde_json::Map<String, serde_json::Value> = step
             .blobs
             .iter()
@@ -616,6 +727,9 @@ impl Registry {
         counts: StepCounts,
         auc: &[AucRow],
     ) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -717,6 +831,153 @@ fn insert_artefact_blobs(
         )?;
     }
     Ok(())
+}
+
+const STEP_CLAIMS: &str = "CREATE TABLE IF NOT EXISTS step_claims (
+    key TEXT PRIMARY KEY,
+    run_id TEXT NOT NULL,
+    host TEXT NOT NULL,
+    pid INTEGER NOT NULL,
+    claimed_at TEXT NOT NULL
+)";
+
+/// A run computing a step another run needs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StepClaim {
+    pub run_id: String,
+    pub host: String,
+    pub pid: i64,
+}
+
+impl Registry {
+    /// Claims the computation of the artefact `key` for run `run_id` (this
+    /// process), or returns the live claim of another run on this host to
+    /// wait for. A claim by a process that is gone (the pid/host rule of
+    /// unfinished runs) is taken over; one from another host is not waited
+    /// for (its liveness cannot be known): both compute, as before claims.
+    pub fn claim_step(&mut self, key: &str, run_id: &str) -> anyhow::Result<Option<StepClaim>> {
+        if self.read_only {
+            return Ok(None);
+        }
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let holder: Option<StepClaim> = tx
+            .query_row(
+                "SELECT run_id, host, pid FROM step_claims WHERE key = ?1",
+                [key],
+                |row| {
+                    Ok(StepClaim {
+                        run_id: row.get(0)?,
+                        host: row.get(1)?,
+                        pid: row.get(2)?,
+                    })
+                },
+            )
+            .optional()?;
+        if let Some(holder) = holder
+            && holder.run_id != run_id
+            && holder.host == host_name()
+            && RunStatus::Running.in_effect(&holder.host, holder.pid) == RunStatus::Running
+        {
+            return Ok(Some(holder));
+        }
+        tx.execute(
+            "INSERT OR REPLACE INTO step_claims (key, run_id, host, pid, claimed_at)
+             VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![key, run_id, host_name(), std::process::id(), utc_now()],
+        )?;
+        tx.commit()?;
+        Ok(None)
+    }
+
+    /// Releases run `run_id`'s claim on `key` (all its claims with `None`).
+    pub fn release_claims(&mut self, run_id: &str, key: Option<&str>) -> anyhow::Result<()> {
+        if self.read_only {
+            return Ok(());
+        }
+        self.conn.execute(
+            "DELETE FROM step_claims WHERE run_id = ?1 AND (?2 IS NULL OR key = ?2)",
+            params![run_id, key],
+        )?;
+        Ok(())
+    }
+}
+
+/// Whether this process can create files in `dir` (tried, not inferred
+/// from permission bits, which do not apply to root or to a read-only mount).
+fn writable(dir: &Path) -> bool {
+    match tempfile::Builder::new()
+        .prefix(".scanloc-write-probe-")
+        .tempfile_in(dir)
+    {
+        Ok(_) => true,
+        Err(e) => !matches!(
+            e.kind(),
+            std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
+        ),
+    }
+}
+
+/// Whether a registry is checked for damage when opened.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Integrity {
+    /// Before anything is written (runs): a damaged database is refused.
+    CheckBeforeWriting,
+    /// For reading and auditing (`registry verify` must open a damaged one).
+    Unchecked,
+}
+
+/// Whether SQLite says the database file is not a sound database.
+fn is_damage(error: &rusqlite::Error) -> bool {
+    matches!(
+        error.sqlite_error_code(),
+        Some(rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase)
+    )
+}
+
+/// The refusal to write into a damaged registry database.
+fn damaged(dir: &Path, problem: &str) -> anyhow::Error {
+    let path = dir.join(DATABASE_FILE);
+    input_error(format!(
+        "{}: the registry database is damaged ({}), so nothing is written to it; \
+         `scanloc registry verify --registry {}` shows what is wrong; restore {DATABASE_FILE} \
+         from a backup, or save what still reads with `sqlite3 {} .recover`",
+        path.display(),
+        problem.lines().next().unwrap_or(problem),
+        dir.display(),
+        path.display()
+    ))
+}
+
+/// Refuses to start a new database in a registry whose database is gone or
+/// empty while its blob store holds artefacts: that database was lost (a
+/// truncation, a bad copy), and a new one would silently forget every run.
+fn refuse_lost_database(dir: &Path) -> anyhow::Result<()> {
+    let path = dir.join(DATABASE_FILE);
+    let state = match std::fs::metadata(&path) {
+        Ok(metadata) if metadata.len() > 0 => return Ok(()),
+        Ok(_) => "is empty (0 bytes)",
+        Err(_) => "is missing",
+    };
+    let blobs = dir.join("blobs");
+    let holds_blobs = std::fs::read_dir(&blobs)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .any(|prefix| {
+            std::fs::read_dir(prefix.path()).is_ok_and(|mut files| files.next().is_some())
+        });
+    if !holds_blobs {
+        return Ok(());
+    }
+    Err(input_error(format!(
+        "{}: {DATABASE_FILE} {state} but {} holds stored artefacts: the record of the runs was \
+         lost, and scanloc will not start a new one over it; restore {DATABASE_FILE} from a \
+         backup, or move the folder aside to start a new registry",
+        dir.display(),
+        blobs.display()
+    )))
 }
 
 fn is_busy(error: &rusqlite::Error) -> bool {

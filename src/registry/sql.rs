@@ -1,15 +1,11 @@
 //! SQL over the registry: listings of runs and artefacts, resolving ids,
 //! one artefact in full, and read-only SQL from the command line.
 
-use std::path::Path;
-use std::time::Duration;
-
-use rusqlite::types::ValueRef;
-use rusqlite::{Connection, OpenFlags, OptionalExtension};
+use rusqlite::{Connection, OptionalExtension};
 use serde_json::{Value, json};
 
+use super::Registry;
 use super::table::Table;
-use super::{DATABASE_FILE, Registry};
 use crate::error::input_error;
 
 /// What an id given on the command line names.
@@ -44,36 +40,14 @@ pub fn query(conn: &Connection, sql: &str, args: &[&dyn rusqlite::ToSql]) -> any
     while let Some(row) = cursor.next()? {
         let mut values = Vec::with_capacity(count);
         for index in 0..count {
-            values.push(match row.get_ref(index)? {
-                ValueRef::Null => Value::Null,
-                ValueRef::Integer(i) => json!(i),
-                ValueRef::Real(f) => json!(f),
-                ValueRef::Text(t) => Value::String(String::from_utf8_lossy(t).into_owned()),
-                ValueRef::Blob(b) => Value::String(format!("<{} bytes>", b.len())),
-            });
+            values.push(super::sql_guard::json_value(row.get_ref(index)?));
         }
         rows.push(values);
     }
     Ok(Table { columns, rows })
 }
 
-/// Runs one user-supplied SQL statement on a read-only connection to the
-/// registry in `dir`. Bad SQL, or any attempt to write, is bad input.
-pub fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
-    let path = dir.join(DATABASE_FILE);
-    if !path.is_file() {
-        return Err(input_error(format!(
-            "{}: no registry here (no {DATABASE_FILE})",
-            dir.display()
-        )));
-    }
-    let conn = Connection::open_with_flags(
-        &path,
-        OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
-    )?;
-    conn.busy_timeout(Duration::from_secs(30))?;
-    query(&conn, sql, &[]).map_err(|e| input_error(format!("sql: {e}")))
-}
+pub use super::sql_guard::read_only_sql;
 
 impl Registry {
     /// Every run, newest first, with its status in effect, as a table

@@ -35,11 +35,23 @@ pub struct VerifyReport {
     pub leftover_temporaries: Vec<String>,
     /// SQLite's own `PRAGMA integrity_check` result.
     pub database_integrity: String,
+    /// Artefacts whose stored spec no longer hashes to their key (edited
+    /// or damaged records: the key no longer says what the artefact is).
+    pub bad_specs: Vec<BadSpec>,
+}
+
+/// An artefact whose recorded spec does not hash to its content key.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BadSpec {
+    /// `kind name (key)`.
+    pub artefact: String,
+    /// The sha256 of the spec as stored now.
+    pub spec_sha256: String,
 }
 
 impl VerifyReport {
     pub fn ok(&self) -> bool {
-        self.bad.is_empty() && self.database_integrity == "ok"
+        self.bad.is_empty() && self.bad_specs.is_empty() && self.database_integrity == "ok"
     }
 }
 
@@ -70,6 +82,25 @@ impl Registry {
                 })?
                 .collect::<Result<_, _>>()?
         };
+        // Every key is the sha256 of its spec, by construction.
+        let mut bad_specs = Vec::new();
+        {
+            let mut statement = self
+                .connection()
+                .prepare("SELECT key, kind, name, spec FROM artefacts ORDER BY key")?;
+            let mut rows = statement.query([])?;
+            while let Some(row) = rows.next()? {
+                let (key, kind, name, spec): (String, String, String, String) =
+                    (row.get(0)?, row.get(1)?, row.get(2)?, row.get(3)?);
+                let spec_sha256 = super::hashing::sha256_hex(spec.as_bytes());
+                if spec_sha256 != key {
+                    bad_specs.push(BadSpec {
+                        artefact: format!("{kind} {name} ({key})"),
+                        spec_sha256,
+                    });
+                }
+            }
+        }
         let store = self.blobs();
         let results: Vec<anyhow::Result<(BlobState, u64)>> = entries
             .par_iter()
@@ -117,6 +148,7 @@ impl Registry {
                 .map(|p| p.display().to_string())
                 .collect(),
             database_integrity: integrity,
+            bad_specs,
         })
     }
 }

@@ -10,12 +10,15 @@ use super::compute::{LoadedArtefacts, compute};
 use super::details::details;
 use super::log;
 use super::plan::{Action, Plan, Step};
-use super::stored::{Stored, check_stored_artefacts, read_blobs};
+use super::stored::{Stored, check_stored_artefact, check_stored_artefacts, read_blobs};
 use crate::metrics::Score;
 use crate::registry::hashing::sha256_hex;
 use crate::registry::{
     AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
 };
+
+/// How often a run waiting for another's step looks again.
+const CLAIM_POLL: std::time::Duration = std::time::Duration::from_millis(200);
 
 /// What a run has done so far.
 pub(super) struct Execution {
@@ -83,6 +86,20 @@ impl Execution {
             let clock = Instant::now();
             let done = match (&stored[index], force) {
                 (Stored::Intact(blobs, seconds), false) => self.reuse(step, blobs, *seconds),
+                (Stored::Absent, false) => {
+                    // Another run may be computing it: wait, then reuse.
+                    match self.claim(registry, step)? {
+                        Stored::Intact(blobs, seconds) => {
+                            registry.release_claims(&self.run_id, Some(&step.key))?;
+                            self.reuse(step, &blobs, seconds)
+                        }
+                        now => {
+                            let made = self.make(registry, plan, index, &now, &mut loaded, clock);
+                            registry.release_claims(&self.run_id, Some(&step.key))?;
+                            made?
+                        }
+                    }
+                }
                 (stored, _) => self.make(registry, plan, index, stored, &mut loaded, clock)?,
             };
             auc.extend(auc_rows(registry, step, &done)?);
@@ -93,6 +110,24 @@ impl Execution {
             self.record_step(registry, index, step, done, clock)?;
         }
         Ok(auc)
+    }
+
+    /// Claims `step` for this run, first waiting while a live run on this
+    /// host computes it (saying whose claim it waits for), and returns what
+    /// is stored under its key once the claim is ours.
+    fn claim(&mut self, registry: &mut Registry, step: &Step) -> anyhow::Result<Stored> {
+        let mut waited = false;
+        while let Some(holder) = registry.claim_step(&step.key, &self.run_id)? {
+            if !waited {
+                eprintln!(
+                    "waiting for {}: run {} (pid {} on {}) is computing it",
+                    step.id, holder.run_id, holder.pid, holder.host
+                );
+                waited = true;
+            }
+            std::thread::sleep(CLAIM_POLL);
+        }
+        check_stored_artefact(registry, &step.key)
     }
 
     /// A step whose artefact is stored intact: nothing to do.

@@ -122,17 +122,28 @@ pub fn execute(
     options: &RunOptions,
 ) -> anyhow::Result<RunOutcome> {
     let started = Instant::now();
+    if registry.is_read_only() {
+        refuse_work_on_read_only(registry, plan, options.force)?;
+    }
     registry.mark_abandoned_runs()?;
     let run_id = new_run_id();
     record_run_start(registry, &run_id, manifest, plan, options)?;
     let mut execution = Execution::new(run_id.clone());
     let result = execution.execute(registry, plan, options.force);
     let auc = result.as_ref().cloned().unwrap_or_default();
+    // Whatever happened, this run computes nothing any more.
+    registry.release_claims(&run_id, None)?;
     let (status, error) = verdict(&result, &execution.mismatches);
     registry
         .finish_run(&run_id, status, error.as_deref(), execution.counts, &auc)
         .context("recording the end of the run")?;
     result?;
+    if registry.is_read_only() {
+        eprintln!(
+            "warning: {} is read-only: every step was served from its cache, but run {run_id} could not be recorded there",
+            registry.dir().display()
+        );
+    }
     if let Some(error) = error {
         return Err(anyhow::Error::new(CheckFailed(format!(
             "run {run_id}: {error}"
@@ -148,6 +159,33 @@ pub fn execute(
         damaged_blobs: execution.damaged,
         seconds: started.elapsed().as_secs_f64(),
     })
+}
+
+/// On a registry that cannot be written, a run can only serve what is
+/// stored: refuses (as bad input, before any work) a plan with a step that
+/// is not stored intact, or `--force`.
+fn refuse_work_on_read_only(registry: &Registry, plan: &Plan, force: bool) -> anyhow::Result<()> {
+    let dir = registry.dir().display();
+    if force {
+        return Err(crate::error::input_error(format!(
+            "{dir}: the registry is read-only, so --force cannot store what it recomputes"
+        )));
+    }
+    let stored = stored::check_stored_artefacts(registry, plan)?;
+    let missing: Vec<&str> = plan
+        .steps
+        .iter()
+        .zip(&stored)
+        .filter(|(_, stored)| !matches!(stored, stored::Stored::Intact(..)))
+        .map(|(step, _)| step.id.as_str())
+        .collect();
+    if let Some(first) = missing.first() {
+        return Err(crate::error::input_error(format!(
+            "{dir}: the registry is read-only and {} of the run's steps are not stored intact there ({first}, …): run on a writable registry (--registry)",
+            missing.len()
+        )));
+    }
+    Ok(())
 }
 
 /// Records the run as `running`, with its manifest, resolved manifest and

@@ -198,9 +198,11 @@ pub fn reproduce(
             notes.push(format!("{field}: recorded {recorded}, now {now}"));
         }
     }
-    if record.status != RunStatus::Done {
+    refuse_incomplete(&record)?;
+    let recorded_done = record.status == RunStatus::Done;
+    if !recorded_done {
         notes.push(format!(
-            "the recorded run is {}: only its recorded steps are compared",
+            "the recorded run is {}: only the steps and AUC values it recorded are compared",
             record.status
         ));
     }
@@ -305,7 +307,9 @@ pub fn reproduce(
         .iter()
         .map(|row| (row.detector.clone(), row.dataset.clone(), row.eps_px))
         .collect();
-    for row in &outcome.auc {
+    // A run that failed recorded no AUC table: there is nothing to compare
+    // the reproduced values with, which is not a difference.
+    for row in outcome.auc.iter().filter(|_| recorded_done) {
         if !cells
             .iter()
             .any(|(d, s, e)| *d == row.detector && *s == row.dataset && *e == row.eps_px)
@@ -333,12 +337,8 @@ pub fn reproduce(
             identical,
         });
     }
-    let recorded_done = record.status == RunStatus::Done;
-    let identical = artefacts.iter().all(|a| a.identical)
-        && auc
-            .iter()
-            .all(|c| c.identical || (!recorded_done && c.recorded.is_none()))
-        && !artefacts.is_empty();
+    // Identical exactly when every line the report prints says so.
+    let identical = artefacts.iter().all(|a| a.identical) && auc.iter().all(|c| c.identical);
 
     // Record the reproduction in the main registry.
     let reproduction_run = super::new_run_id();
@@ -395,6 +395,28 @@ pub fn reproduce(
         auc,
         notes,
     })
+}
+
+/// Refuses (as bad input) a run that has no complete record to compare
+/// with: one still running, and one whose process ended before it finished
+/// (killed), or that recorded no step at all.
+fn refuse_incomplete(record: &RunRecord) -> anyhow::Result<()> {
+    let (run_id, who) = (&record.id, format!("pid {} on {}", record.pid, record.host));
+    match record.status {
+        RunStatus::Running => Err(crate::error::input_error(format!(
+            "run {run_id} has not finished ({who} is still running it, or was killed on another \
+             machine): reproduce it once it is done"
+        ))),
+        RunStatus::Unfinished => Err(crate::error::input_error(format!(
+            "run {run_id} is unfinished: its process ({who}) ended before the run did, so there \
+             is no complete record to compare with; rerun its manifest with `scanloc run` (the \
+             finished steps are reused) and reproduce that run"
+        ))),
+        _ if record.steps.is_empty() => Err(crate::error::input_error(format!(
+            "run {run_id} recorded no step, so there is nothing to reproduce"
+        ))),
+        _ => Ok(()),
+    }
 }
 
 /// The plan a recorded run executed: its manifest's, or for a

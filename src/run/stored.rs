@@ -43,6 +43,14 @@ pub(super) fn check_stored_artefacts(
         .collect()
 }
 
+/// Checks the stored artefact of one key (as [`check_stored_artefacts`]).
+pub(super) fn check_stored_artefact(registry: &Registry, key: &str) -> anyhow::Result<Stored> {
+    match registry.artefact(key)? {
+        None => Ok(Stored::Absent),
+        Some(artefact) => check_blobs(registry.blobs(), artefact.blobs),
+    }
+}
+
 /// Re-hashes one artefact's blobs.
 fn check_blobs(store: &BlobStore, blobs: Vec<BlobRef>) -> anyhow::Result<Stored> {
     let clock = Instant::now();

@@ -270,6 +270,34 @@ impl SimParams {
         if let Some(cutoff) = self.psf_cutoff_sigma {
             require_positive("psf_cutoff_sigma", cutoff)?;
         }
+        // Refused here, before any frame is simulated, rather than when the
+        // first oversized count is drawn.
+        if self.background > MAX_EXPECTED_PHOTONS_PER_PIXEL {
+            return Err(FieldError::new(
+                "background",
+                format!(
+                    "{} photons per pixel cannot be recorded in a uint32 count with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e})",
+                    readable(self.background)
+                ),
+            ));
+        }
+        let brightest = match self.emitters {
+            0 => self.background,
+            n => f64::from(n) * self.psf_peak() + self.background,
+        };
+        if brightest.is_nan() || brightest > MAX_EXPECTED_PHOTONS_PER_PIXEL {
+            return Err(FieldError::new(
+                "brightness",
+                format!(
+                    "{} emitter(s) of brightness {} with sigma_xy_um {} and sigma_z_um {} expect up to {} photons in one pixel, more than a uint32 count holds with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e}); lower brightness or widen the PSF",
+                    self.emitters,
+                    readable(self.brightness),
+                    readable(self.sigma_xy_um),
+                    readable(self.sigma_z_um),
+                    readable(brightest)
+                ),
+            ));
+        }
         Ok(())
     }
 
@@ -301,3 +329,18 @@ impl SimParams {
         (self.height * self.width) as f64 * dwell + (self.height.saturating_sub(1)) as f64 * retrace
     }
 }
+
+/// `value` as plain digits when short, in scientific notation when very
+/// large or small (an error quoting 1e300 stays one readable line).
+fn readable(value: f64) -> String {
+    if value != 0.0 && !(1e-4..1e9).contains(&value.abs()) {
+        format!("{value:e}")
+    } else {
+        format!("{value}")
+    }
+}
+
+/// Largest expected photon number of one pixel (every emitter in focus on
+/// it, plus the background) accepted: counts are stored as uint32
+/// (at most 4.29e9), and this leaves room for the noise of the draw.
+pub const MAX_EXPECTED_PHOTONS_PER_PIXEL: f64 = 1e9;

@@ -182,6 +182,12 @@ impl Default for TrainingSettings {
 }
 
 impl TrainingSettings {
+    /// How many of a `frames`-frame training set are held out for
+    /// validation: `validation_fraction` of them, rounded to nearest.
+    pub fn held_out_frames(&self, frames: usize) -> usize {
+        ((frames as f64) * self.validation_fraction).round() as usize
+    }
+
     /// Checks every field; the error names the field and says what is
     /// allowed.
     pub fn validate(&self) -> Result<(), FieldError> {

@@ -310,7 +310,7 @@ fn train_and_select(
     shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
     let n_split_off = match selection.external {
         Some(_) => 0,
-        None => ((n as f64) * settings.validation_fraction).round() as usize,
+        None => settings.held_out_frames(n),
     };
     let mut validation_indices = order[..n_split_off].to_vec();
     validation_indices.sort_unstable();

@@ -43,7 +43,7 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
             reference::resolve_reference(reference, &raw.metrics.eps_px, &datasets, &detectors)
         })
         .transpose()?;
-    Ok(Manifest {
+    let manifest = Manifest {
         source: source.to_string(),
         manifest_sha256: hex::encode(Sha256::digest(text.as_bytes())),
         name: raw.name,
@@ -57,7 +57,9 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
         cross_validation: raw.cross_validation,
         reference,
         text: text.to_string(),
-    })
+    };
+    super::feasibility::check(&manifest)?;
+    Ok(manifest)
 }
 
 /// The path through the mappings `keys` from the top of the document

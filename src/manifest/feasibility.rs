@@ -1,0 +1,103 @@
+//! What a run would refuse only after doing work, refused when the manifest
+//! is read: `scanloc check` then says no to every manifest `run` or `cv`
+//! would stop on as bad input, and a run never simulates for minutes to fail
+//! at its first evaluation.
+//!
+//! These checks cross fields (a dataset's emitters and the evaluations that
+//! score it, a training split and its dataset's frame count); the checks of
+//! one parameter block stay with its type (`SimParams::validate`,
+//! `CrockerGrierParams::validate`, …).
+
+use super::{DetectorSpec, Manifest};
+use crate::error::{FieldError, Segment};
+
+fn problem(path: &[&str], message: String) -> FieldError {
+    let path: Vec<Segment> = path.iter().map(|p| Segment::key(p)).collect();
+    FieldError::at(&path, message)
+}
+
+/// The first problem of `manifest` that its run would only find by running.
+pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
+    // Every dataset that gets scored, and by what (for the message).
+    let mut scored: Vec<(&str, String)> = manifest
+        .evaluations
+        .iter()
+        .map(|e| {
+            (
+                e.dataset.as_str(),
+                format!("evaluation of `{}`", e.detector),
+            )
+        })
+        .collect();
+    for detector in &manifest.detectors {
+        let DetectorSpec::Cnn(spec) = &detector.spec else {
+            continue;
+        };
+        let Some(training) = manifest.dataset(&spec.training_set) else {
+            continue;
+        };
+        let settings = &spec.training;
+        let held_out = settings.held_out_frames(training.frames);
+        if held_out == training.frames && settings.fresh_frames_per_epoch == 0 {
+            return Err(problem(
+                &[
+                    "detectors",
+                    &detector.name,
+                    "cnn",
+                    "training",
+                    "validation_fraction",
+                ],
+                format!(
+                    "{} holds out all {} frames of `{}` for validation and fresh_frames_per_epoch is 0, so nothing is left to train on",
+                    settings.validation_fraction, training.frames, training.name
+                ),
+            ));
+        }
+        if held_out > 0 {
+            scored.push((
+                training.name.as_str(),
+                format!("validation of `{}`", detector.name),
+            ));
+        }
+    }
+    if let Some(cv) = &manifest.cross_validation
+        && let Some(training) = manifest
+            .detector(&cv.detector)
+            .and_then(|d| d.spec.training_dataset())
+            .and_then(|name| manifest.dataset(name))
+    {
+        if cv.folds > training.frames {
+            return Err(problem(
+                &["cross_validation", "folds"],
+                format!(
+                    "{} folds need at least {} frames, but the training set `{}` has {}",
+                    cv.folds, cv.folds, training.name, training.frames
+                ),
+            ));
+        }
+        scored.push((
+            training.name.as_str(),
+            format!("cross-validation of `{}`", cv.detector),
+        ));
+    }
+    for (name, by) in scored {
+        let Some(dataset) = manifest.dataset(name) else {
+            continue;
+        };
+        if dataset.params.emitters == 0 {
+            // Inherited from the microscope unless the microscope has some.
+            let path: &[&str] = if manifest.microscope.emitters == 0 {
+                &["microscope", "emitters"]
+            } else {
+                &["datasets", name, "emitters"]
+            };
+            return Err(problem(
+                path,
+                format!(
+                    "0 emitters in `{name}` leave no ground truth for the {by} to be scored against"
+                ),
+            ));
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,580 @@
+//! Fuzzing the command line: random argument values for `simulate`,
+//! `locate` and `score`, and random or damaged CSV, TIFF and .npy bytes
+//! given to them. Whatever comes in, the binary exits 0, 1 or 2, never
+//! panics or aborts, and a refusal is one `error:` line.
+//!
+//! Each case runs the real binary, under an address-space limit (so an
+//! unbounded allocation aborts instead of swapping the machine) and a time
+//! limit. Valid values are kept small, so that every accepted case is
+//! cheap; hostile values are out of range, malformed or extreme. `make
+//! fuzz` runs these with `SCANLOC_FUZZ_CASES` cases per property.
+
+use crate::common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use proptest::prelude::*;
+
+/// Address space a case may use: far above what any accepted (small) case
+/// needs, far below what would disturb the machine.
+const MEMORY_LIMIT_BYTES: u64 = 4 << 30;
+/// Time a case may take; accepted cases take milliseconds.
+const TIME_LIMIT: Duration = Duration::from_secs(10);
+
+/// How one invocation ended.
+#[derive(Debug)]
+struct Ended {
+    code: Option<i32>,
+    stderr: String,
+    timed_out: bool,
+}
+
+/// Runs the binary with `args` in `dir` under the memory and time limits.
+fn run_limited(dir: &Path, args: &[String]) -> Ended {
+    let binary = env!("CARGO_BIN_EXE_scanloc");
+    // prlimit applies the address-space limit to the binary alone; without
+    // it (not Linux) the case runs unlimited.
+    let mut command = if Path::new("/usr/bin/prlimit").exists() {
+        let mut command = Command::new("/usr/bin/prlimit");
+        command
+            .arg(format!("--as={MEMORY_LIMIT_BYTES}"))
+            .arg("--")
+            .arg(binary);
+        command
+    } else {
+        Command::new(binary)
+    };
+    let mut child = command
+        .args(args)
+        .current_dir(dir)
+        .env_remove("SCANLOC_REGISTRY")
+        .env_remove("RUST_BACKTRACE")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start scanloc");
+    let mut stderr = child.stderr.take().expect("piped");
+    // Drain stderr while waiting, so a chatty case cannot block on a full pipe.
+    let reader = std::thread::spawn(move || {
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut stderr, &mut text).ok();
+        text
+    });
+    let started = Instant::now();
+    let mut timed_out = false;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait for scanloc") {
+            break status;
+        }
+        if started.elapsed() > TIME_LIMIT {
+            timed_out = true;
+            child.kill().ok();
+            break child.wait().expect("wait for scanloc");
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    };
+    Ended {
+        code: status.code(),
+        stderr: reader.join().unwrap_or_default(),
+        timed_out,
+    }
+}
+
+/// The contract: exit 0, 1 or 2; no panic; a failure says so in exactly one
+/// `error:` line.
+fn check_contract(args: &[String], ended: &Ended) -> Result<(), TestCaseError> {
+    let context = format!("scanloc {args:?}\nstderr: {}", ended.stderr);
+    prop_assert!(!ended.timed_out, "took over {:?}: {}", TIME_LIMIT, context);
+    prop_assert!(
+        matches!(ended.code, Some(0..=2)),
+        "exit {:?}: {}",
+        ended.code,
+        context
+    );
+    prop_assert!(!ended.stderr.contains("panicked"), "{}", context);
+    if ended.code != Some(0) {
+        let errors = ended
+            .stderr
+            .lines()
+            .filter(|l| l.starts_with("error"))
+            .count();
+        prop_assert_eq!(errors, 1, "{}", context);
+    }
+    Ok(())
+}
+
+/// Valid inputs made once by the binary itself: a small stack as .npy and
+/// .tif, its ground truth and TrackPy-style localisations.
+struct Inputs {
+    _dir: tempfile::TempDir,
+    npy: Vec<u8>,
+    tif: Vec<u8>,
+    truth: Vec<u8>,
+    locs: Vec<u8>,
+}
+
+fn inputs() -> &'static Inputs {
+    static INPUTS: OnceLock<Inputs> = OnceLock::new();
+    INPUTS.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let run = |args: &[&str]| {
+            let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+            let ended = run_limited(dir.path(), &args);
+            assert_eq!(ended.code, Some(0), "{args:?}: {}", ended.stderr);
+        };
+        let common = [
+            "--frames",
+            "3",
+            "--emitters",
+            "2",
+            "--height",
+            "16",
+            "--width",
+            "18",
+        ];
+        let mut args = vec!["simulate", "--out", "s.npy", "--truth", "truth.csv"];
+        args.extend(common);
+        run(&args);
+        let mut args = vec!["simulate", "--out", "s.tif"];
+        args.extend(common);
+        run(&args);
+        run(&[
+            "locate",
+            "--input",
+            "s.npy",
+            "--out",
+            "locs.csv",
+            "--minmass",
+            "0",
+        ]);
+        let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+        Inputs {
+            npy: read("s.npy"),
+            tif: read("s.tif"),
+            truth: read("truth.csv"),
+            locs: read("locs.csv"),
+            _dir: dir,
+        }
+    })
+}
+
+/// Values a user (or a script gone wrong) might give any flag: out of
+/// range, malformed or extreme.
+const HOSTILE_VALUES: &[&str] = &[
+    "0",
+    "-1",
+    "-0",
+    "1e300",
+    "-1e300",
+    "1e-300",
+    "nan",
+    "NaN",
+    "inf",
+    "-inf",
+    "4294967295",
+    "4294967296",
+    "4000000001",
+    "10000001",
+    "1e12",
+    "1000000000000",
+    "9223372036854775807",
+    "18446744073709551615",
+    "18446744073709551616",
+    "16385",
+    "1025",
+    "10001",
+    "1001",
+    "1002",
+    "",
+    " ",
+    "abc",
+    "1.5",
+    "0x10",
+    "1_000",
+    "+3",
+    "３",
+    "1e",
+    "--frames",
+    "uniform:",
+    "uniform:2,1",
+    "uniform:nan,1",
+    "uniform:0,1e300",
+    "pmt:1",
+    "pmt:1e300",
+    "pmt:nan",
+    "none",
+];
+
+/// A valid value (the strategy itself; a name for reading the tables below).
+fn number(valid: impl Strategy<Value = String> + 'static) -> BoxedStrategy<String> {
+    valid.boxed()
+}
+
+fn small_int(range: std::ops::Range<u64>) -> impl Strategy<Value = String> {
+    range.prop_map(|v| v.to_string())
+}
+
+fn small_real(range: std::ops::Range<f64>) -> impl Strategy<Value = String> {
+    range.prop_map(|v| format!("{v}"))
+}
+
+/// Each flag absent or given a valid value, then up to three flags given
+/// a hostile value instead: one bad value at a time is what reaches the
+/// code behind the first check that fails.
+fn flags(options: Vec<(&'static str, BoxedStrategy<String>)>) -> BoxedStrategy<Vec<String>> {
+    let names: Vec<&'static str> = options.iter().map(|(flag, _)| *flag).collect();
+    let valid: Vec<BoxedStrategy<Option<String>>> = options
+        .into_iter()
+        .map(|(_, values)| proptest::option::of(values).boxed())
+        .collect();
+    let hostile = proptest::collection::vec(
+        (
+            any::<prop::sample::Index>(),
+            prop::sample::select(HOSTILE_VALUES),
+        ),
+        0..4,
+    );
+    (valid, hostile)
+        .prop_map(move |(mut values, hostile)| {
+            for (index, value) in hostile {
+                let at = index.index(values.len());
+                values[at] = Some(value.to_string());
+            }
+            names
+                .iter()
+                .zip(values)
+                .filter_map(|(flag, value)| value.map(|v| [flag.to_string(), v]))
+                .flatten()
+                .collect()
+        })
+        .boxed()
+}
+
+fn distribution() -> BoxedStrategy<String> {
+    prop_oneof![
+        3 => small_real(0.0..3.0),
+        1 => (small_real(0.0..2.0), small_real(0.0..3.0))
+            .prop_map(|(a, b)| format!("uniform:{a},{b}")),
+    ]
+    .boxed()
+}
+
+fn output_name(extensions: &'static [&'static str]) -> BoxedStrategy<String> {
+    prop_oneof![
+        4 => prop::sample::select(extensions).prop_map(|e| format!("out.{e}")),
+        1 => prop::sample::select(vec![
+            "", ".", "..", "/", "missing/out.npy", "out", "out.NPY", "out.tiff.", "in.npy",
+        ])
+        .prop_map(str::to_string),
+    ]
+    .boxed()
+}
+
+fn simulate_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        ("--frames", number(small_int(1..5))),
+        ("--seed", number(any::<u64>().prop_map(|v| v.to_string()))),
+        ("--diffusion", distribution()),
+        ("--brightness", number(small_real(0.0..50.0))),
+        ("--background", number(small_real(0.0..20.0))),
+        ("--height", number(small_int(1..33))),
+        ("--width", number(small_int(1..33))),
+        ("--pixel-size-um", number(small_real(0.01..1.0))),
+        ("--dwell-us", number(small_real(0.1..10.0))),
+        ("--retrace-ms", number(small_real(0.0..5.0))),
+        ("--sigma-xy-um", number(small_real(0.05..1.0))),
+        ("--sigma-z-um", number(small_real(0.1..3.0))),
+        ("--z-start", distribution()),
+        ("--margin-px", number(small_real(0.0..6.0))),
+        ("--substeps", number(small_int(1..4))),
+        ("--emitters", number(small_int(0..5))),
+        (
+            "--detector-noise",
+            prop_oneof![
+                Just("poisson".to_string()),
+                number(small_real(1.01..3.0)).prop_map(|f| format!("pmt:{f}")),
+                Just("gaussian".to_string()),
+            ]
+            .boxed(),
+        ),
+        (
+            "--psf-cutoff-sigma",
+            prop_oneof![Just("none".to_string()), number(small_real(0.5..8.0))].boxed(),
+        ),
+        ("--truth", output_name(&["csv"])),
+    ])
+    .prop_flat_map(|args| {
+        output_name(&["npy", "tif", "tiff"]).prop_map(move |out| {
+            let mut all = vec!["simulate".to_string(), "--out".to_string(), out];
+            all.extend(args.iter().cloned());
+            all
+        })
+    })
+    .boxed()
+}
+
+fn locate_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        ("--diameter", number(small_int(1..16))),
+        ("--minmass", number(small_real(0.0..500.0))),
+        ("--maxsize", number(small_real(0.0..10.0))),
+        ("--separation", number(small_real(0.0..10.0))),
+        ("--noise-size", number(small_real(0.0..3.0))),
+        ("--smoothing-size", number(small_int(1..16))),
+        ("--threshold", number(small_real(0.0..50.0))),
+        ("--percentile", number(small_real(0.0..100.0))),
+        ("--topn", number(small_int(1..10))),
+        ("--max-iterations", number(small_int(1..20))),
+    ])
+    .prop_flat_map(|args| {
+        (
+            prop_oneof![
+                Just(Vec::new()),
+                Just(vec!["--preprocess".to_string()]),
+                Just(vec!["--no-preprocess".to_string()]),
+            ],
+            output_name(&["csv"]),
+        )
+            .prop_map(move |(preprocess, out)| {
+                let mut all = vec!["locate".to_string(), "--out".to_string(), out];
+                all.extend(args.clone());
+                all.extend(preprocess);
+                all
+            })
+    })
+    .boxed()
+}
+
+/// Damages `bytes`: overwrites some, then maybe truncates and appends.
+fn damaged(
+    bytes: &[u8],
+    edits: &[(prop::sample::Index, u8)],
+    cut: Option<prop::sample::Index>,
+    tail: &[u8],
+) -> Vec<u8> {
+    let mut bytes = bytes.to_vec();
+    if !bytes.is_empty() {
+        for (index, value) in edits {
+            let at = index.index(bytes.len());
+            bytes[at] = *value;
+        }
+    }
+    if let Some(cut) = cut {
+        bytes.truncate(cut.index(bytes.len() + 1));
+    }
+    bytes.extend_from_slice(tail);
+    bytes
+}
+
+/// A .npy file with any header shape and element type, and `data` after
+/// it: degenerate shapes (a zero side, a huge side, the wrong rank) that
+/// damaged bytes rarely produce.
+fn npy_with_shape(descr: &str, shape: &[u64], data: &[u8]) -> Vec<u8> {
+    let dims: Vec<String> = shape.iter().map(u64::to_string).collect();
+    let shape = match dims.len() {
+        1 => format!("({},)", dims[0]),
+        _ => format!("({})", dims.join(", ")),
+    };
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    bytes.extend_from_slice(data);
+    bytes
+}
+
+fn npy_of_any_shape() -> BoxedStrategy<Vec<u8>> {
+    let side = prop_oneof![
+        3 => 0u64..5,
+        1 => prop::sample::select(vec![16u64, 1 << 20, 1 << 31, 1 << 40, u64::MAX / 4, u64::MAX]),
+    ];
+    (
+        prop::sample::select(vec![
+            "<u4", "<u2", "|u1", "<i2", "<i4", "<i8", "<f4", "<f8", ">u4", "<c8", "|b1",
+        ]),
+        proptest::collection::vec(side, 0..5),
+        proptest::collection::vec(any::<u8>(), 0..256),
+    )
+        .prop_map(|(descr, shape, data)| npy_with_shape(descr, &shape, &data))
+        .boxed()
+}
+
+/// Frame-file bytes: valid, damaged, or random, as .npy or .tif.
+fn frame_file() -> BoxedStrategy<(&'static str, Vec<u8>)> {
+    let edits = proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..8);
+    (
+        prop_oneof![Just("npy"), Just("tif")],
+        0u8..5,
+        edits,
+        proptest::option::of(any::<prop::sample::Index>()),
+        proptest::collection::vec(any::<u8>(), 0..16),
+        proptest::collection::vec(any::<u8>(), 0..600),
+        npy_of_any_shape(),
+    )
+        .prop_map(|(extension, kind, edits, cut, tail, random, shaped)| {
+            let valid = match extension {
+                "npy" => &inputs().npy,
+                _ => &inputs().tif,
+            };
+            match kind {
+                0 => (extension, valid.clone()),
+                1 | 2 => (extension, damaged(valid, &edits, cut, &tail)),
+                3 => ("npy", shaped),
+                _ => (extension, random),
+            }
+        })
+        .boxed()
+}
+
+/// CSV bytes: valid, damaged, lines edited as text, or random.
+fn csv_file(valid: fn() -> &'static [u8]) -> BoxedStrategy<Vec<u8>> {
+    let edits = proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 0..6);
+    let cells = prop::sample::select(vec![
+        "",
+        "-1",
+        "1e12",
+        "1000000000000",
+        "18446744073709551615",
+        "18446744073709551616",
+        "0.0",
+        "2.5",
+        "nan",
+        "inf",
+        "-inf",
+        "1e308",
+        "x",
+        "\"",
+        "0,0",
+        "\u{feff}frame",
+    ]);
+    (
+        0u8..5,
+        edits,
+        proptest::option::of(any::<prop::sample::Index>()),
+        proptest::collection::vec(any::<u8>(), 0..16),
+        proptest::collection::vec(
+            (
+                any::<prop::sample::Index>(),
+                any::<prop::sample::Index>(),
+                cells,
+            ),
+            1..4,
+        ),
+        proptest::collection::vec(any::<u8>(), 0..300),
+    )
+        .prop_map(move |(kind, edits, cut, tail, replacements, random)| {
+            let valid = valid();
+            match kind {
+                0 => valid.to_vec(),
+                1 => damaged(valid, &edits, cut, &tail),
+                2 | 3 => {
+                    // Replace whole cells, keeping the CSV shape.
+                    let text = String::from_utf8_lossy(valid).into_owned();
+                    let mut rows: Vec<Vec<String>> = text
+                        .lines()
+                        .map(|l| l.split(',').map(str::to_string).collect())
+                        .collect();
+                    for (row, column, cell) in &replacements {
+                        let count = rows.len();
+                        let row = &mut rows[row.index(count)];
+                        // Half the time the frame column, where a number
+                        // sizes what is allocated per frame.
+                        let at = if kind == 2 {
+                            0
+                        } else {
+                            column.index(row.len())
+                        };
+                        row[at] = cell.to_string();
+                    }
+                    let lines: Vec<String> = rows.iter().map(|r| r.join(",")).collect();
+                    (lines.join("\n") + "\n").into_bytes()
+                }
+                _ => random,
+            }
+        })
+        .boxed()
+}
+
+fn eps_list() -> BoxedStrategy<String> {
+    prop_oneof![
+        3 => proptest::collection::vec(small_real(0.1..5.0), 1..4).prop_map(|v| v.join(",")),
+        1 => proptest::collection::vec(prop::sample::select(HOSTILE_VALUES), 0..4)
+            .prop_map(|v| v.join(",")),
+        1 => prop::sample::select(vec!["", ",", "1,,2", "1,1", "1e7", "1e300", "0"]).prop_map(str::to_string),
+    ]
+    .boxed()
+}
+
+fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+proptest! {
+    // Little shrinking: a failing case may take the whole time limit.
+    #![proptest_config(ProptestConfig {
+        cases: common::fuzz_cases(48),
+        max_shrink_iters: 32,
+        max_shrink_time: 60_000,
+        ..ProptestConfig::default()
+    })]
+
+    #[test]
+    fn simulate_never_panics_on_any_arguments(args in simulate_args()) {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "in.npy", &inputs().npy);
+        let ended = run_limited(dir.path(), &args);
+        check_contract(&args, &ended)?;
+    }
+
+    #[test]
+    fn locate_never_panics_on_any_arguments_or_frame_bytes(
+        args in locate_args(),
+        (extension, bytes) in frame_file(),
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let input = format!("in.{extension}");
+        write(dir.path(), &input, &bytes);
+        let mut args = args;
+        args.extend(["--input".to_string(), input]);
+        let ended = run_limited(dir.path(), &args);
+        check_contract(&args, &ended)?;
+    }
+
+    #[test]
+    fn score_never_panics_on_any_arguments_or_csv_bytes(
+        truth in csv_file(|| &inputs().truth),
+        locs in csv_file(|| &inputs().locs),
+        eps in proptest::option::of(eps_list()),
+        json in any::<bool>(),
+        curve in proptest::option::of(output_name(&["csv"])),
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "truth.csv", &truth);
+        write(dir.path(), "locs.csv", &locs);
+        let mut args: Vec<String> = ["score", "--truth", "truth.csv", "--locs", "locs.csv"]
+            .iter()
+            .map(|a| a.to_string())
+            .collect();
+        if let Some(eps) = eps {
+            args.push(format!("--eps={eps}"));
+        }
+        if json {
+            args.push("--json".into());
+        }
+        if let Some(curve) = curve {
+            args.extend(["--curve".to_string(), curve]);
+        }
+        let ended = run_limited(dir.path(), &args);
+        check_contract(&args, &ended)?;
+    }
+}
