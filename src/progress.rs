@@ -6,7 +6,9 @@ use std::io::{IsTerminal, Write};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle, TermLike};
+use indicatif::{
+    HumanDuration, ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle, TermLike,
+};
 
 /// How often a progress line is logged when stderr is not a terminal.
 pub const LOG_INTERVAL: Duration = Duration::from_secs(10);
@@ -21,6 +23,7 @@ pub fn bar(len: u64, message: &str) -> ProgressBar {
         bar.set_style(
             ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .with_key("eta", eta)
                 .progress_chars("=> "),
         );
         bar.set_message(message.to_string());
@@ -53,10 +56,23 @@ pub fn logged(
     );
     bar.set_style(
         ProgressStyle::with_template("{msg}: {pos}/{len} ({percent}%, {per_sec}, eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .with_key("eta", eta),
     );
     bar.set_message(message.to_string());
     bar
+}
+
+/// The estimated time left, or `unknown` before the first step is done
+/// (indicatif's own estimate says `0s` then, which reads as "finished").
+fn eta(state: &ProgressState, out: &mut dyn std::fmt::Write) {
+    let left = if state.pos() == 0 {
+        "unknown".to_string()
+    } else {
+        format!("{:#}", HumanDuration(state.eta()))
+    };
+    // A failed write only loses a cosmetic field.
+    let _ = out.write_str(&left);
 }
 
 /// A progress bar that never draws, for library callers and tests.
@@ -195,5 +211,20 @@ mod tests {
             assert!(line.contains("/100"), "{line:?}");
             assert!(!line.contains('\r') && !line.contains('\x1b'), "{line:?}");
         }
+    }
+
+    #[test]
+    fn the_time_left_is_unknown_until_a_step_is_done() {
+        let sink = Shared::default();
+        let bar = logged(5, "tasks done", Duration::ZERO, Box::new(sink.clone()));
+        bar.tick();
+        std::thread::sleep(Duration::from_millis(1100));
+        bar.tick();
+        let text = String::from_utf8(sink.0.lock().unwrap().clone()).unwrap();
+        let first = text.lines().next().expect("a progress line");
+        assert!(
+            first.contains("0/5") && first.ends_with("eta unknown)"),
+            "{first:?}"
+        );
     }
 }
