@@ -570,6 +570,9 @@ mod tests {
                 fraction_without_prediction: 0.0,
                 predictions: 0,
                 ground_truths: 1,
+                reading: None,
+                empty_frames: None,
+                reliability: None,
             },
         }
     }

@@ -200,3 +200,198 @@ fn top_prediction_errors_are_per_frame_and_root_mean_square_to_the_rmse() {
         assert_eq!(scanloc::error::exit_code(&error), 2, "{error}");
     }
 }
+
+/// One QD per frame at the origin; top predictions at 2, 0.5, 3 and 0.2 px
+/// in score order, and a late second prediction on frame 1.
+fn headroom_case() -> (Vec<TruthRow>, Vec<Prediction>) {
+    let truths = (0..4).map(|frame| truth(frame, 0.0, 0.0)).collect();
+    let predictions = vec![
+        prediction(0, 2.0, 0.0, 0.9),
+        prediction(1, 0.0, 0.5, 0.8),
+        prediction(2, 3.0, 0.0, 0.7),
+        prediction(3, 0.2, 0.0, 0.6),
+        prediction(1, 0.1, 0.0, 0.1), // not a top prediction: a duplicate
+    ];
+    (truths, predictions)
+}
+
+#[test]
+fn headroom_on_a_hand_worked_case() {
+    let (truths, predictions) = headroom_case();
+    let result = score(&predictions, &truths, 4, &[1.0, 2.5], false).unwrap();
+
+    // ε = 1: hits at ranks 2 and 4 → AUC = ¼ (½ + 2/4) = ¼.
+    let at1 = &result.per_eps[0];
+    assert!(close(at1.auc, 0.25), "{}", at1.auc);
+    let headroom = at1.headroom.unwrap();
+    assert_eq!((headroom.top_predictions, headroom.top_within_eps), (4, 2));
+    assert!(close(headroom.fraction_top_within_eps.unwrap(), 0.5));
+    // Oracle: the two hits first → ¼ (1 + 1) = ½.
+    assert!(close(headroom.oracle_auc, 0.5));
+    // Random: the 6 placements of 2 hits among 4 give G·AUC = 2, 5/3, 3/2,
+    // 7/6, 1, 5/6; mean 49/36, so AUC = 49/144.
+    assert!(
+        close(headroom.random_auc, 49.0 / 144.0),
+        "{}",
+        headroom.random_auc
+    );
+    // This score ranks worse than chance: (36 − 49) / (72 − 49).
+    assert!(close(headroom.share_used.unwrap(), -13.0 / 23.0));
+
+    // ε = 2.5: hits at ranks 1, 2, 4 → ¼ (1 + 1 + ¾) = 11/16.
+    let at25 = &result.per_eps[1];
+    assert!(close(at25.auc, 11.0 / 16.0));
+    let headroom = at25.headroom.unwrap();
+    assert_eq!(headroom.top_within_eps, 3);
+    assert!(close(headroom.oracle_auc, 0.75));
+    // Random, 3 hits among 4: the miss at rank 1, 2, 3 or 4 gives G·AUC =
+    // 1/2 + 2/3 + 3/4, 1 + 2/3 + 3/4, 1 + 1 + 3/4, 1 + 1 + 1; mean
+    // 121/48, so AUC = 121/192.
+    assert!(close(headroom.random_auc, 121.0 / 192.0));
+    assert!(close(headroom.share_used.unwrap(), 11.0 / 23.0));
+}
+
+#[test]
+fn headroom_is_undefined_when_oracle_and_random_agree() {
+    let truths = [truth(0, 0.0, 0.0), truth(1, 0.0, 0.0)];
+    // Both top predictions within ε: any order is the oracle's.
+    let predictions = [prediction(0, 0.1, 0.0, 0.2), prediction(1, 0.0, 0.1, 0.9)];
+    let result = score(&predictions, &truths, 2, &[1.0], false).unwrap();
+    let headroom = result.per_eps[0].headroom.unwrap();
+    assert!(close(headroom.oracle_auc, 1.0) && close(headroom.random_auc, 1.0));
+    assert_eq!(headroom.share_used, None);
+    // No prediction at all: no top prediction, nothing to share.
+    let result = score(&[], &truths, 2, &[1.0], false).unwrap();
+    let headroom = result.per_eps[0].headroom.unwrap();
+    assert_eq!(headroom.top_predictions, 0);
+    assert_eq!(headroom.fraction_top_within_eps, None);
+    assert_eq!((headroom.oracle_auc, headroom.random_auc), (0.0, 0.0));
+}
+
+#[test]
+fn reliability_and_calibration_error_on_a_hand_worked_case() {
+    use scanloc::metrics::{ScoreReading, score_read_as};
+    // One QD per frame at the origin, except the empty frame 5.
+    let truths: Vec<TruthRow> = (0..5).map(|frame| truth(frame, 0.0, 0.0)).collect();
+    let predictions = [
+        prediction(0, 0.5, 0.0, 0.9),  // bin [0.9, 1]: within 1 px
+        prediction(1, 0.0, 1.0, 1.0),  // bin [0.9, 1]: exactly 1 px counts
+        prediction(2, 0.6, 0.0, 0.2),  // bin [0.2, 0.3): within
+        prediction(3, 1.5, 0.0, 0.25), // bin [0.2, 0.3): 1.5 px, outside
+        prediction(5, 0.0, 0.0, 0.0),  // bin [0, 0.1): a frame without truth
+    ];
+    let reading = ScoreReading {
+        threshold: None,
+        probability: true,
+    };
+    let result = score_read_as(&predictions, &truths, 6, &[1.0], false, reading).unwrap();
+    let reliability = result.reliability.unwrap();
+    assert_eq!(reliability.bins.len(), 10);
+    assert_eq!(reliability.localisations, 5);
+    let counts: Vec<usize> = reliability.bins.iter().map(|b| b.count).collect();
+    assert_eq!(counts, [1, 0, 2, 0, 0, 0, 0, 0, 0, 2]);
+    let top = &reliability.bins[9];
+    assert!(close(top.mean_score.unwrap(), 0.95));
+    assert!(close(top.observed_frequency.unwrap(), 1.0));
+    let low = &reliability.bins[2];
+    assert!(close(low.mean_score.unwrap(), 0.225));
+    assert!(close(low.observed_frequency.unwrap(), 0.5));
+    assert_eq!(reliability.bins[1].mean_score, None);
+    // ECE = 2/5 · 0.05 + 2/5 · 0.275 + 1/5 · 0 = 0.13.
+    assert!(close(reliability.expected_calibration_error.unwrap(), 0.13));
+
+    // Not a probability: no diagram; a score above 1 is refused as one.
+    let plain = score(&predictions, &truths, 6, &[1.0], false).unwrap();
+    assert_eq!(plain.reliability, None);
+    let mass = [prediction(0, 0.0, 0.0, 250.0)];
+    let error = score_read_as(&mass, &truths, 6, &[1.0], false, reading).unwrap_err();
+    assert_eq!(scanloc::error::exit_code(&error), 2);
+    assert!(error.to_string().contains("not a probability"), "{error}");
+}
+
+#[test]
+fn scene_figures_on_a_hand_worked_case_with_empty_frames() {
+    use scanloc::metrics::{ScoreReading, score_read_as};
+    // Frame 0: QDs A (0, 0) and B (5, 0); frame 1: C (10, 10); frames 2
+    // and 3: empty.
+    let truths = [truth(0, 0.0, 0.0), truth(0, 5.0, 0.0), truth(1, 10.0, 10.0)];
+    let predictions = [
+        prediction(0, 0.3, 0.4, 0.9),   // A at 0.5 px
+        prediction(0, 5.0, 0.6, 0.8),   // B at 0.6 px
+        prediction(0, 0.1, 0.0, 0.7),   // A again: a duplicate
+        prediction(1, 10.0, 11.0, 0.6), // C at exactly 1 px
+        prediction(2, 3.0, 3.0, 0.5),   // empty frame, at the threshold: counts
+        prediction(3, 4.0, 4.0, 0.4),   // empty frame, below the threshold
+        prediction(1, 10.0, 10.0, 0.2), // below the threshold
+    ];
+    let reading = ScoreReading {
+        threshold: Some(0.5),
+        probability: false,
+    };
+    let result = score_read_as(&predictions, &truths, 4, &[1.0, 0.55], false, reading).unwrap();
+    assert_eq!(result.reading, Some(reading));
+
+    // ε = 1: 5 kept, A, B, C matched; the duplicate and the empty frame's
+    // localisation are false.
+    let at1 = result.per_eps[0].at_threshold.unwrap();
+    assert_eq!(at1.localisations, 5);
+    assert_eq!(
+        (at1.true_positives, at1.false_positives, at1.false_negatives),
+        (3, 2, 0)
+    );
+    assert!(close(at1.recall, 1.0));
+    assert!(close(at1.precision.unwrap(), 0.6));
+    assert!(close(at1.jaccard, 0.6));
+    // √((0.25 + 0.36 + 1) / 3)
+    assert!(close(at1.rmse_matched_px.unwrap(), (1.61f64 / 3.0).sqrt()));
+
+    // ε = 0.55: only A is matched.
+    let at055 = result.per_eps[1].at_threshold.unwrap();
+    assert_eq!(
+        (
+            at055.true_positives,
+            at055.false_positives,
+            at055.false_negatives
+        ),
+        (1, 4, 2)
+    );
+    assert!(close(at055.recall, 1.0 / 3.0));
+    assert!(close(at055.precision.unwrap(), 0.2));
+    assert!(close(at055.jaccard, 1.0 / 7.0));
+    assert!(close(at055.rmse_matched_px.unwrap(), 0.5));
+
+    // Two empty frames, one localisation at or above the threshold on them.
+    let empty = result.empty_frames.unwrap();
+    assert_eq!((empty.frames, empty.localisations), (2, 1));
+    assert!(close(empty.false_localisations_per_frame.unwrap(), 0.5));
+
+    // Without a threshold every localisation counts: C's second one is a
+    // duplicate, frame 3's is false too.
+    let all = score(&predictions, &truths, 4, &[1.0], false).unwrap();
+    let at1 = all.per_eps[0].at_threshold.unwrap();
+    assert_eq!(
+        (at1.true_positives, at1.false_positives, at1.false_negatives),
+        (3, 4, 0)
+    );
+    assert!(close(at1.jaccard, 3.0 / 7.0));
+    let empty = all.empty_frames.unwrap();
+    assert_eq!((empty.frames, empty.localisations), (2, 2));
+    assert!(close(empty.false_localisations_per_frame.unwrap(), 1.0));
+
+    // A threshold above every score keeps nothing: recall 0, precision
+    // undefined, no RMSE.
+    let none = ScoreReading {
+        threshold: Some(2.0),
+        probability: false,
+    };
+    let result = score_read_as(&predictions, &truths, 4, &[1.0], false, none).unwrap();
+    let at1 = result.per_eps[0].at_threshold.unwrap();
+    assert_eq!((at1.localisations, at1.false_negatives), (0, 3));
+    assert_eq!((at1.precision, at1.rmse_matched_px), (None, None));
+    assert!(close(at1.jaccard, 0.0));
+    // The AUC does not depend on the reading.
+    assert_eq!(
+        result.per_eps[0].auc.to_bits(),
+        all.per_eps[0].auc.to_bits()
+    );
+}
