@@ -395,3 +395,89 @@ fn scene_figures_on_a_hand_worked_case_with_empty_frames() {
         all.per_eps[0].auc.to_bits()
     );
 }
+
+#[test]
+fn score_prints_the_headroom_scene_and_calibration_figures() {
+    use crate::common::{scanloc, stderr, stdout};
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.csv");
+    let locs = dir.path().join("locs.csv");
+    // The hand-worked scene: two QDs on frame 0, one on frame 1; frames 2
+    // and 3 (the last one named only by --frames) empty.
+    std::fs::write(&truth, "frame,x,y\n0,0,0\n0,5,0\n1,10,10\n").unwrap();
+    std::fs::write(
+        &locs,
+        "frame,x,y,score\n0,0.3,0.4,0.9\n0,5,0.6,0.8\n0,0.1,0,0.7\n1,10,11,0.6\n2,3,3,0.5\n3,4,4,0.4\n1,10,10,0.2\n",
+    )
+    .unwrap();
+    let (truth, locs) = (truth.to_str().unwrap(), locs.to_str().unwrap());
+    let base = ["score", "--truth", truth, "--locs", locs, "--eps", "1"];
+    let json = |extra: &[&str]| {
+        let output = scanloc(&[&base[..], extra, &["--json"]].concat());
+        assert!(output.status.success(), "{}", stderr(&output));
+        serde_json::from_str::<serde_json::Value>(&stdout(&output)).unwrap()
+    };
+    let score = json(&["--frames", "4", "--probability"]);
+    let at = &score["per_eps"][0]["at_threshold"];
+    assert_eq!(at["true_positives"], 3);
+    assert_eq!(at["false_positives"], 2);
+    assert!(close(at["jaccard"].as_f64().unwrap(), 0.6));
+    assert_eq!(score["empty_frames"]["frames"], 2);
+    assert_eq!(score["empty_frames"]["localisations"], 1);
+    assert_eq!(score["reading"]["threshold"], 0.5);
+    assert_eq!(
+        score["reliability"]["bins"].as_array().unwrap().len(),
+        10,
+        "{score}"
+    );
+    // --threshold overrides the default; without --probability there is
+    // no reliability diagram.
+    let score = json(&["--frames", "4", "--threshold", "0.55"]);
+    assert_eq!(score["empty_frames"]["frames"], 2);
+    assert_eq!(score["empty_frames"]["localisations"], 0);
+    assert_eq!(score["per_eps"][0]["at_threshold"]["localisations"], 4);
+    assert!(score["reliability"].is_null());
+    // The table names every figure.
+    let output = scanloc(&[&base[..], &["--frames", "4", "--probability"]].concat());
+    assert!(output.status.success(), "{}", stderr(&output));
+    let text = stdout(&output);
+    for expected in [
+        "oracle",
+        "random",
+        "share",
+        "top_within",
+        "localisations with score >= 0.5:",
+        "Jaccard",
+        "empty frames (no truth): 2 of 4; localisations on them: 1 (0.5000 per empty frame)",
+        "expected calibration error",
+    ] {
+        assert!(text.contains(expected), "{expected:?} in\n{text}");
+    }
+    // Bad flags: exit 2 with the flag named.
+    for (extra, named) in [
+        (&["--frames", "1"][..], "--frames"),
+        (&["--frames", "0"][..], "--frames"),
+        (&["--threshold", "nan"][..], "--threshold"),
+    ] {
+        let output = scanloc(&[&base[..], extra].concat());
+        assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+        assert!(stderr(&output).contains(named), "{}", stderr(&output));
+    }
+    // A score above 1 is not a probability.
+    std::fs::write(dir.path().join("mass.csv"), "frame,x,y,score\n0,0,0,250\n").unwrap();
+    let mass = dir.path().join("mass.csv");
+    let output = scanloc(&[
+        "score",
+        "--truth",
+        truth,
+        "--locs",
+        mass.to_str().unwrap(),
+        "--probability",
+    ]);
+    assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+    assert!(
+        stderr(&output).contains("not a probability"),
+        "{}",
+        stderr(&output)
+    );
+}
