@@ -22,7 +22,8 @@ use scanloc::metrics::{self, Score, ScoreReading};
 /// without a prediction, the false localisations per frame without truth,
 /// and with --probability the reliability diagram and its expected
 /// calibration error. The test set's frames are 0 to the largest frame
-/// index of the truth file, or --frames.
+/// index of the truth file, or --frames. A truth file without rows (a set
+/// of empty frames) needs --frames; its figures per ε are then undefined.
 ///
 /// Frame numbers may be written as whole floats (`3.0`, as pandas writes
 /// them) and must be below 10,000,000; empty optional cells are missing
@@ -92,6 +93,12 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
             }
             frames
         }
+        None if truth.is_empty() => {
+            return Err(input_error(format!(
+                "{}: no ground truth rows; give --frames N to score a test set of N empty frames",
+                args.truth.display()
+            )));
+        }
         None => frames_with_truth,
     };
     refuse_disjoint_frames(&args, &truth, &predictions)?;
@@ -159,7 +166,9 @@ fn refuse_disjoint_frames(
     truth: &[scanloc::types::TruthRow],
     predictions: &[scanloc::types::Prediction],
 ) -> anyhow::Result<()> {
-    if predictions.is_empty() {
+    // Without truth (a set of empty frames, --frames given) every frame
+    // is a frame of the set.
+    if predictions.is_empty() || truth.is_empty() {
         return Ok(());
     }
     let truth_frames: std::collections::HashSet<usize> = truth.iter().map(|t| t.frame).collect();
@@ -191,6 +200,12 @@ fn write_table(out: &mut impl Write, score: &Score) -> anyhow::Result<()> {
         "{:>8} {:>8} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
         "eps_px", "AUC", "TP", "FP", "oracle", "random", "share", "top_within"
     )?;
+    if score.per_eps.is_empty() {
+        writeln!(
+            out,
+            "(no ground truth: AUC, recall and precision are undefined)"
+        )?;
+    }
     for per_eps in &score.per_eps {
         let headroom = per_eps.headroom.as_ref();
         writeln!(

@@ -150,8 +150,8 @@ impl TruthByFrame {
     }
 }
 
-/// Checks predictions and truth (finite, on frames `0..frames`, some truth)
-/// and groups the truth by frame.
+/// Checks predictions and truth (finite, on frames `0..frames`) and groups
+/// the truth by frame.
 fn checked_truth_by_frame(
     predictions: &[Prediction],
     truth: &[TruthRow],
@@ -194,11 +194,6 @@ fn checked_truth_by_frame(
             by_frame.points.push(Vec::new());
         }
         by_frame.points[slot].push((t.x, t.y));
-    }
-    if truth.is_empty() {
-        return Err(input_error(
-            "the test set has no ground truth, so recall and AUC are undefined",
-        ));
     }
     Ok(by_frame)
 }
@@ -258,6 +253,7 @@ pub fn top_prediction_errors(
     frames: usize,
 ) -> anyhow::Result<Vec<Option<f64>>> {
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
+    refuse_without_truth(truth)?;
     let mut ranked: Vec<Prediction> = predictions.to_vec();
     ranked.sort_by(ranking);
     let squared = top_squared_errors(&ranked, &truth_by_frame);
@@ -281,6 +277,8 @@ pub fn score(
     eps_px: &[f64],
     keep_curve: bool,
 ) -> anyhow::Result<Score> {
+    checked_truth_by_frame(predictions, truth, frames)?;
+    refuse_without_truth(truth)?;
     score_read_as(
         predictions,
         truth,
@@ -291,9 +289,25 @@ pub fn score(
     )
 }
 
+/// Refuses a test set without ground truth, where recall and the AUC are
+/// undefined.
+fn refuse_without_truth(truth: &[TruthRow]) -> anyhow::Result<()> {
+    if truth.is_empty() {
+        return Err(input_error(
+            "the test set has no ground truth, so recall and AUC are undefined",
+        ));
+    }
+    Ok(())
+}
+
 /// [`score`], with the score read as `reading`: the scene figures at its
 /// threshold, the reliability diagram if it is a probability. Refuses
 /// also a non-finite threshold, and a probability score outside [0, 1].
+///
+/// Unlike [`score`], it scores a test set without any ground truth (only
+/// empty frames): everything per ε (AUC, headroom, recall, ...) is then
+/// undefined and `per_eps` is empty, while the empty-frame figures and the
+/// reliability diagram are computed.
 pub fn score_read_as(
     predictions: &[Prediction],
     truth: &[TruthRow],
@@ -323,7 +337,9 @@ pub fn score_read_as(
     let ground_truths = truth.len();
     let kept = scenes::kept_count(&ranked, reading.threshold);
 
-    let per_eps = eps_px
+    // Without ground truth nothing per ε is defined (recall divides by G).
+    let radii = if ground_truths == 0 { &[][..] } else { eps_px };
+    let per_eps = radii
         .iter()
         .map(|&eps| {
             let mut per_eps = walk(&ranked, &truth_by_frame, ground_truths, eps, keep_curve);

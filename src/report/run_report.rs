@@ -117,6 +117,14 @@ fn load_evaluations(
             keys.push(&row.evaluation_key);
         }
     }
+    // Evaluations of sets without ground truth have no AUC row.
+    for step in &record.steps {
+        if step.kind == crate::registry::ArtefactKind::Evaluation
+            && !keys.contains(&step.artefact_key.as_str())
+        {
+            keys.push(&step.artefact_key);
+        }
+    }
     let mut evaluations = Vec::new();
     for key in keys {
         let Some(row) = registry.evaluation(key)? else {
@@ -446,6 +454,16 @@ fn write_scene_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyho
         let (empty, per_empty) = e.score.empty_frames.map_or(("—".to_string(), None), |x| {
             (x.frames.to_string(), x.false_localisations_per_frame)
         });
+        if e.score.per_eps.is_empty() {
+            // A set of empty frames: nothing per ε is defined.
+            writeln!(
+                markdown,
+                "| {} | {} | {threshold} | — | — | — | — | — | {empty} | {} |",
+                e.detector,
+                e.dataset,
+                or_dash(per_empty),
+            )?;
+        }
         for per_eps in &e.score.per_eps {
             let Some(at) = &per_eps.at_threshold else {
                 continue;

@@ -481,3 +481,98 @@ fn score_prints_the_headroom_scene_and_calibration_figures() {
         stderr(&output)
     );
 }
+
+#[test]
+fn a_set_of_empty_frames_has_only_its_false_localisations() {
+    use scanloc::metrics::{ScoreReading, score_read_as};
+    let predictions = [
+        prediction(0, 1.0, 1.0, 0.9),
+        prediction(2, 3.0, 3.0, 0.7),
+        prediction(2, 5.0, 5.0, 0.3),
+    ];
+    let reading = ScoreReading {
+        threshold: Some(0.5),
+        probability: true,
+    };
+    let result = score_read_as(&predictions, &[], 4, &[1.0, 2.0], false, reading).unwrap();
+    // No ground truth: recall, and so everything per ε, is undefined.
+    assert!(result.per_eps.is_empty());
+    assert_eq!(result.ground_truths, 0);
+    let empty = result.empty_frames.unwrap();
+    assert_eq!((empty.frames, empty.localisations), (4, 2));
+    assert!(close(empty.false_localisations_per_frame.unwrap(), 0.5));
+    // Every localisation is wrong: ECE = (0.9 + 0.7 + 0.3) / 3.
+    let reliability = result.reliability.unwrap();
+    assert!(close(
+        reliability.expected_calibration_error.unwrap(),
+        1.9 / 3.0
+    ));
+    // The AUC alone is refused there, as before.
+    let error = score(&predictions, &[], 4, &[1.0], false).unwrap_err();
+    assert!(error.to_string().contains("no ground truth"), "{error}");
+}
+
+#[test]
+fn score_scores_a_truth_file_of_empty_frames_given_their_count() {
+    use crate::common::{scanloc, stderr, stdout};
+    let dir = tempfile::tempdir().unwrap();
+    let truth = dir.path().join("truth.csv");
+    let locs = dir.path().join("locs.csv");
+    std::fs::write(&truth, "frame,x,y\n").unwrap();
+    std::fs::write(&locs, "frame,x,y,score\n0,1,1,0.9\n2,3,3,0.7\n2,5,5,0.3\n").unwrap();
+    let (truth, locs) = (truth.to_str().unwrap(), locs.to_str().unwrap());
+    let base = ["score", "--truth", truth, "--locs", locs, "--probability"];
+    let output = scanloc(&[&base[..], &["--frames", "4"]].concat());
+    assert!(output.status.success(), "{}", stderr(&output));
+    let text = stdout(&output);
+    assert!(
+        text.contains(
+            "empty frames (no truth): 4 of 4; localisations on them: 2 (0.5000 per empty frame)"
+        ),
+        "{text}"
+    );
+    assert!(
+        text.contains("AUC, recall and precision are undefined"),
+        "{text}"
+    );
+    // Without --frames the set's size is unknown.
+    let output = scanloc(&base);
+    assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+    assert!(stderr(&output).contains("--frames"), "{}", stderr(&output));
+}
+
+#[test]
+fn a_manifest_threshold_changes_only_its_detectors_evaluation_keys() {
+    use scanloc::run::{Action, Plan};
+    let smoke = std::fs::read_to_string(crate::common::smoke()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let with_threshold = smoke.replace(
+        "metrics:\n  eps_px: [1, 2, 3]\n",
+        "metrics:\n  eps_px: [1, 2, 3]\n  score_thresholds: {cnn: 0.7}\n",
+    );
+    assert_ne!(with_threshold, smoke);
+    let plan_of = |text: &str, name: &str| {
+        let path = crate::common::write_manifest(dir.path(), name, text);
+        Plan::from_manifest(&scanloc::manifest::load(&path).unwrap()).unwrap()
+    };
+    let (before, after) = (
+        plan_of(&smoke, "smoke.yaml"),
+        plan_of(&with_threshold, "threshold.yaml"),
+    );
+    assert_eq!(before.steps.len(), after.steps.len());
+    for (a, b) in before.steps.iter().zip(&after.steps) {
+        assert_eq!(a.id, b.id);
+        let changed = a.id.starts_with("evaluation/cnn@");
+        assert_eq!(a.key != b.key, changed, "{}", a.id);
+        if let (Action::Score { reading: ra, .. }, Action::Score { reading: rb, .. }) =
+            (&a.action, &b.action)
+        {
+            // The CNN's score is a probability (default threshold 0.5);
+            // trackpy's mass is not (no threshold).
+            let cnn = a.id.starts_with("evaluation/cnn@");
+            assert_eq!(ra.probability, cnn);
+            assert_eq!(ra.threshold, cnn.then_some(0.5));
+            assert_eq!(rb.threshold, cnn.then_some(0.7).or(ra.threshold));
+        }
+    }
+}
