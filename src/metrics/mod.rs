@@ -1,5 +1,6 @@
 //! The paper's precision–recall AUC (`docs/metric.md`), plus the RMSE of each
-//! frame's top prediction and the fraction of frames with no prediction.
+//! frame's top prediction and the fraction of frames with no prediction. The
+//! layer names only the shared types and errors.
 //!
 //! For one test set, the predictions of all frames are pooled and sorted by
 //! score, descending (ties: frame index, then x, then y, ascending). Walking
@@ -81,9 +82,9 @@ pub struct Score {
     /// existed).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub reading: Option<ScoreReading>,
-    /// Frames without empty-frame figures: their count and the
-    /// localisations at or above the threshold on them (absent in
-    /// evaluations stored before it existed).
+    /// The empty frames (frames of the set without any ground truth): their
+    /// count and the localisations at or above the threshold on them
+    /// (absent in evaluations stored before it existed).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub empty_frames: Option<scenes::EmptyFrames>,
     /// Reliability diagram and expected calibration error of a probability
