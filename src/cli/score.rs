@@ -1,4 +1,5 @@
-//! `scanloc score`: the paper's precision–recall AUC of a localisation file.
+//! `scanloc score`: the paper's precision–recall AUC of a localisation file,
+//! where it is lost, and the scene and calibration figures.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -7,14 +8,22 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
-use scanloc::metrics;
+use scanloc::limits::check_frame_count;
+use scanloc::metrics::{self, Score, ScoreReading};
 
 /// Score localisations against ground truth (docs/metric.md).
 ///
-/// Prints the AUC of the precision–recall curve for each matching radius ε,
-/// the RMSE of each frame's top-scoring prediction, and the fraction of
-/// frames without a prediction. The test set's frames are those named in the
-/// truth file (0 to the largest frame index).
+/// Prints, for each matching radius ε, the AUC of the precision–recall
+/// curve, the oracle-rank and random-rank AUC of each frame's top
+/// prediction with the share of that headroom the score uses, the fraction
+/// of top predictions within ε, and recall, precision, Jaccard index and
+/// RMSE of the localisations at or above the score threshold; then the
+/// RMSE of each frame's top-scoring prediction, the fraction of frames
+/// without a prediction, the false localisations per frame without truth,
+/// and with --probability the reliability diagram and its expected
+/// calibration error. The test set's frames are 0 to the largest frame
+/// index of the truth file, or --frames. A truth file without rows (a set
+/// of empty frames) needs --frames; its figures per ε are then undefined.
 ///
 /// Frame numbers may be written as whole floats (`3.0`, as pandas writes
 /// them) and must be below 10,000,000; empty optional cells are missing
@@ -35,6 +44,22 @@ pub struct ScoreArgs {
     /// Matching radii in pixels, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
     eps: Vec<f64>,
+    /// The number of frames of the test set (frames 0 to N − 1): frames
+    /// with no truth row are empty frames. Default: the largest frame
+    /// index of the truth file + 1.
+    #[arg(long)]
+    frames: Option<u64>,
+    /// The score is a probability that the localisation is within 1 px of
+    /// a QD (as the CNN's): also print its reliability diagram and expected
+    /// calibration error; the default --threshold becomes 0.5.
+    #[arg(long)]
+    probability: bool,
+    /// Localisations with a score at or above this count for recall,
+    /// precision, Jaccard index, RMSE of matched localisations and false
+    /// localisations per empty frame. Default: 0.5 with --probability,
+    /// else every localisation counts.
+    #[arg(long, allow_negative_numbers = true)]
+    threshold: Option<f64>,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
@@ -55,14 +80,48 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
     let predictions = csv_tables::read_predictions_scored_by(&args.locs, &args.score_column)?;
     // Frame numbers are below MAX_FRAMES (checked by the readers), so this
     // cannot overflow.
-    let frames = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
+    let frames_with_truth = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
+    let frames = match args.frames {
+        Some(frames) => {
+            let frames = check_frame_count("--frames", frames)?;
+            if frames < frames_with_truth {
+                return Err(input_error(format!(
+                    "--frames: {frames}, but {} has truth on frame {}",
+                    args.truth.display(),
+                    frames_with_truth - 1
+                )));
+            }
+            frames
+        }
+        None if truth.is_empty() => {
+            return Err(input_error(format!(
+                "{}: no ground truth rows; give --frames N to score a test set of N empty frames",
+                args.truth.display()
+            )));
+        }
+        None => frames_with_truth,
+    };
     refuse_disjoint_frames(&args, &truth, &predictions)?;
-    let score = metrics::score(
+    if let Some(threshold) = args.threshold
+        && !threshold.is_finite()
+    {
+        return Err(input_error(format!(
+            "--threshold: must be a finite score, got {threshold}"
+        )));
+    }
+    let reading = ScoreReading {
+        threshold: args.threshold.or(args
+            .probability
+            .then_some(ScoreReading::PROBABILITY_THRESHOLD)),
+        probability: args.probability,
+    };
+    let score = metrics::score_read_as(
         &predictions,
         &truth,
         frames,
         &args.eps,
         args.curve.is_some(),
+        reading,
     )
     .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
     if let Some(path) = &args.curve {
@@ -93,30 +152,7 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
         serde_json::to_writer(&mut stdout, &summary)?;
         writeln!(stdout)?;
     } else {
-        writeln!(
-            stdout,
-            "{:>8} {:>8} {:>6} {:>6}",
-            "eps_px", "AUC", "TP", "FP"
-        )?;
-        for per_eps in &score.per_eps {
-            writeln!(
-                stdout,
-                "{:>8} {:>8.4} {:>6} {:>6}",
-                per_eps.eps_px, per_eps.auc, per_eps.true_positives, per_eps.false_positives
-            )?;
-        }
-        match score.rmse_top_px {
-            Some(rmse) => writeln!(stdout, "RMSE of top prediction: {rmse:.4} px")?,
-            None => writeln!(
-                stdout,
-                "RMSE of top prediction: n/a (no frame has a prediction)"
-            )?,
-        }
-        writeln!(
-            stdout,
-            "frames without prediction: {} of {} ({:.4})",
-            score.frames_without_prediction, score.frames, score.fraction_without_prediction
-        )?;
+        write_table(&mut stdout, &score)?;
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -130,7 +166,9 @@ fn refuse_disjoint_frames(
     truth: &[scanloc::types::TruthRow],
     predictions: &[scanloc::types::Prediction],
 ) -> anyhow::Result<()> {
-    if predictions.is_empty() {
+    // Without truth (a set of empty frames, --frames given) every frame
+    // is a frame of the set.
+    if predictions.is_empty() || truth.is_empty() {
         return Ok(());
     }
     let truth_frames: std::collections::HashSet<usize> = truth.iter().map(|t| t.frame).collect();
@@ -148,4 +186,112 @@ fn refuse_disjoint_frames(
         range(&mut predictions.iter().map(|p| p.frame)),
         range(&mut truth.iter().map(|t| t.frame)),
     )))
+}
+
+/// A value with 4 decimals, or `n/a`.
+fn maybe(value: Option<f64>) -> String {
+    value.map_or("n/a".to_string(), |v| format!("{v:.4}"))
+}
+
+/// The human-readable form of `score` (docs/metric.md names each figure).
+fn write_table(out: &mut impl Write, score: &Score) -> anyhow::Result<()> {
+    writeln!(
+        out,
+        "{:>8} {:>8} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
+        "eps_px", "AUC", "TP", "FP", "oracle", "random", "share", "top_within"
+    )?;
+    if score.per_eps.is_empty() {
+        writeln!(
+            out,
+            "(no ground truth: AUC, recall and precision are undefined)"
+        )?;
+    }
+    for per_eps in &score.per_eps {
+        let headroom = per_eps.headroom.as_ref();
+        writeln!(
+            out,
+            "{:>8} {:>8.4} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
+            per_eps.eps_px,
+            per_eps.auc,
+            per_eps.true_positives,
+            per_eps.false_positives,
+            maybe(headroom.map(|h| h.oracle_auc)),
+            maybe(headroom.map(|h| h.random_auc)),
+            maybe(headroom.and_then(|h| h.share_used)),
+            maybe(headroom.and_then(|h| h.fraction_top_within_eps)),
+        )?;
+    }
+    match score.rmse_top_px {
+        Some(rmse) => writeln!(out, "RMSE of top prediction: {rmse:.4} px")?,
+        None => writeln!(
+            out,
+            "RMSE of top prediction: n/a (no frame has a prediction)"
+        )?,
+    }
+    writeln!(
+        out,
+        "frames without prediction: {} of {} ({:.4})",
+        score.frames_without_prediction, score.frames, score.fraction_without_prediction
+    )?;
+    let threshold = score.reading.and_then(|r| r.threshold);
+    match threshold {
+        Some(t) => writeln!(out, "localisations with score >= {t}:")?,
+        None => writeln!(out, "every localisation (no score threshold):")?,
+    }
+    writeln!(
+        out,
+        "{:>8} {:>6} {:>6} {:>6} {:>8} {:>9} {:>8} {:>12}",
+        "eps_px", "TP", "FP", "FN", "recall", "precision", "Jaccard", "RMSE_px"
+    )?;
+    for per_eps in &score.per_eps {
+        if let Some(at) = &per_eps.at_threshold {
+            writeln!(
+                out,
+                "{:>8} {:>6} {:>6} {:>6} {:>8.4} {:>9} {:>8.4} {:>12}",
+                per_eps.eps_px,
+                at.true_positives,
+                at.false_positives,
+                at.false_negatives,
+                at.recall,
+                maybe(at.precision),
+                at.jaccard,
+                maybe(at.rmse_matched_px),
+            )?;
+        }
+    }
+    if let Some(empty) = &score.empty_frames {
+        writeln!(
+            out,
+            "empty frames (no truth): {} of {}; localisations on them: {} ({} per empty frame)",
+            empty.frames,
+            score.frames,
+            empty.localisations,
+            maybe(empty.false_localisations_per_frame)
+        )?;
+    }
+    if let Some(reliability) = &score.reliability {
+        writeln!(
+            out,
+            "reliability (observed frequency within {} px), {} localisations; expected calibration error {}",
+            reliability.radius_px,
+            reliability.localisations,
+            maybe(reliability.expected_calibration_error)
+        )?;
+        writeln!(
+            out,
+            "{:>12} {:>8} {:>10} {:>9}",
+            "score_bin", "count", "mean_score", "observed"
+        )?;
+        for bin in &reliability.bins {
+            writeln!(
+                out,
+                "{:>12} {:>8} {:>10} {:>9}",
+                format!("[{:.1}, {:.1})", bin.lower, bin.upper),
+                bin.count,
+                maybe(bin.mean_score),
+                maybe(bin.observed_frequency)
+            )?;
+        }
+    }
+    Ok(())
 }

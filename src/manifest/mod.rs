@@ -26,7 +26,7 @@
 //!       training_set: train    # trained detectors name their training set
 //!       architecture: {channels: 16}
 //!       training: {epochs: 4}
-//! metrics: {eps_px: [1, 2, 3], keep_curves: true}
+//! metrics: {eps_px: [1, 2, 3], keep_curves: true, score_thresholds: {cnn: 0.5}}
 //! evaluations:                # which detectors are scored on which datasets
 //!   - {detector: trackpy, datasets: [test-1.00]}
 //!   - {detector: cnn, datasets: [test-1.00]}
@@ -51,12 +51,14 @@ mod raw;
 mod resolve;
 mod serde_adapters;
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::error::{FieldError, input_error};
+use crate::metrics::ScoreReading;
 use crate::sim::SimParams;
 pub use locate::LineIndex;
 
@@ -214,6 +216,12 @@ pub struct MetricsSpec {
     /// Keep the precision–recall curves in the stored evaluations (for
     /// reports).
     pub keep_curves: bool,
+    /// The score threshold of the scene figures (recall, precision,
+    /// Jaccard index, false localisations per empty frame) by detector
+    /// name; a detector not listed gets [`MetricsSpec::score_reading`]'s
+    /// default.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub score_thresholds: BTreeMap<String, f64>,
 }
 
 impl Default for MetricsSpec {
@@ -221,6 +229,28 @@ impl Default for MetricsSpec {
         Self {
             eps_px: crate::metrics::PAPER_EPS_PX.to_vec(),
             keep_curves: true,
+            score_thresholds: BTreeMap::new(),
+        }
+    }
+}
+
+impl MetricsSpec {
+    /// How `detector`'s score is read: Crocker–Grier's score is the
+    /// feature's mass, not a probability, so by default every localisation
+    /// it reports counts (its own `minmass` is its threshold); every other
+    /// kind scores a probability (the CNN's heatmap peak, a sigmoid), whose
+    /// default threshold is [`ScoreReading::PROBABILITY_THRESHOLD`].
+    /// `score_thresholds` overrides the threshold.
+    pub fn score_reading(&self, detector: &DetectorEntry) -> ScoreReading {
+        let probability = !matches!(detector.spec, DetectorSpec::CrockerGrier(_));
+        let default = probability.then_some(ScoreReading::PROBABILITY_THRESHOLD);
+        ScoreReading {
+            threshold: self
+                .score_thresholds
+                .get(&detector.name)
+                .copied()
+                .or(default),
+            probability,
         }
     }
 }

@@ -1,6 +1,9 @@
 //! `scanloc report RUN`: a Markdown report of a recorded run, with its AUC
-//! table beside the reference (the paper's Table 1), precision–recall
-//! curves, example frames, localisation panels and error histograms.
+//! table beside the reference (the paper's Table 1), where the AUC is lost
+//! (the ranking headroom of the top predictions), the scene figures at the
+//! score threshold, the calibration of probability scores, precision–recall
+//! curves, reliability diagrams, example frames, localisation panels and
+//! error histograms.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -72,6 +75,9 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     }
     write_cross_validation_table(&mut markdown, &record, &resolved)?;
     write_quality_table(&mut markdown, &evaluations)?;
+    write_headroom_table(&mut markdown, &evaluations)?;
+    write_scene_table(&mut markdown, &evaluations)?;
+    write_calibration_table(&mut markdown, &evaluations)?;
 
     writeln!(markdown, "\n## Figures\n")?;
     example_frames(out, &resolved.microscope, resolved.seed)?;
@@ -88,6 +94,9 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     }
     for file in precision_recall_curves(out, &evaluations)? {
         writeln!(markdown, "![precision–recall]({file}.png)\n")?;
+    }
+    for file in reliability_diagrams(out, &evaluations)? {
+        writeln!(markdown, "![reliability]({file}.png)\n")?;
     }
     for file in error_histograms(registry, out, &evaluations)? {
         writeln!(markdown, "![errors]({file}.png)\n")?;
@@ -106,6 +115,14 @@ fn load_evaluations(
     for row in &record.auc {
         if !keys.contains(&row.evaluation_key.as_str()) {
             keys.push(&row.evaluation_key);
+        }
+    }
+    // Evaluations of sets without ground truth have no AUC row.
+    for step in &record.steps {
+        if step.kind == crate::registry::ArtefactKind::Evaluation
+            && !keys.contains(&step.artefact_key.as_str())
+        {
+            keys.push(&step.artefact_key);
         }
     }
     let mut evaluations = Vec::new();
@@ -349,6 +366,211 @@ fn write_quality_table(markdown: &mut String, evaluations: &[Evaluation]) -> any
     Ok(())
 }
 
+/// A value with 3 decimals, or a dash.
+fn or_dash(value: Option<f64>) -> String {
+    value.map_or("—".to_string(), |v| format!("{v:.3}"))
+}
+
+/// Where the AUC is lost: per evaluation and ε, the AUC beside the
+/// oracle-rank and random-rank AUC of the top predictions
+/// (docs/metric.md, "Headroom"). Nothing for evaluations stored before
+/// the metric had it.
+fn write_headroom_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
+    let rows: Vec<(&Evaluation, &crate::metrics::EpsScore)> = evaluations
+        .iter()
+        .flat_map(|e| e.score.per_eps.iter().map(move |s| (e, s)))
+        .filter(|(_, s)| s.headroom.is_some())
+        .collect();
+    if rows.is_empty() {
+        return Ok(());
+    }
+    writeln!(markdown, "\n## Where the AUC is lost\n")?;
+    writeln!(
+        markdown,
+        "Each frame's top prediction ranked by its true distance to the truth (oracle) and in a \
+         random order (the expectation over all orders), through the same metric; the share \
+         of that headroom the score uses is (AUC − random) / (oracle − random) (docs/metric.md, \
+         \"Headroom\").\n"
+    )?;
+    writeln!(
+        markdown,
+        "| detector | dataset | ε (px) | AUC | oracle-rank AUC | random-rank AUC | share used | top within ε |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|---|")?;
+    for (e, per_eps) in rows {
+        let Some(headroom) = &per_eps.headroom else {
+            continue;
+        };
+        writeln!(
+            markdown,
+            "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {} | {} |",
+            e.detector,
+            e.dataset,
+            per_eps.eps_px,
+            per_eps.auc,
+            headroom.oracle_auc,
+            headroom.random_auc,
+            headroom
+                .share_used
+                .map_or("—".to_string(), |s| format!("{:.0} %", 100.0 * s)),
+            headroom
+                .fraction_top_within_eps
+                .map_or("—".to_string(), |f| format!("{:.1} %", 100.0 * f)),
+        )?;
+    }
+    Ok(())
+}
+
+/// The scene figures: per evaluation and ε, recall, precision, Jaccard
+/// index and RMSE of the localisations at or above the score threshold,
+/// and the false localisations per empty frame (docs/metric.md,
+/// "Scenes").
+fn write_scene_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
+    let scored: Vec<&Evaluation> = evaluations
+        .iter()
+        .filter(|e| e.score.reading.is_some())
+        .collect();
+    if scored.is_empty() {
+        return Ok(());
+    }
+    writeln!(markdown, "\n## At the score threshold\n")?;
+    writeln!(
+        markdown,
+        "The localisations whose score is at or above the detector's threshold (`metrics.score_thresholds`; \
+         default 0.5 for a probability score, none for Crocker–Grier's mass), matched as the AUC matches \
+         (docs/metric.md, \"Scenes\"). Empty frames are frames without any QD.\n"
+    )?;
+    writeln!(
+        markdown,
+        "| detector | dataset | threshold | ε (px) | recall | precision | Jaccard | RMSE of matched (px) | empty frames | false localisations per empty frame |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|---|---|---|")?;
+    for e in scored {
+        let threshold = e
+            .score
+            .reading
+            .and_then(|r| r.threshold)
+            .map_or("none".to_string(), |t| format!("{t}"));
+        let (empty, per_empty) = e.score.empty_frames.map_or(("—".to_string(), None), |x| {
+            (x.frames.to_string(), x.false_localisations_per_frame)
+        });
+        if e.score.per_eps.is_empty() {
+            // A set of empty frames: nothing per ε is defined.
+            writeln!(
+                markdown,
+                "| {} | {} | {threshold} | — | — | — | — | — | {empty} | {} |",
+                e.detector,
+                e.dataset,
+                or_dash(per_empty),
+            )?;
+        }
+        for per_eps in &e.score.per_eps {
+            let Some(at) = &per_eps.at_threshold else {
+                continue;
+            };
+            writeln!(
+                markdown,
+                "| {} | {} | {threshold} | {} | {:.3} | {} | {:.3} | {} | {empty} | {} |",
+                e.detector,
+                e.dataset,
+                per_eps.eps_px,
+                at.recall,
+                or_dash(at.precision),
+                at.jaccard,
+                or_dash(at.rmse_matched_px),
+                or_dash(per_empty),
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// The expected calibration error of every probability score
+/// (docs/metric.md, "Calibration"); the diagrams are figures.
+fn write_calibration_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
+    let calibrated: Vec<(&Evaluation, &crate::metrics::calibration::Reliability)> = evaluations
+        .iter()
+        .filter_map(|e| e.score.reliability.as_ref().map(|r| (e, r)))
+        .collect();
+    if calibrated.is_empty() {
+        return Ok(());
+    }
+    writeln!(markdown, "\n## Calibration of the score\n")?;
+    writeln!(
+        markdown,
+        "For detectors whose score is a probability: every localisation's score against whether it \
+         lies within 1 px of a QD of its frame, in 10 bins (the reliability diagrams below); the \
+         expected calibration error (ECE) is the bins' |mean score − observed frequency| weighted by \
+         their share of localisations. Crocker–Grier's score is a mass, not a probability: it has \
+         no diagram (docs/metric.md, \"Calibration\").\n"
+    )?;
+    writeln!(markdown, "| detector | dataset | localisations | ECE |")?;
+    writeln!(markdown, "|---|---|---|---|")?;
+    for (e, reliability) in calibrated {
+        writeln!(
+            markdown,
+            "| {} | {} | {} | {} |",
+            e.detector,
+            e.dataset,
+            reliability.localisations,
+            or_dash(reliability.expected_calibration_error)
+        )?;
+    }
+    Ok(())
+}
+
+/// One reliability diagram per dataset with a probability-scored
+/// evaluation: each detector's mean score against observed frequency per
+/// non-empty bin, beside the diagonal of a calibrated score.
+fn reliability_diagrams(out: &Path, evaluations: &[Evaluation]) -> anyhow::Result<Vec<String>> {
+    let mut files = Vec::new();
+    let mut datasets: Vec<&str> = Vec::new();
+    for e in evaluations {
+        if e.score.reliability.is_some() && !datasets.contains(&e.dataset.as_str()) {
+            datasets.push(&e.dataset);
+        }
+    }
+    for dataset in datasets {
+        let mut curves = vec![Curve {
+            label: "calibrated".to_string(),
+            points: vec![(0.0, 0.0), (1.0, 1.0)],
+        }];
+        for e in evaluations.iter().filter(|e| e.dataset == dataset) {
+            let Some(reliability) = &e.score.reliability else {
+                continue;
+            };
+            curves.push(Curve {
+                label: format!(
+                    "{} (ECE {})",
+                    e.detector,
+                    or_dash(reliability.expected_calibration_error)
+                ),
+                points: reliability
+                    .bins
+                    .iter()
+                    .filter_map(|b| Some((b.mean_score?, b.observed_frequency?)))
+                    .collect(),
+            });
+        }
+        let file = format!("reliability_{dataset}");
+        line_chart(
+            &out.join(&file),
+            &format!("{dataset}: reliability of the score (within 1 px)"),
+            (
+                "score (predicted probability)",
+                "observed frequency within 1 px",
+            ),
+            ((0.0, 1.0), (0.0, 1.05)),
+            &curves,
+        )?;
+        files.push(file);
+    }
+    Ok(files)
+}
+
 fn example_frames(out: &Path, microscope: &SimParams, seed: u64) -> anyhow::Result<()> {
     let panels = [0.0, 0.75, 1.0, 1.75]
         .iter()
@@ -570,6 +792,9 @@ mod tests {
                 fraction_without_prediction: 0.0,
                 predictions: 0,
                 ground_truths: 1,
+                reading: None,
+                empty_frames: None,
+                reliability: None,
             },
         }
     }

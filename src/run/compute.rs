@@ -94,11 +94,12 @@ pub(super) fn compute(
             dataset,
             predictions,
             metrics,
+            reading,
             ..
         } => {
             let dataset = read_input(*dataset)?;
             let predictions = read_input(*predictions)?;
-            score(step, &dataset, &predictions, metrics)
+            score(step, &dataset, &predictions, metrics, *reading)
         }
     }
 }
@@ -200,20 +201,23 @@ fn locate(
     Ok(Artefact::Predictions(Arc::new(predictions)))
 }
 
-/// Scores `predictions` against the truth of `dataset`.
+/// Scores `predictions` against the truth of `dataset`, the score read as
+/// `reading`.
 fn score(
     step: &Step,
     dataset: &Artefact,
     predictions: &Artefact,
     metrics: &MetricsSpec,
+    reading: crate::metrics::ScoreReading,
 ) -> anyhow::Result<Artefact> {
     let dataset = dataset.dataset()?;
-    let score = crate::metrics::score(
+    let score = crate::metrics::score_read_as(
         predictions.predictions()?,
         &dataset.truth,
         dataset.frames.n,
         &metrics.eps_px,
         metrics.keep_curves,
+        reading,
     )
     .with_context(|| format!("scoring {}", step.name))?;
     Ok(Artefact::Evaluation(Arc::new(score)))

@@ -227,6 +227,8 @@ pub fn plan(manifest: &Manifest, cv: &CrossValidationPlan) -> anyhow::Result<Pla
                 diffusion,
                 predictions,
                 &manifest.metrics,
+                // The fold models are read as the detector they train.
+                manifest.metrics.score_reading(entry),
             )?;
         }
     }

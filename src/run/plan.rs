@@ -21,6 +21,7 @@ use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
 use crate::manifest::{DatasetSpec, DetectorEntry, Manifest, MetricsSpec};
+use crate::metrics::ScoreReading;
 use crate::registry::ArtefactKind;
 use crate::registry::hashing::{canonical_json, content_key};
 use crate::sim::GENERATOR_VERSION;
@@ -30,7 +31,7 @@ pub const SUBSET_VERSION: &str = "scanloc-subset/1";
 
 /// Version of the scoring step (the metric of `docs/metric.md` and its
 /// `score.json`).
-pub const METRIC_VERSION: &str = "scanloc-metric/1";
+pub const METRIC_VERSION: &str = "scanloc-metric/2";
 
 /// What a step does.
 #[derive(Debug, Clone)]
@@ -68,6 +69,8 @@ pub enum Action {
         dataset: usize,
         predictions: usize,
         metrics: MetricsSpec,
+        /// How the detector's score is read (threshold, probability).
+        reading: ScoreReading,
     },
 }
 
@@ -296,7 +299,9 @@ impl Plan {
     }
 
     /// Adds the step that scores the predictions of step `predictions`
-    /// against the dataset of step `dataset`.
+    /// against the dataset of step `dataset`, the score read as `reading`.
+    /// Only this detector's reading is part of the key, so another
+    /// detector's threshold never changes it.
     pub fn add_score(
         &mut self,
         detector: &str,
@@ -304,6 +309,7 @@ impl Plan {
         diffusion: Option<f64>,
         predictions: usize,
         metrics: &MetricsSpec,
+        reading: ScoreReading,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{METRIC_VERSION}+{FORMAT_VERSION}");
         let description = json!({
@@ -311,7 +317,8 @@ impl Plan {
             "code": code_version,
             "dataset": self.steps[dataset].key,
             "predictions": self.steps[predictions].key,
-            "metric": metrics,
+            "metric": {"eps_px": metrics.eps_px, "keep_curves": metrics.keep_curves},
+            "reading": reading,
         });
         let dataset_name = self.steps[dataset].name.clone();
         let name = format!("{detector}@{dataset_name}");
@@ -329,6 +336,7 @@ impl Plan {
                 dataset,
                 predictions,
                 metrics: metrics.clone(),
+                reading,
             },
         )?;
         Ok(self.push(step))
@@ -363,6 +371,7 @@ impl Plan {
                 diffusion,
                 predictions,
                 &manifest.metrics,
+                manifest.metrics.score_reading(detector),
             )?;
         }
         Ok(plan)

@@ -680,7 +680,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-0.75",
-            "8ea0504bf4e3f44890f79230c4efed00d03d4bea1a900973e939a2e93b4ceef6",
+            "1b20ff6707fd5e077886d7cada435a0e3188463480f1fc62808589eb8d4952cf",
         ),
         (
             "predictions/trackpy@test-1.00",
@@ -688,7 +688,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.00",
-            "ddde6d6be1366977361e6c8c937f40836c320383d83c1240d4c80702626a3015",
+            "55ac1424a4347deacf907977a37ef1917ea93fefe00cd88a7c1dd4b68a34be50",
         ),
         (
             "predictions/trackpy@test-1.75",
@@ -696,7 +696,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.75",
-            "ab1258152849d0e5f16da0fc4f84438659704ad53cb271d996d2e2ff4668d948",
+            "dbe8fc927408be0ed7b5ad079b5967c31f0bb2e42e9f1e323eb9fcf759a2458a",
         ),
         (
             "model/cnn",
@@ -708,7 +708,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-0.75",
-            "36e4cba866d7040176f3619fd549c703cb80d57f240ee75b00d1ebdacdf263aa",
+            "489544b5b8f605a9753dd41d154dab71aadd4702e7688149f914955cba8bb9fc",
         ),
         (
             "predictions/cnn@test-1.00",
@@ -716,7 +716,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.00",
-            "d6e3594facd7eab1d2378cd8e6f79e8dc87729af0b6737d6982123a592709aa7",
+            "8ba78e4844862bf3365a0c47f7acb81ff0748db798123c0b8e395eb994e888a4",
         ),
         (
             "predictions/cnn@test-1.75",
@@ -724,7 +724,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.75",
-            "5ffe16d44f310a88d9b526b6722acc885d78d4e1a8b560f634861983975e09a7",
+            "7f707bb5db0ed1ab4cd13f4beb4406d3eae0e7e984224fa67b75c6e213143397",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -49,7 +49,44 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
             .count(),
         1
     );
-    for figure in ["example_frames", "localisations"] {
+    // Where the AUC is lost, per (detector, dataset, ε); the scene figures
+    // at each detector's threshold (the CNN's 0.5, none for trackpy); the
+    // CNN's calibration (its score is a sigmoid), not trackpy's (a mass).
+    assert!(markdown.contains("## Where the AUC is lost"), "{markdown}");
+    assert_eq!(
+        markdown
+            .lines()
+            .filter(|l| l.starts_with("| cnn | test-1.00 | 2 | 0."))
+            .count(),
+        1,
+        "{markdown}"
+    );
+    assert!(markdown.contains("## At the score threshold"), "{markdown}");
+    assert!(
+        markdown.contains("| cnn | test-0.75 | 0.5 | 1 |")
+            && markdown.contains("| trackpy | test-0.75 | none | 1 |"),
+        "{markdown}"
+    );
+    let calibration = markdown
+        .split("## Calibration of the score")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("a calibration section");
+    assert_eq!(
+        calibration
+            .lines()
+            .filter(|l| l.starts_with("| cnn | test-"))
+            .count(),
+        3,
+        "{calibration}"
+    );
+    assert!(!calibration.contains("| trackpy |"), "{calibration}");
+    for figure in [
+        "example_frames",
+        "localisations",
+        "reliability_test-0.75",
+        "reliability_test-1.75",
+    ] {
         for extension in ["png", "svg"] {
             let path = report_dir.join(format!("{figure}.{extension}"));
             assert!(path.is_file(), "{} missing", path.display());

@@ -1,13 +1,28 @@
-//! The `metrics` section: the matching radii of the AUC table.
+//! The `metrics` section: the matching radii of the AUC table and the
+//! detectors' score thresholds.
 
 use crate::error::{FieldError, Segment};
-use crate::manifest::MetricsSpec;
+use crate::manifest::{DetectorEntry, MetricsSpec};
 
 /// Most radii a manifest may list (columns of the AUC table per dataset).
 const MAX_RADII: usize = 32;
 
-/// Checks the radii: 1 to [`MAX_RADII`] distinct positive numbers of pixels.
-pub(super) fn check_metrics(metrics: &MetricsSpec) -> Result<(), FieldError> {
+/// Checks the radii (1 to [`MAX_RADII`] distinct positive numbers of
+/// pixels) and the score thresholds (finite, of detectors of the manifest).
+pub(super) fn check_metrics(
+    metrics: &MetricsSpec,
+    detectors: &[DetectorEntry],
+) -> Result<(), FieldError> {
+    for (name, &threshold) in &metrics.score_thresholds {
+        let path = super::path_of(&["metrics", "score_thresholds", name]);
+        super::require_detector(detectors, &path, name)?;
+        if !threshold.is_finite() {
+            return Err(FieldError::at(
+                &path,
+                format!("must be a finite score, got {threshold}"),
+            ));
+        }
+    }
     let path = super::path_of(&["metrics", "eps_px"]);
     if metrics.eps_px.is_empty() {
         return Err(FieldError::at(&path, "must list at least one radius"));

@@ -32,7 +32,7 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
     let microscope = microscope::resolve_microscope(&raw.microscope)?;
     let datasets = datasets::resolve_datasets(&raw.datasets, &microscope, raw.seed)?;
     let detectors = detectors::resolve_detectors(raw.detectors, raw.seed, &datasets)?;
-    metrics::check_metrics(&raw.metrics)?;
+    metrics::check_metrics(&raw.metrics, &detectors)?;
     let evaluations = evaluations::resolve_evaluations(&raw.evaluations, &datasets, &detectors)?;
     if let Some(cross_validation) = &raw.cross_validation {
         cross_validation::check_cross_validation(cross_validation, &detectors)?;

@@ -1,5 +1,6 @@
 //! The paper's precision–recall AUC (`docs/metric.md`), plus the RMSE of each
-//! frame's top prediction and the fraction of frames with no prediction.
+//! frame's top prediction and the fraction of frames with no prediction. The
+//! layer names only the shared types and errors.
 //!
 //! For one test set, the predictions of all frames are pooled and sorted by
 //! score, descending (ties: frame index, then x, then y, ascending). Walking
@@ -9,6 +10,18 @@
 //! With k predictions taken, `precision_k = TP_k / k`,
 //! `recall_k = TP_k / G` (G = number of ground truths), and
 //! `AUC = Σ_k (recall_k − recall_(k−1)) · precision_k`.
+//!
+//! Beside the AUC: where it is lost ([`headroom`]: the AUC of each frame's
+//! top prediction ranked by its true error and at random), how well a
+//! probability score is calibrated ([`calibration`]: reliability diagram
+//! and expected calibration error), and the figures of scenes with several
+//! or no QDs per frame at a score threshold ([`scenes`]: recall, precision,
+//! Jaccard index, RMSE of matched localisations, false localisations per
+//! empty frame).
+
+pub mod calibration;
+pub mod headroom;
+pub mod scenes;
 
 use std::cmp::Ordering;
 use std::collections::{HashMap, HashSet};
@@ -40,6 +53,15 @@ pub struct EpsScore {
     /// Precision and recall after each prediction, in ranking order.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub curve: Vec<CurvePoint>,
+    /// The AUC of the frames' top predictions ranked by their true error
+    /// and at random (absent in evaluations stored before it existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub headroom: Option<headroom::Headroom>,
+    /// Recall, precision, Jaccard index and RMSE of the localisations at or
+    /// above the score threshold (absent in evaluations stored before it
+    /// existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub at_threshold: Option<scenes::AtThreshold>,
 }
 
 /// Everything the metric reports for one detector on one test set.
@@ -55,6 +77,40 @@ pub struct Score {
     pub fraction_without_prediction: f64,
     pub predictions: usize,
     pub ground_truths: usize,
+    /// How the score was read: the threshold of the scene figures and
+    /// whether it is a probability (absent in evaluations stored before it
+    /// existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reading: Option<ScoreReading>,
+    /// The empty frames (frames of the set without any ground truth): their
+    /// count and the localisations at or above the threshold on them
+    /// (absent in evaluations stored before it existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub empty_frames: Option<scenes::EmptyFrames>,
+    /// Reliability diagram and expected calibration error of a probability
+    /// score (absent for other scores, and in evaluations stored before it
+    /// existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reliability: Option<calibration::Reliability>,
+}
+
+/// How a detector's score is read beyond ranking (`docs/metric.md`,
+/// "Scenes" and "Calibration").
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct ScoreReading {
+    /// Localisations with a score at or above this count for the scene
+    /// figures (recall, precision, Jaccard index, RMSE, false
+    /// localisations per empty frame); `None`: every localisation counts.
+    pub threshold: Option<f64>,
+    /// The score is a probability (in [0, 1]) that the localisation is
+    /// within 1 px of a QD: its reliability diagram is computed.
+    pub probability: bool,
+}
+
+impl ScoreReading {
+    /// The threshold of a probability score when none is declared: a
+    /// localisation counts if it is more likely right than wrong.
+    pub const PROBABILITY_THRESHOLD: f64 = 0.5;
 }
 
 impl Score {
@@ -95,8 +151,8 @@ impl TruthByFrame {
     }
 }
 
-/// Checks predictions and truth (finite, on frames `0..frames`, some truth)
-/// and groups the truth by frame.
+/// Checks predictions and truth (finite, on frames `0..frames`) and groups
+/// the truth by frame.
 fn checked_truth_by_frame(
     predictions: &[Prediction],
     truth: &[TruthRow],
@@ -140,11 +196,6 @@ fn checked_truth_by_frame(
         }
         by_frame.points[slot].push((t.x, t.y));
     }
-    if truth.is_empty() {
-        return Err(input_error(
-            "the test set has no ground truth, so recall and AUC are undefined",
-        ));
-    }
     Ok(by_frame)
 }
 
@@ -158,14 +209,32 @@ fn top_squared_errors(ranked: &[Prediction], truth: &TruthByFrame) -> HashMap<us
         if frame_truth.is_empty() {
             continue;
         }
-        errors.entry(p.frame).or_insert_with(|| {
-            frame_truth
-                .iter()
-                .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
-                .fold(f64::INFINITY, f64::min)
-        });
+        errors
+            .entry(p.frame)
+            .or_insert_with(|| nearest_squared_distance(p, truth));
     }
     errors
+}
+
+/// Squared distance from `p` to the nearest ground truth of its frame
+/// (infinite if the frame has none).
+fn nearest_squared_distance(p: &Prediction, truth: &TruthByFrame) -> f64 {
+    truth
+        .of(p.frame)
+        .iter()
+        .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// Each frame's top prediction (the first met in ranking order), in
+/// ranking order.
+fn top_predictions(ranked: &[Prediction]) -> Vec<Prediction> {
+    let mut seen = HashSet::new();
+    ranked
+        .iter()
+        .filter(|p| seen.insert(p.frame))
+        .copied()
+        .collect()
 }
 
 /// Frames of `0..frames` without any prediction (predictions are on
@@ -185,6 +254,7 @@ pub fn top_prediction_errors(
     frames: usize,
 ) -> anyhow::Result<Vec<Option<f64>>> {
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
+    refuse_without_truth(truth)?;
     let mut ranked: Vec<Prediction> = predictions.to_vec();
     ranked.sort_by(ranking);
     let squared = top_squared_errors(&ranked, &truth_by_frame);
@@ -194,7 +264,9 @@ pub fn top_prediction_errors(
 }
 
 /// Scores `predictions` against `truth` for a test set of `frames` frames
-/// (frame indices `0..frames`). `keep_curve` keeps every curve point.
+/// (frame indices `0..frames`). `keep_curve` keeps every curve point. The
+/// score is read as [`ScoreReading::default`]: no threshold, not a
+/// probability.
 ///
 /// Refuses non-finite coordinates or scores, predictions or truth on
 /// frames outside the set, non-positive ε, and a set with no ground truth
@@ -206,6 +278,45 @@ pub fn score(
     eps_px: &[f64],
     keep_curve: bool,
 ) -> anyhow::Result<Score> {
+    checked_truth_by_frame(predictions, truth, frames)?;
+    refuse_without_truth(truth)?;
+    score_read_as(
+        predictions,
+        truth,
+        frames,
+        eps_px,
+        keep_curve,
+        ScoreReading::default(),
+    )
+}
+
+/// Refuses a test set without ground truth, where recall and the AUC are
+/// undefined.
+fn refuse_without_truth(truth: &[TruthRow]) -> anyhow::Result<()> {
+    if truth.is_empty() {
+        return Err(input_error(
+            "the test set has no ground truth, so recall and AUC are undefined",
+        ));
+    }
+    Ok(())
+}
+
+/// [`score`], with the score read as `reading`: the scene figures at its
+/// threshold, the reliability diagram if it is a probability. Refuses
+/// also a non-finite threshold, and a probability score outside [0, 1].
+///
+/// Unlike [`score`], it scores a test set without any ground truth (only
+/// empty frames): everything per ε (AUC, headroom, recall, ...) is then
+/// undefined and `per_eps` is empty, while the empty-frame figures and the
+/// reliability diagram are computed.
+pub fn score_read_as(
+    predictions: &[Prediction],
+    truth: &[TruthRow],
+    frames: usize,
+    eps_px: &[f64],
+    keep_curve: bool,
+    reading: ScoreReading,
+) -> anyhow::Result<Score> {
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
     for &eps in eps_px {
         if !(eps.is_finite() && eps > 0.0) {
@@ -214,14 +325,40 @@ pub fn score(
             )));
         }
     }
+    if let Some(threshold) = reading.threshold
+        && !threshold.is_finite()
+    {
+        return Err(input_error(format!(
+            "threshold: must be a finite score, got {threshold}"
+        )));
+    }
 
     let mut ranked: Vec<Prediction> = predictions.to_vec();
     ranked.sort_by(ranking);
     let ground_truths = truth.len();
+    let kept = scenes::kept_count(&ranked, reading.threshold);
 
-    let per_eps = eps_px
+    // Without ground truth nothing per ε is defined (recall divides by G).
+    let radii = if ground_truths == 0 { &[][..] } else { eps_px };
+    let per_eps = radii
         .iter()
-        .map(|&eps| walk(&ranked, &truth_by_frame, ground_truths, eps, keep_curve))
+        .map(|&eps| {
+            let mut per_eps = walk(&ranked, &truth_by_frame, ground_truths, eps, keep_curve);
+            per_eps.headroom = Some(headroom::headroom(
+                &ranked,
+                &truth_by_frame,
+                ground_truths,
+                eps,
+                per_eps.auc,
+            ));
+            per_eps.at_threshold = Some(scenes::at_threshold(
+                &ranked[..kept],
+                &truth_by_frame,
+                ground_truths,
+                eps,
+            ));
+            per_eps
+        })
         .collect();
 
     let top = top_squared_errors(&ranked, &truth_by_frame);
@@ -236,6 +373,11 @@ pub fn score(
         counted += 1;
     }
     let frames_without_prediction = count_frames_without_prediction(&ranked, frames);
+    let reliability = if reading.probability {
+        Some(calibration::reliability(&ranked, &truth_by_frame)?)
+    } else {
+        None
+    };
     Ok(Score {
         per_eps,
         rmse_top_px: (counted > 0).then(|| (squared_sum / counted as f64).sqrt()),
@@ -248,6 +390,13 @@ pub fn score(
         },
         predictions: predictions.len(),
         ground_truths,
+        reading: Some(reading),
+        empty_frames: Some(scenes::empty_frames(
+            &ranked[..kept],
+            &truth_by_frame,
+            frames,
+        )),
+        reliability,
     })
 }
 
@@ -266,6 +415,43 @@ pub fn paper_aucs(predictions: &[Prediction], dataset: &Dataset) -> anyhow::Resu
     Ok(score.per_eps.iter().map(|e| e.auc).collect())
 }
 
+/// The greedy matching of `docs/metric.md` at radius `eps`, over
+/// predictions in the order given: calls `visit(k, matched)` after the
+/// `k`-th prediction (from 1) with the squared distance to the ground
+/// truth it matched, or `None` for a false positive.
+fn match_in_order<'a>(
+    ordered: impl IntoIterator<Item = &'a Prediction>,
+    truth_by_frame: &TruthByFrame,
+    eps: f64,
+    mut visit: impl FnMut(usize, Option<f64>),
+) {
+    let mut matched: Vec<Vec<bool>> = truth_by_frame
+        .points
+        .iter()
+        .map(|t| vec![false; t.len()])
+        .collect();
+    let eps2 = eps * eps;
+    for (index, p) in ordered.into_iter().enumerate() {
+        let mut best: Option<(usize, usize, f64)> = None;
+        // A frame without truth has no candidates: a false positive.
+        if let Some(&slot) = truth_by_frame.slot.get(&p.frame) {
+            for (j, &(x, y)) in truth_by_frame.points[slot].iter().enumerate() {
+                if matched[slot][j] {
+                    continue;
+                }
+                let d2 = (p.x - x).powi(2) + (p.y - y).powi(2);
+                if d2 <= eps2 && best.is_none_or(|(_, _, b)| d2 < b) {
+                    best = Some((slot, j, d2));
+                }
+            }
+        }
+        if let Some((slot, j, _)) = best {
+            matched[slot][j] = true;
+        }
+        visit(index + 1, best.map(|(_, _, d2)| d2));
+    }
+}
+
 /// One greedy matching walk at radius `eps` over predictions already ranked.
 fn walk(
     ranked: &[Prediction],
@@ -274,50 +460,31 @@ fn walk(
     eps: f64,
     keep_curve: bool,
 ) -> EpsScore {
-    let mut matched: Vec<Vec<bool>> = truth_by_frame
-        .points
-        .iter()
-        .map(|t| vec![false; t.len()])
-        .collect();
-    let eps2 = eps * eps;
     let mut true_positives = 0usize;
     let mut auc = 0.0;
     let mut curve = Vec::with_capacity(if keep_curve { ranked.len() } else { 0 });
-    for (index, p) in ranked.iter().enumerate() {
-        let k = index + 1;
-        // A frame without truth has no candidates: a false positive.
-        if let Some(&slot) = truth_by_frame.slot.get(&p.frame) {
-            let mut best: Option<(usize, f64)> = None;
-            for (j, &(x, y)) in truth_by_frame.points[slot].iter().enumerate() {
-                if matched[slot][j] {
-                    continue;
-                }
-                let d2 = (p.x - x).powi(2) + (p.y - y).powi(2);
-                if d2 <= eps2 && best.is_none_or(|(_, b)| d2 < b) {
-                    best = Some((j, d2));
-                }
-            }
-            if let Some((j, _)) = best {
-                matched[slot][j] = true;
-                true_positives += 1;
-                // recall rises by 1/G exactly at true positives.
-                auc += (true_positives as f64 / k as f64) / ground_truths as f64;
-            }
+    match_in_order(ranked, truth_by_frame, eps, |k, matched| {
+        if matched.is_some() {
+            true_positives += 1;
+            // recall rises by 1/G exactly at true positives.
+            auc += (true_positives as f64 / k as f64) / ground_truths as f64;
         }
         if keep_curve {
             curve.push(CurvePoint {
                 k,
-                score: p.score,
+                score: ranked[k - 1].score,
                 precision: true_positives as f64 / k as f64,
                 recall: true_positives as f64 / ground_truths as f64,
             });
         }
-    }
+    });
     EpsScore {
         eps_px: eps,
         auc,
         true_positives,
         false_positives: ranked.len() - true_positives,
         curve,
+        headroom: None,
+        at_threshold: None,
     }
 }

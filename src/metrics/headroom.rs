@@ -1,0 +1,155 @@
+//! Where the AUC is lost (`docs/metric.md`, "Headroom"): how the AUC of a
+//! detector compares with the AUC of the same frames' top predictions
+//! ranked by their true error (the best any score could do with those
+//! localisations) and ranked at random (what a score that knows nothing
+//! would do).
+
+use serde::{Deserialize, Serialize};
+
+use super::{TruthByFrame, nearest_squared_distance, top_predictions, walk};
+use crate::types::Prediction;
+
+/// The ranking headroom at one radius ε.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Headroom {
+    /// Top predictions: one per frame that has a prediction (its first in
+    /// ranking order).
+    pub top_predictions: usize,
+    /// Top predictions within ε of a ground truth of their frame.
+    pub top_within_eps: usize,
+    /// `top_within_eps / top_predictions`; `None` without predictions.
+    pub fraction_top_within_eps: Option<f64>,
+    /// The AUC of the top predictions ranked by their distance to the
+    /// nearest ground truth of their frame, ascending (the oracle-rank
+    /// AUC): every one within ε comes first, so it is
+    /// `top_within_eps / G`.
+    pub oracle_auc: f64,
+    /// The expected AUC of the top predictions ranked in a uniformly random
+    /// order (every one of the `n!` orders equally likely), in closed form:
+    /// see [`expected_random_rank_auc`].
+    pub random_auc: f64,
+    /// The share of the headroom the detector's score uses:
+    /// `(AUC − random) / (oracle − random)`, where AUC is the detector's
+    /// own AUC over all its predictions (so it can exceed 1 when
+    /// predictions other than the top ones find QDs). `None` when
+    /// `oracle = random` (no top prediction, or all of them, within ε).
+    pub share_used: Option<f64>,
+}
+
+/// The headroom of predictions `ranked` (in the metric's order) whose AUC
+/// at `eps` is `auc`, against a set of `ground_truths` truths.
+pub(super) fn headroom(
+    ranked: &[Prediction],
+    truth_by_frame: &TruthByFrame,
+    ground_truths: usize,
+    eps: f64,
+    auc: f64,
+) -> Headroom {
+    let tops = top_predictions(ranked);
+    let mut by_error: Vec<(f64, Prediction)> = tops
+        .iter()
+        .map(|p| (nearest_squared_distance(p, truth_by_frame), *p))
+        .collect();
+    // Stable: equal errors keep the ranking order.
+    by_error.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let oracle_order: Vec<Prediction> = by_error.into_iter().map(|(_, p)| p).collect();
+    // The same walk as the AUC: with one prediction per frame, a top
+    // prediction is a true positive exactly when it is within ε.
+    let oracle = walk(&oracle_order, truth_by_frame, ground_truths, eps, false);
+    let n = tops.len();
+    let m = oracle.true_positives;
+    let random_auc = expected_random_rank_auc(n, m, ground_truths);
+    Headroom {
+        top_predictions: n,
+        top_within_eps: m,
+        fraction_top_within_eps: (n > 0).then(|| m as f64 / n as f64),
+        oracle_auc: oracle.auc,
+        random_auc,
+        share_used: (oracle.auc > random_auc)
+            .then(|| (auc - random_auc) / (oracle.auc - random_auc)),
+    }
+}
+
+/// The expected AUC of `n` predictions, one per frame, `m` of them true
+/// positives, in a uniformly random order, against `ground_truths` (G)
+/// truths.
+///
+/// The AUC is `(1/G) Σ_k [k-th is a hit] · TP_k / k`. In a random order the
+/// `k`-th prediction is a hit with probability `m/n`, and given that, the
+/// hits among the `k − 1` before it are hypergeometric with mean
+/// `(k − 1)(m − 1)/(n − 1)`, so
+///
+/// `E[AUC] = (1/G) Σ_{k=1..n} (1/k) · (m/n) · (1 + (k − 1)(m − 1)/(n − 1))`,
+///
+/// summed in that order (for `n = 1` the bracket is 1). For large `n` and
+/// `G = n` it approaches `(m/n)²`.
+pub fn expected_random_rank_auc(n: usize, m: usize, ground_truths: usize) -> f64 {
+    if n == 0 || m == 0 || ground_truths == 0 {
+        return 0.0;
+    }
+    let hit = m as f64 / n as f64;
+    let others = if n > 1 {
+        (m as f64 - 1.0) / (n as f64 - 1.0)
+    } else {
+        0.0
+    };
+    let mut sum = 0.0;
+    for k in 1..=n {
+        sum += hit * (1.0 + (k as f64 - 1.0) * others) / k as f64;
+    }
+    sum / ground_truths as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The AUC of hits (`true`) and misses in the order given.
+    fn auc_of(order: &[bool], ground_truths: usize) -> f64 {
+        let mut hits = 0usize;
+        let mut auc = 0.0;
+        for (index, &hit) in order.iter().enumerate() {
+            if hit {
+                hits += 1;
+                auc += hits as f64 / (index + 1) as f64 / ground_truths as f64;
+            }
+        }
+        auc
+    }
+
+    /// All distinct orders of `m` hits among `n`, each as likely as the
+    /// `n!` permutations make it (every arrangement of hits is equally
+    /// likely), averaged.
+    fn brute_force(n: usize, m: usize, ground_truths: usize) -> f64 {
+        let mut total = 0.0;
+        let mut count = 0usize;
+        for mask in 0u32..(1 << n) {
+            if mask.count_ones() as usize != m {
+                continue;
+            }
+            let order: Vec<bool> = (0..n).map(|i| mask >> i & 1 == 1).collect();
+            total += auc_of(&order, ground_truths);
+            count += 1;
+        }
+        total / count as f64
+    }
+
+    #[test]
+    fn the_closed_form_is_the_mean_over_every_order() {
+        for n in 1..=9 {
+            for m in 0..=n {
+                for ground_truths in [n, n + 3] {
+                    let closed = expected_random_rank_auc(n, m, ground_truths);
+                    let brute = brute_force(n, m, ground_truths);
+                    assert!(
+                        (closed - brute).abs() < 1e-12,
+                        "n {n} m {m} G {ground_truths}: {closed} vs {brute}"
+                    );
+                }
+            }
+        }
+        // Large n: (m/n)² plus a term of order ln(n)/n.
+        let large = expected_random_rank_auc(100_000, 60_000, 100_000);
+        assert!((large - 0.36).abs() < 1e-3, "{large}");
+    }
+}
