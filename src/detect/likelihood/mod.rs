@@ -428,3 +428,167 @@ pub fn locate_stack(
         })
         .collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small microscope: frames of `side × side` pixels, QDs starting at
+    /// least 3 px from the border.
+    fn small(side: usize, diffusion: f64, brightness: f64) -> SimParams {
+        SimParams {
+            height: side,
+            width: side,
+            margin_px: 3.0,
+            brightness,
+            diffusion_um2_s: Distribution::Fixed(diffusion),
+            ..SimParams::default()
+        }
+    }
+
+    fn settings(particles: usize) -> LikelihoodParams {
+        LikelihoodParams {
+            particles,
+            ..LikelihoodParams::default()
+        }
+    }
+
+    #[test]
+    fn the_likelihood_ratio_is_the_poisson_probabilities_ratio() {
+        let poisson =
+            |k: u32, mean: f64| (1..=k).fold((-mean).exp(), |p, i| p * mean / f64::from(i));
+        for (count, signal, background) in
+            [(0, 0.5, 8.4), (3, 2.0, 8.4), (17, 7.4, 8.4), (2, 1.5, 0.0)]
+        {
+            let expected = if background > 0.0 {
+                poisson(count, background + signal) / poisson(count, background)
+            } else {
+                // Without background: the probability times count!.
+                poisson(count, signal) * (1..=count).map(f64::from).product::<f64>()
+            };
+            let got = poisson_likelihood_ratio(f64::from(count), signal, background);
+            assert!(
+                (got - expected).abs() <= 1e-12 * expected,
+                "{got} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn predictions_do_not_depend_on_the_thread_count() {
+        let microscope = small(12, 1.0, 20.0);
+        let dataset =
+            crate::sim::simulate(&microscope, 4, 0..5, &crate::progress::hidden()).unwrap();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    locate_stack(
+                        &dataset.frames,
+                        &microscope,
+                        &settings(300),
+                        9,
+                        &crate::progress::hidden(),
+                    )
+                    .unwrap()
+                })
+        };
+        let one = run(1);
+        assert_eq!(one.len(), 5);
+        assert_eq!(
+            one.iter().map(|p| p.frame).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
+        assert_eq!(one, run(3));
+        // The seed matters, and each frame has its own stream.
+        let other_seed = locate_stack(
+            &dataset.frames,
+            &microscope,
+            &settings(300),
+            10,
+            &crate::progress::hidden(),
+        )
+        .unwrap();
+        assert_ne!(one, other_seed);
+    }
+
+    #[test]
+    fn a_fast_qd_scores_lower_than_a_static_one() {
+        // The score is the posterior mass within 1 px of the estimate: a
+        // static QD's centroid is pinned down by the frame, a fast one's
+        // path between the rows that see it is not.
+        let mean_score = |diffusion: f64| {
+            let microscope = small(14, diffusion, 20.0);
+            let dataset =
+                crate::sim::simulate(&microscope, 7, 0..6, &crate::progress::hidden()).unwrap();
+            let predictions = locate_stack(
+                &dataset.frames,
+                &microscope,
+                &settings(1000),
+                3,
+                &crate::progress::hidden(),
+            )
+            .unwrap();
+            predictions.iter().map(|p| p.score).sum::<f64>() / predictions.len() as f64
+        };
+        let (still, fast) = (mean_score(0.0), mean_score(8.0));
+        assert!(still > 0.9, "static QD: mean score {still}");
+        assert!(fast < 0.5 * still, "fast {fast} against static {still}");
+    }
+
+    #[test]
+    fn parameters_and_frames_that_cannot_be_modelled_are_refused() {
+        let microscope = small(12, 1.0, 7.0);
+        let frames = FrameStack::zeros(1, 12, 12);
+        let hidden = crate::progress::hidden();
+        for (bad, field) in [
+            (settings(1), "particles"),
+            (
+                LikelihoodParams {
+                    score_radius_px: 0.0,
+                    ..settings(10)
+                },
+                "score_radius_px",
+            ),
+            (
+                LikelihoodParams {
+                    diffusion_um2_s: Some(Distribution::Fixed(-1.0)),
+                    ..settings(10)
+                },
+                "diffusion_um2_s",
+            ),
+        ] {
+            let error = bad.validate().unwrap_err();
+            assert_eq!(error.field(), field);
+            let error = locate_stack(&frames, &microscope, &bad, 0, &hidden).unwrap_err();
+            assert_eq!(crate::error::exit_code(&error), 2, "{error}");
+        }
+        let error = locate_stack(
+            &FrameStack::zeros(1, 12, 13),
+            &microscope,
+            &settings(10),
+            0,
+            &hidden,
+        )
+        .unwrap_err();
+        assert!(
+            error.to_string().contains("12×12 frames, got 12×13"),
+            "{error}"
+        );
+        let pmt = SimParams {
+            detector_noise: DetectorNoise::Pmt {
+                excess_noise_factor: 2.0,
+            },
+            ..microscope.clone()
+        };
+        let error = locate_stack(&frames, &pmt, &settings(10), 0, &hidden).unwrap_err();
+        assert!(error.to_string().contains("Poisson counts only"), "{error}");
+        // An empty frame still gets its one prediction, inside the field.
+        let predictions = locate_stack(&frames, &microscope, &settings(50), 0, &hidden).unwrap();
+        assert_eq!(predictions.len(), 1);
+        assert!((-0.5..11.5).contains(&predictions[0].x));
+        assert!((0.0..=1.0).contains(&predictions[0].score));
+    }
+}
