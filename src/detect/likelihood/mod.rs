@@ -186,14 +186,12 @@ impl Particles {
         let mut point = step * rng.random::<f64>();
         let mut ancestors = Vec::with_capacity(n);
         let mut cumulative = 0.0;
-        let mut index = 0;
-        for weight in &self.weight {
+        for (index, weight) in self.weight.iter().enumerate() {
             cumulative += weight;
             while point < cumulative && ancestors.len() < n {
                 ancestors.push(index);
                 point += step;
             }
-            index += 1;
         }
         // Rounding can leave the last points just beyond the total.
         while ancestors.len() < n {
@@ -270,20 +268,20 @@ impl Filter<'_> {
                     p.bits.resize(3 * n, 0);
                     rng.fill(&mut p.bits[..]);
                     let sds = if k == 0 { &p.retrace_sd } else { &p.step_sd };
-                    for i in 0..n {
-                        let bits = &p.bits[3 * i..3 * i + 3];
-                        let sd = sds[i];
-                        p.x[i] += sd * standard_normal_from_bits(bits[0], &mut rng);
-                        p.y[i] += sd * standard_normal_from_bits(bits[1], &mut rng);
-                        p.z[i] += sd * standard_normal_from_bits(bits[2], &mut rng);
+                    let positions = p.x.iter_mut().zip(&mut p.y).zip(&mut p.z);
+                    for (((x, y), z), (bits, sd)) in positions.zip(p.bits.chunks_exact(3).zip(sds))
+                    {
+                        *x += sd * standard_normal_from_bits(bits[0], &mut rng);
+                        *y += sd * standard_normal_from_bits(bits[1], &mut rng);
+                        *z += sd * standard_normal_from_bits(bits[2], &mut rng);
                     }
                 }
-                for i in 0..n {
-                    p.sum_x[i] += p.x[i];
-                    p.sum_y[i] += p.y[i];
-                    p.signal[i] +=
-                        self.scan
-                            .sample_photons(p.x[i] - beam_x, p.y[i] - beam_y, p.z[i]);
+                let positions = p.x.iter().zip(&p.y).zip(&p.z);
+                let accumulators = p.sum_x.iter_mut().zip(&mut p.sum_y).zip(&mut p.signal);
+                for (((x, y), z), ((sum_x, sum_y), signal)) in positions.zip(accumulators) {
+                    *sum_x += x;
+                    *sum_y += y;
+                    *signal += self.scan.sample_photons(x - beam_x, y - beam_y, *z);
                 }
                 if (k + 1) % substeps == 0 {
                     let count = f64::from(counts[row * width + k / substeps]);
