@@ -5,8 +5,10 @@ use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
 use scanloc::detect::crocker_grier::{self, CrockerGrierParams};
+use scanloc::detect::likelihood::{self, LikelihoodParams};
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
+use scanloc::sim::{Distribution, SimParams};
 
 /// Localise QDs in every frame of a .npy or .tif stack and write a CSV.
 ///
@@ -14,7 +16,11 @@ use scanloc::io::{self, csv_tables};
 /// defaults) the columns are frame,x,y,mass,size,ecc,signal,raw_mass,ep,score
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model DIR` (a model saved by `scanloc train`) the columns are
-/// frame,x,y,score.
+/// frame,x,y,score. With `--method likelihood` (a particle filter under the
+/// simulator's model of the paper's microscope, with the flags below for D,
+/// brightness, background and margin) the columns are frame,x,y,score: one
+/// row per frame, the posterior mean of the QD's trajectory centroid and
+/// the posterior mass within --score-radius-px of it.
 ///
 /// Frames are photon counts: integers, or floats whose values are whole
 /// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs
@@ -22,7 +28,7 @@ use scanloc::io::{self, csv_tables};
 /// pixels, so its memory beyond the frames themselves does not grow with
 /// the recording.
 ///
-/// Both methods and their parameters: docs/detectors.md.
+/// The methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
 pub struct LocateArgs {
@@ -78,6 +84,31 @@ pub struct LocateArgs {
     /// Find peaks in the raw frames.
     #[arg(long)]
     no_preprocess: bool,
+    /// With `--method likelihood`: particles per frame.
+    #[arg(long, default_value_t = 20_000)]
+    particles: usize,
+    /// With `--method likelihood`: the QD's diffusion coefficient in µm²/s,
+    /// a number (known) or uniform:LOW,HIGH (a prior: D marginalised).
+    #[arg(long, default_value = "1.0")]
+    diffusion: Distribution,
+    /// With `--method likelihood`: N_qd, photons of an in-focus QD.
+    #[arg(long, default_value_t = 7.0)]
+    brightness: f64,
+    /// With `--method likelihood`: expected background photons per pixel.
+    #[arg(long, default_value_t = 8.4)]
+    background: f64,
+    /// With `--method likelihood`: the QD starts at least this many pixels
+    /// from the border (the prior over its start).
+    #[arg(long, default_value_t = 0.0)]
+    margin_px: f64,
+    /// With `--method likelihood`: the score is the posterior mass within
+    /// this many pixels of the estimate.
+    #[arg(long, default_value_t = 1.0)]
+    score_radius_px: f64,
+    /// With `--method likelihood`: seed of the particle filter (frame i
+    /// draws from stream i of it).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
 }
 
 /// Localisation methods.
@@ -87,6 +118,8 @@ enum Method {
     CrockerGrier,
     /// A CNN trained on simulated frames (needs --model).
     Cnn,
+    /// A particle filter under the simulator's forward model (slow).
+    Likelihood,
 }
 
 pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
@@ -132,6 +165,35 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let predictions = model.locate(&frames, &bar)?;
+            bar.finish_and_clear();
+            csv_tables::write_predictions(&args.out, &predictions)?;
+        }
+        Method::Likelihood => {
+            let settings = LikelihoodParams {
+                particles: args.particles,
+                score_radius_px: args.score_radius_px,
+                ..LikelihoodParams::default()
+            };
+            settings
+                .validate()
+                .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
+            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
+            // The paper's microscope at the frames' size.
+            let microscope = SimParams {
+                height: frames.height,
+                width: frames.width,
+                diffusion_um2_s: args.diffusion,
+                brightness: args.brightness,
+                background: args.background,
+                margin_px: args.margin_px,
+                ..SimParams::default()
+            };
+            microscope
+                .validate()
+                .map_err(|e| input_error(format!("invalid microscope parameter: {e}")))?;
+            let bar = scanloc::progress::bar(frames.n as u64, "locating");
+            let predictions =
+                likelihood::locate_stack(&frames, &microscope, &settings, args.seed, &bar)?;
             bar.finish_and_clear();
             csv_tables::write_predictions(&args.out, &predictions)?;
         }

@@ -3,3 +3,4 @@
 
 pub mod cnn;
 pub mod crocker_grier;
+pub mod likelihood;

@@ -134,6 +134,10 @@ pub enum DetectorSpec {
     /// The CNN locator ([`crate::detect::cnn`]), trained on a dataset of
     /// the manifest.
     Cnn(CnnSpec),
+    /// The likelihood localiser ([`crate::detect::likelihood`]): a particle
+    /// filter under the evaluated dataset's microscope, e.g.
+    /// `{particles: 20000, diffusion_um2_s: {uniform: [0.75, 1.75]}}`.
+    Likelihood(crate::detect::likelihood::LikelihoodParams),
 }
 
 /// A CNN detector: what it is trained on, its network, its training.
@@ -165,15 +169,22 @@ impl DetectorSpec {
         match self {
             DetectorSpec::CrockerGrier(_) => "crocker_grier",
             DetectorSpec::Cnn(_) => "cnn",
+            DetectorSpec::Likelihood(_) => "likelihood",
         }
     }
 
     /// The dataset this detector is trained on, if it is trained.
     pub fn training_dataset(&self) -> Option<&str> {
         match self {
-            DetectorSpec::CrockerGrier(_) => None,
+            DetectorSpec::CrockerGrier(_) | DetectorSpec::Likelihood(_) => None,
             DetectorSpec::Cnn(spec) => Some(&spec.training_set),
         }
+    }
+
+    /// Whether locating with this detector draws random numbers (from the
+    /// detector's seed), which then belongs in its predictions' key.
+    pub fn locates_at_random(&self) -> bool {
+        matches!(self, DetectorSpec::Likelihood(_))
     }
 
     /// Checks the parameters; an error's path starts inside the kind's
@@ -185,6 +196,7 @@ impl DetectorSpec {
                 spec.architecture.validate()?;
                 spec.training.validate()
             }
+            DetectorSpec::Likelihood(params) => params.validate(),
         }
     }
 
@@ -194,6 +206,7 @@ impl DetectorSpec {
         match self {
             DetectorSpec::CrockerGrier(_) => crate::detect::crocker_grier::CODE_VERSION,
             DetectorSpec::Cnn(_) => crate::detect::cnn::CODE_VERSION,
+            DetectorSpec::Likelihood(_) => crate::detect::likelihood::CODE_VERSION,
         }
     }
 }
@@ -260,6 +273,22 @@ impl MetricsSpec {
 pub struct EvaluationSpec {
     pub detector: String,
     pub dataset: String,
+    /// Only the first this many frames of the dataset are located and
+    /// scored (fewer than the dataset has; absent: all of them).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames: Option<usize>,
+}
+
+impl EvaluationSpec {
+    /// The name of the frames scored: the dataset's, or for the first `n`
+    /// frames `DATASET+firstN` (`+` is never part of a manifest's names,
+    /// so it cannot collide with a dataset).
+    pub fn scored_dataset_name(&self) -> String {
+        match self.frames {
+            Some(frames) => format!("{}+first{frames}", self.dataset),
+            None => self.dataset.clone(),
+        }
+    }
 }
 
 /// Optional k-fold cross-validation of a trained detector over its

@@ -42,6 +42,9 @@ pub(super) struct RawManifest {
 pub(super) struct RawEvaluation {
     pub detector: String,
     pub datasets: Vec<String>,
+    /// Score on only the first this many frames of each dataset.
+    #[serde(default)]
+    pub frames: Option<usize>,
 }
 
 #[derive(Deserialize)]

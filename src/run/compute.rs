@@ -86,9 +86,10 @@ pub(super) fn compute(
             dataset,
             model,
         } => {
+            let microscope = root_dataset(plan, *dataset).map(|d| &d.params);
             let dataset = read_input(*dataset)?;
             let model = model.map(&mut read_input).transpose()?;
-            locate(step, detector, &dataset, model.as_ref())
+            locate(step, detector, &dataset, model.as_ref(), microscope)
         }
         Action::Score {
             dataset,
@@ -137,8 +138,12 @@ fn train(
     fresh_frames: Option<&crate::sim::SimParams>,
 ) -> anyhow::Result<Artefact> {
     let spec: &CnnSpec = match &detector.spec {
-        DetectorSpec::CrockerGrier(_) => {
-            anyhow::bail!("{}: crocker_grier is not a trained detector", detector.name)
+        DetectorSpec::CrockerGrier(_) | DetectorSpec::Likelihood(_) => {
+            anyhow::bail!(
+                "{}: {} is not a trained detector",
+                detector.name,
+                detector.spec.kind()
+            )
         }
         DetectorSpec::Cnn(spec) => spec,
     };
@@ -173,12 +178,14 @@ fn train(
 }
 
 /// Runs `detector` (with its trained `model`, if it is trained) on the
-/// frames of `dataset`.
+/// frames of `dataset`, taken with `microscope` (the simulated dataset's
+/// parameters, which the likelihood detector models).
 fn locate(
     step: &Step,
     detector: &DetectorEntry,
     dataset: &Artefact,
     model: Option<&Artefact>,
+    microscope: Option<&crate::sim::SimParams>,
 ) -> anyhow::Result<Artefact> {
     let frames = &dataset.dataset()?.frames;
     let progress = crate::progress::bar(frames.n as u64, &step.name);
@@ -195,6 +202,18 @@ fn locate(
             crate::detect::cnn::TrainedCnn::from_bytes(bytes)?
                 .locate(frames, &progress)
                 .with_context(|| format!("locating with {}", detector.name))?
+        }
+        DetectorSpec::Likelihood(params) => {
+            let microscope =
+                microscope.context("the likelihood detector needs the dataset's microscope")?;
+            crate::detect::likelihood::locate_stack(
+                frames,
+                microscope,
+                params,
+                detector.seed,
+                &progress,
+            )
+            .with_context(|| format!("locating with {}", detector.name))?
         }
     };
     progress.finish_and_clear();

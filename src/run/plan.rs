@@ -274,20 +274,26 @@ impl Plan {
     ) -> anyhow::Result<usize> {
         let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.code_version());
         let dataset_step = &self.steps[dataset];
-        let description = json!({
+        let mut description = json!({
             "kind": "predictions",
             "code": code_version,
             "detector": detector.spec,
             "dataset": dataset_step.key,
             "model": model.map(|m| self.steps[m].key.clone()),
         });
+        // Only for detectors that draw while locating, so that the others
+        // keep the keys they always had.
+        let seed = detector.spec.locates_at_random().then_some(detector.seed);
+        if let Some(seed) = seed {
+            description["seed"] = json!(seed);
+        }
         let name = format!("{}@{}", detector.name, dataset_step.name);
         let step = make_step(
             format!("predictions/{name}"),
             ArtefactKind::Predictions,
             name,
             code_version,
-            None,
+            seed,
             &description,
             Action::Locate {
                 detector: detector.clone(),
@@ -360,11 +366,26 @@ impl Plan {
                 }
                 None => None,
             };
-            let dataset_step = dataset_steps[&evaluation.dataset];
+            let (dataset_step, diffusion) = match evaluation.frames {
+                None => (
+                    dataset_steps[&evaluation.dataset],
+                    manifest
+                        .dataset(&evaluation.dataset)
+                        .and_then(DatasetSpec::fixed_diffusion),
+                ),
+                // The first frames as a dataset of their own (without a
+                // fixed D of its own, as the registry records subsets).
+                Some(frames) => (
+                    plan.add_subset(
+                        dataset_steps[&evaluation.dataset],
+                        &evaluation.scored_dataset_name(),
+                        (0..frames).collect(),
+                        json!({"first": frames}),
+                    )?,
+                    None,
+                ),
+            };
             let predictions = plan.add_locate(detector, dataset_step, model)?;
-            let diffusion = manifest
-                .dataset(&evaluation.dataset)
-                .and_then(DatasetSpec::fixed_diffusion);
             plan.add_score(
                 &detector.name,
                 dataset_step,

@@ -52,6 +52,8 @@ struct Precomputed {
     cutoff2: f64,
     dwell_s: f64,
     retrace_s: f64,
+    /// PSF samples per pixel dwell.
+    substeps: f64,
     /// The dataset's seed: frame `i` draws from stream `i` of it.
     seed: u64,
 }
@@ -79,8 +81,19 @@ impl Precomputed {
             cutoff2,
             dwell_s: params.dwell_us * 1e-6,
             retrace_s: params.retrace_ms * 1e-3,
+            substeps: s as f64,
             seed,
         }
+    }
+
+    /// Standard deviations (µm, per axis) of the Brownian step between two
+    /// consecutive samples of a row, and of the one step from the last
+    /// sample of a row to the first of the next (retrace included), at
+    /// diffusion coefficient `diffusion` µm²/s: N(0, 2·D·Δt) increments.
+    fn step_sds(&self, diffusion: f64) -> (f64, f64) {
+        let step_sd = (2.0 * diffusion * self.dwell_s / self.substeps).sqrt();
+        let retrace_sd = (2.0 * diffusion * (self.dwell_s / self.substeps + self.retrace_s)).sqrt();
+        (step_sd, retrace_sd)
     }
 
     /// Expected photons one PSF sample adds to its pixel, for an emitter at
@@ -98,6 +111,84 @@ impl Precomputed {
             return 0.0;
         }
         self.amplitude * (-(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2).exp()
+    }
+}
+
+/// The intervals (TrackPy pixels, `(low, high)`) a QD's start x and y are
+/// drawn uniformly from: the field shrunk by `margin_px` on every side.
+fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
+    let margin = params.margin_px;
+    (
+        (-0.5 + margin, params.width as f64 - 0.5 - margin),
+        (-0.5 + margin, params.height as f64 - 0.5 - margin),
+    )
+}
+
+/// The simulator's forward model one PSF sample at a time, for models that
+/// follow a QD through a frame in scan order (the likelihood detector,
+/// `docs/detectors.md`): the same code the simulator renders frames with,
+/// so the two cannot drift apart.
+///
+/// Positions are in µm as inside the simulator (the beam of pixel (r, c) at
+/// `((c + 0.5)·a, (r + 0.5)·a, 0)`); [`ScanModel::um_to_px`] converts to
+/// TrackPy pixels. Samples are counted along a row: `samples_per_row` =
+/// `width · substeps`, sample `k` belongs to column `k / substeps`.
+pub struct ScanModel {
+    pre: Precomputed,
+    pixel_size_um: f64,
+    start_ranges_px: ((f64, f64), (f64, f64)),
+}
+
+impl ScanModel {
+    /// The model of the microscope `params` (assumed valid).
+    pub fn new(params: &SimParams) -> Self {
+        Self {
+            pre: Precomputed::new(params, 0),
+            pixel_size_um: params.pixel_size_um,
+            start_ranges_px: start_ranges_px(params),
+        }
+    }
+
+    /// The beam's x (µm) at every sample of a row.
+    pub fn beam_x_um(&self) -> &[f64] {
+        &self.pre.beam_x
+    }
+
+    /// The beam's y (µm) along row `row`.
+    pub fn beam_y_um(&self, row: usize) -> f64 {
+        (row as f64 + 0.5) * self.pixel_size_um
+    }
+
+    /// Expected photons one PSF sample adds to its pixel (already divided
+    /// by `substeps`, so a pixel's signal is the sum over its samples), for
+    /// a QD at lateral offset `(dx, dy)` µm from the beam and depth `z` µm;
+    /// exactly 0 beyond the PSF cut-off.
+    #[inline(always)]
+    pub fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
+        self.pre.sample_photons(dx, dy, z)
+    }
+
+    /// Standard deviations (µm per axis) of the Brownian step between two
+    /// samples of a row and of the step across a retrace (from the last
+    /// sample of a row to the first of the next), at `diffusion` µm²/s.
+    pub fn step_sds(&self, diffusion: f64) -> (f64, f64) {
+        self.pre.step_sds(diffusion)
+    }
+
+    /// The intervals (TrackPy pixels) a QD's start x and y are drawn
+    /// uniformly from.
+    pub fn start_ranges_px(&self) -> ((f64, f64), (f64, f64)) {
+        self.start_ranges_px
+    }
+
+    /// A coordinate in TrackPy pixels as the simulator's µm.
+    pub fn px_to_um(&self, px: f64) -> f64 {
+        (px + 0.5) * self.pixel_size_um
+    }
+
+    /// A coordinate in the simulator's µm as TrackPy pixels.
+    pub fn um_to_px(&self, um: f64) -> f64 {
+        um / self.pixel_size_um - 0.5
     }
 }
 
@@ -127,13 +218,9 @@ fn render_signal(
     let s = params.substeps as usize;
     let samples_per_row = params.width * s;
     let total_samples = (params.height * samples_per_row) as f64;
-    // Brownian increments: N(0, 2·D·Δt) per axis.
-    let step_sd = (2.0 * diffusion * pre.dwell_s / s as f64).sqrt();
-    let retrace_sd = (2.0 * diffusion * (pre.dwell_s / s as f64 + pre.retrace_s)).sqrt();
+    let (step_sd, retrace_sd) = pre.step_sds(diffusion);
     let moving = diffusion > 0.0;
-    let margin = params.margin_px;
-    let x_range = (-0.5 + margin, params.width as f64 - 0.5 - margin);
-    let y_range = (-0.5 + margin, params.height as f64 - 0.5 - margin);
+    let (x_range, y_range) = start_ranges_px(params);
 
     for _ in 0..params.emitters {
         let x0 = x_range.0 + (x_range.1 - x_range.0) * rng.random::<f64>();

@@ -17,6 +17,7 @@ mod hostile_files;
 mod hostile_manifest;
 mod hostile_registry;
 mod layers;
+mod likelihood;
 mod manifest_errors;
 mod manifest_fuzz;
 mod metric;

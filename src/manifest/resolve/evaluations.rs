@@ -2,7 +2,7 @@
 
 use crate::error::FieldError;
 use crate::manifest::raw::RawEvaluation;
-use crate::manifest::{DatasetSpec, DetectorEntry, EvaluationSpec};
+use crate::manifest::{DatasetSpec, DetectorEntry, DetectorSpec, EvaluationSpec};
 
 /// Every (detector, dataset) pair to score, in manifest order; each named
 /// detector and dataset must exist, and no pair may come twice.
@@ -29,11 +29,43 @@ pub(super) fn resolve_evaluations(
         for (position, dataset) in evaluation.datasets.iter().enumerate() {
             let dataset_path = super::item(&datasets_path, position);
             super::require_dataset(datasets, &dataset_path, dataset)?;
+            let spec = datasets
+                .iter()
+                .find(|d| &d.name == dataset)
+                .expect("required above");
+            let frames = match evaluation.frames {
+                None => None,
+                Some(0) => {
+                    return Err(FieldError::at(
+                        &super::field(&path, "frames"),
+                        "must be a positive integer",
+                    ));
+                }
+                // All of them: the plain evaluation, with its usual keys.
+                Some(frames) if frames >= spec.frames => {
+                    if frames > spec.frames {
+                        return Err(FieldError::at(
+                            &super::field(&path, "frames"),
+                            format!(
+                                "{frames} frames asked of `{dataset}`, which has {}",
+                                spec.frames
+                            ),
+                        ));
+                    }
+                    None
+                }
+                Some(frames) => Some(frames),
+            };
+            check_detector_models(detectors, &evaluation.detector, spec, &dataset_path)?;
             let pair = EvaluationSpec {
                 detector: evaluation.detector.clone(),
                 dataset: dataset.clone(),
+                frames,
             };
-            if evaluations.contains(&pair) {
+            if evaluations
+                .iter()
+                .any(|e| e.detector == pair.detector && e.dataset == pair.dataset)
+            {
                 return Err(FieldError::at(
                     &dataset_path,
                     format!(
@@ -46,4 +78,25 @@ pub(super) fn resolve_evaluations(
         }
     }
     Ok(evaluations)
+}
+
+/// Whether detector `name` can model the frames of `dataset`, named at
+/// `path` (the likelihood detector models Poisson counts only).
+fn check_detector_models(
+    detectors: &[DetectorEntry],
+    name: &str,
+    dataset: &DatasetSpec,
+    path: &[crate::error::Segment],
+) -> Result<(), FieldError> {
+    match detectors.iter().find(|d| d.name == name).map(|d| &d.spec) {
+        Some(DetectorSpec::Likelihood(params)) => params
+            .check_microscope(&params.assumed_microscope(&dataset.params))
+            .map_err(|e| {
+                FieldError::at(
+                    path,
+                    format!("`{name}` cannot model `{}`: {}", dataset.name, e),
+                )
+            }),
+        _ => Ok(()),
+    }
 }

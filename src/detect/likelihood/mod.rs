@@ -1,0 +1,592 @@
+//! The likelihood localiser: the posterior over a QD's hidden path given one
+//! frame, under the simulator's exact forward model (`docs/detectors.md`,
+//! "likelihood").
+//!
+//! A bootstrap particle filter runs along the scan, one PSF sample at a
+//! time, in the order the beam visits them. Each particle is one QD path:
+//! its 3-D position (µm), its diffusion coefficient (fixed, or drawn from
+//! the prior over D) and the running sum of its positions. At every sample
+//! each particle takes the simulator's Brownian step
+//! ([`ScanModel::step_sds`]: along a row, or across a retrace); at the end
+//! of every pixel its weight is multiplied by the Poisson likelihood of the
+//! pixel's count given the expected photons of its path
+//! ([`ScanModel::sample_photons`] summed over the dwell, plus background).
+//! When the effective sample size falls below half the particles they are
+//! resampled (systematic resampling), carrying their position sums along:
+//! at the end of the frame each surviving particle's sum is the centroid of
+//! its whole ancestral path, so the weighted particles sample the smoothed
+//! posterior of the trajectory centroid (smoothing by ancestry tracing).
+//!
+//! Output per frame: one prediction, the posterior mean of the trajectory
+//! centroid (the truth the metric scores against), with score = the
+//! posterior mass within `score_radius_px` of it.
+//!
+//! Determinism: frame `i` draws only from ChaCha8 stream `i` of the
+//! detector's seed (as the simulator's frames do), particles are processed
+//! in order within a frame, and frames run in parallel: the predictions are
+//! the same whatever the thread count.
+
+use indicatif::ProgressBar;
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{FieldError, input_error, require_positive};
+use crate::sim::gaussian::standard_normal_from_bits;
+use crate::sim::{DetectorNoise, Distribution, ScanModel, SimParams, frame_rng};
+use crate::types::{FrameStack, Prediction};
+
+/// Version of the localiser's output, part of the content key of every
+/// prediction it makes in the registry: bump it whenever a change alters
+/// any prediction.
+pub const CODE_VERSION: &str = "scanloc-likelihood/1";
+
+/// Resample when the effective sample size falls below this fraction of
+/// the particles (the usual choice: rare enough to keep the paths diverse,
+/// often enough that the weights never collapse onto a handful).
+const RESAMPLE_BELOW_ESS_FRACTION: f64 = 0.5;
+
+/// Most particles per frame: memory is about 80 bytes per particle and
+/// thread, the time linear in the count.
+pub const MAX_PARTICLES: usize = 10_000_000;
+
+/// The likelihood localiser's parameters (manifest `likelihood: {...}`).
+///
+/// ```yaml
+/// likelihood: {particles: 20000}                             # D and N_qd of the dataset
+/// likelihood: {diffusion_um2_s: {uniform: [0.75, 1.75]}}     # D unknown: a prior
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LikelihoodParams {
+    /// Particles per frame.
+    pub particles: usize,
+    /// The diffusion coefficient the filter assumes, µm²/s: a number (D
+    /// known), `{uniform: [LOW, HIGH]}` (a prior, drawn per particle, so D
+    /// is marginalised), or absent: the microscope's own (in a manifest,
+    /// the evaluated dataset's `diffusion_um2_s`).
+    pub diffusion_um2_s: Option<Distribution>,
+    /// N_qd the filter assumes; absent: the microscope's own.
+    pub brightness: Option<f64>,
+    /// The score is the posterior mass within this distance (px) of the
+    /// estimate.
+    pub score_radius_px: f64,
+}
+
+impl Default for LikelihoodParams {
+    fn default() -> Self {
+        Self {
+            particles: 20_000,
+            diffusion_um2_s: None,
+            brightness: None,
+            score_radius_px: 1.0,
+        }
+    }
+}
+
+impl LikelihoodParams {
+    /// Checks every parameter, naming the one at fault.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        if self.particles < 2 || self.particles > MAX_PARTICLES {
+            return Err(FieldError::new(
+                "particles",
+                format!(
+                    "must be between 2 and {MAX_PARTICLES}, got {}",
+                    self.particles
+                ),
+            ));
+        }
+        if let Some(diffusion) = &self.diffusion_um2_s {
+            diffusion.validate("diffusion_um2_s", true)?;
+        }
+        if let Some(brightness) = self.brightness {
+            crate::error::require_non_negative("brightness", brightness)?;
+        }
+        require_positive("score_radius_px", self.score_radius_px)?;
+        Ok(())
+    }
+
+    /// The microscope the filter assumes: `microscope` with this detector's
+    /// diffusion coefficient and brightness where it sets them.
+    pub fn assumed_microscope(&self, microscope: &SimParams) -> SimParams {
+        SimParams {
+            diffusion_um2_s: self.diffusion_um2_s.unwrap_or(microscope.diffusion_um2_s),
+            brightness: self.brightness.unwrap_or(microscope.brightness),
+            ..microscope.clone()
+        }
+    }
+
+    /// Why the filter cannot model frames of `microscope`, if it cannot: it
+    /// assumes Poisson counts.
+    pub fn check_microscope(&self, microscope: &SimParams) -> Result<(), FieldError> {
+        if let DetectorNoise::Pmt { .. } = microscope.detector_noise {
+            return Err(FieldError::new(
+                "detector_noise",
+                "the likelihood detector models Poisson counts only, not a PMT's excess noise",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The filter for one microscope, shared by every frame.
+struct Filter<'a> {
+    scan: ScanModel,
+    microscope: SimParams,
+    settings: &'a LikelihoodParams,
+    seed: u64,
+}
+
+/// The particles of one frame, one entry per particle in each vector, and
+/// the buffers resampling copies into (reused from frame to frame).
+#[derive(Default)]
+struct Particles {
+    /// Position, µm.
+    x: Vec<f64>,
+    y: Vec<f64>,
+    z: Vec<f64>,
+    /// Sum of the positions over the samples so far, µm.
+    sum_x: Vec<f64>,
+    sum_y: Vec<f64>,
+    /// Brownian step standard deviations (µm): along a row, across a retrace.
+    step_sd: Vec<f64>,
+    retrace_sd: Vec<f64>,
+    /// Expected signal photons of the current pixel so far.
+    signal: Vec<f64>,
+    /// Importance weights, relative (rescaled whenever they are summed).
+    weight: Vec<f64>,
+    /// Resampling's destination, swapped with the vectors above.
+    spare: Vec<Vec<f64>>,
+    /// Bulk random bits of one sample's Brownian steps.
+    bits: Vec<u32>,
+}
+
+impl Particles {
+    /// The per-particle vectors resampling copies (everything but the
+    /// weights and the pixel accumulator, which it resets).
+    fn carried(&mut self) -> [&mut Vec<f64>; 7] {
+        [
+            &mut self.x,
+            &mut self.y,
+            &mut self.z,
+            &mut self.sum_x,
+            &mut self.sum_y,
+            &mut self.step_sd,
+            &mut self.retrace_sd,
+        ]
+    }
+
+    /// Systematic resampling: `n` ancestors at the points `(u + j) / n` of
+    /// the weights' cumulative distribution, one uniform `u` per resampling.
+    /// `total` is the weights' sum.
+    fn resample(&mut self, rng: &mut ChaCha8Rng, total: f64) {
+        let n = self.weight.len();
+        let step = total / n as f64;
+        let mut point = step * rng.random::<f64>();
+        let mut ancestors = Vec::with_capacity(n);
+        let mut cumulative = 0.0;
+        for (index, weight) in self.weight.iter().enumerate() {
+            cumulative += weight;
+            while point < cumulative && ancestors.len() < n {
+                ancestors.push(index);
+                point += step;
+            }
+        }
+        // Rounding can leave the last points just beyond the total.
+        while ancestors.len() < n {
+            ancestors.push(n - 1);
+        }
+        let mut spare = std::mem::take(&mut self.spare);
+        spare.resize_with(7, Vec::new);
+        for (source, destination) in self.carried().into_iter().zip(spare.iter_mut()) {
+            destination.clear();
+            destination.extend(ancestors.iter().map(|&a| source[a]));
+            std::mem::swap(source, destination);
+        }
+        self.spare = spare;
+        self.weight.fill(1.0);
+    }
+}
+
+impl Filter<'_> {
+    /// Draws the particles of a frame from the prior: start position uniform
+    /// over the start ranges, depth from `z_start`, D from the assumed
+    /// diffusion coefficient (one draw per particle).
+    fn initialise(&self, particles: &mut Particles, rng: &mut ChaCha8Rng) {
+        let n = self.settings.particles;
+        let ((x_low, x_high), (y_low, y_high)) = self.scan.start_ranges_px();
+        let p = particles;
+        for v in [
+            &mut p.x,
+            &mut p.y,
+            &mut p.z,
+            &mut p.sum_x,
+            &mut p.sum_y,
+            &mut p.step_sd,
+            &mut p.retrace_sd,
+            &mut p.signal,
+            &mut p.weight,
+        ] {
+            v.clear();
+        }
+        for _ in 0..n {
+            let x = x_low + (x_high - x_low) * rng.random::<f64>();
+            let y = y_low + (y_high - y_low) * rng.random::<f64>();
+            let z = self.microscope.z_start.sample(rng);
+            let diffusion = self.microscope.diffusion_um2_s.sample(rng);
+            let (step_sd, retrace_sd) = self.scan.step_sds(diffusion);
+            p.x.push(self.scan.px_to_um(x));
+            p.y.push(self.scan.px_to_um(y));
+            p.z.push(z);
+            p.step_sd.push(step_sd);
+            p.retrace_sd.push(retrace_sd);
+        }
+        p.sum_x.resize(n, 0.0);
+        p.sum_y.resize(n, 0.0);
+        p.signal.resize(n, 0.0);
+        p.weight.resize(n, 1.0);
+    }
+
+    /// The prediction for frame `index` with counts `counts` (row-major).
+    fn locate_frame(&self, index: usize, counts: &[u32], particles: &mut Particles) -> Prediction {
+        let mut rng = frame_rng(self.seed, index);
+        self.initialise(particles, &mut rng);
+        let microscope = &self.microscope;
+        let (width, height) = (microscope.width, microscope.height);
+        let substeps = microscope.substeps as usize;
+        let background = microscope.background;
+        let (_, high) = microscope.diffusion_um2_s.bounds();
+        let moving = high > 0.0;
+        let n = particles.weight.len();
+        for row in 0..height {
+            let beam_y = self.scan.beam_y_um(row);
+            for (k, &beam_x) in self.scan.beam_x_um().iter().enumerate() {
+                let p = &mut *particles;
+                // No step before the very first sample, as in the simulator.
+                if moving && (row, k) != (0, 0) {
+                    p.bits.resize(3 * n, 0);
+                    rng.fill(&mut p.bits[..]);
+                    let sds = if k == 0 { &p.retrace_sd } else { &p.step_sd };
+                    let positions = p.x.iter_mut().zip(&mut p.y).zip(&mut p.z);
+                    for (((x, y), z), (bits, sd)) in positions.zip(p.bits.chunks_exact(3).zip(sds))
+                    {
+                        *x += sd * standard_normal_from_bits(bits[0], &mut rng);
+                        *y += sd * standard_normal_from_bits(bits[1], &mut rng);
+                        *z += sd * standard_normal_from_bits(bits[2], &mut rng);
+                    }
+                }
+                let positions = p.x.iter().zip(&p.y).zip(&p.z);
+                let accumulators = p.sum_x.iter_mut().zip(&mut p.sum_y).zip(&mut p.signal);
+                for (((x, y), z), ((sum_x, sum_y), signal)) in positions.zip(accumulators) {
+                    *sum_x += x;
+                    *sum_y += y;
+                    *signal += self.scan.sample_photons(x - beam_x, y - beam_y, *z);
+                }
+                if (k + 1) % substeps == 0 {
+                    let count = f64::from(counts[row * width + k / substeps]);
+                    self.weigh_pixel(p, count, background, &mut rng);
+                }
+            }
+        }
+        self.estimate(index, particles)
+    }
+
+    /// Multiplies each particle's weight by the likelihood of a pixel's
+    /// `count` given its expected photons (relative to a pixel without
+    /// signal, which changes no ratio), resets the pixel accumulators, and
+    /// resamples when the effective sample size is low.
+    fn weigh_pixel(&self, p: &mut Particles, count: f64, background: f64, rng: &mut ChaCha8Rng) {
+        let (mut total, mut total_squares) = (0.0, 0.0);
+        for (weight, signal) in p.weight.iter_mut().zip(p.signal.iter_mut()) {
+            let s = std::mem::take(signal);
+            if s > 0.0 {
+                *weight *= poisson_likelihood_ratio(count, s, background);
+            } else if background <= 0.0 && count > 0.0 {
+                // No light expected, yet photons counted: impossible.
+                *weight = 0.0;
+            }
+            total += *weight;
+            total_squares += *weight * *weight;
+        }
+        if !(total > 0.0 && total.is_finite() && total_squares.is_finite()) {
+            // No particle explains this pixel (only possible without
+            // background): the pixel is ignored rather than the frame lost.
+            p.weight.fill(1.0);
+            return;
+        }
+        let n = p.weight.len() as f64;
+        if total * total < RESAMPLE_BELOW_ESS_FRACTION * n * total_squares {
+            p.resample(rng, total);
+        } else if !(1e-100..=1e100).contains(&total) {
+            let scale = 1.0 / total;
+            p.weight.iter_mut().for_each(|w| *w *= scale);
+        }
+    }
+
+    /// The posterior mean of the trajectory centroid and the posterior mass
+    /// within the score radius of it.
+    fn estimate(&self, frame: usize, p: &Particles) -> Prediction {
+        let samples = (self.microscope.height * self.scan.beam_x_um().len()) as f64;
+        let centroids: Vec<(f64, f64)> = p
+            .sum_x
+            .iter()
+            .zip(&p.sum_y)
+            .map(|(sx, sy)| {
+                (
+                    self.scan.um_to_px(sx / samples),
+                    self.scan.um_to_px(sy / samples),
+                )
+            })
+            .collect();
+        let total: f64 = p.weight.iter().sum();
+        let (mut x, mut y) = (0.0, 0.0);
+        for (&(cx, cy), w) in centroids.iter().zip(&p.weight) {
+            x += w * cx;
+            y += w * cy;
+        }
+        x /= total;
+        y /= total;
+        let radius2 = self.settings.score_radius_px * self.settings.score_radius_px;
+        let within: f64 = centroids
+            .iter()
+            .zip(&p.weight)
+            .filter(|((cx, cy), _)| (cx - x).powi(2) + (cy - y).powi(2) <= radius2)
+            .map(|(_, w)| w)
+            .sum();
+        Prediction {
+            frame,
+            x,
+            y,
+            score: within / total,
+        }
+    }
+}
+
+/// P(count | background + signal) / P(count | background) for Poisson
+/// counts (the likelihood itself when there is no background).
+#[inline]
+fn poisson_likelihood_ratio(count: f64, signal: f64, background: f64) -> f64 {
+    if background > 0.0 {
+        (count * (signal / background).ln_1p() - signal).exp()
+    } else {
+        (count * signal.ln() - signal).exp()
+    }
+}
+
+/// Localises the one QD of every frame of `frames`: one prediction per
+/// frame, in frame order, `(x, y)` the posterior mean of its trajectory
+/// centroid (TrackPy pixels), score the posterior mass within
+/// `settings.score_radius_px` of it.
+///
+/// `microscope` is the microscope the frames were taken with (its frame
+/// size must be theirs); `settings` may replace its diffusion coefficient
+/// and brightness. Frame `i` draws from ChaCha8 stream `i` of `seed`.
+/// `progress` is advanced by one per finished frame.
+pub fn locate_stack(
+    frames: &FrameStack,
+    microscope: &SimParams,
+    settings: &LikelihoodParams,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<Prediction>> {
+    settings
+        .validate()
+        .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
+    let microscope = settings.assumed_microscope(microscope);
+    microscope.validate().map_err(|e| {
+        input_error(format!(
+            "invalid microscope for the likelihood detector: {e}"
+        ))
+    })?;
+    settings
+        .check_microscope(&microscope)
+        .map_err(|e| input_error(e.to_string()))?;
+    if (frames.height, frames.width) != (microscope.height, microscope.width) {
+        return Err(input_error(format!(
+            "the likelihood detector models {}×{} frames, got {}×{}",
+            microscope.height, microscope.width, frames.height, frames.width
+        )));
+    }
+    let filter = Filter {
+        scan: ScanModel::new(&microscope),
+        microscope,
+        settings,
+        seed,
+    };
+    Ok(frames
+        .data
+        .par_chunks(frames.frame_len().max(1))
+        .take(frames.n)
+        .enumerate()
+        .map_init(Particles::default, |particles, (index, counts)| {
+            let prediction = filter.locate_frame(index, counts, particles);
+            progress.inc(1);
+            prediction
+        })
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small microscope: frames of `side × side` pixels, QDs starting at
+    /// least 3 px from the border.
+    fn small(side: usize, diffusion: f64, brightness: f64) -> SimParams {
+        SimParams {
+            height: side,
+            width: side,
+            margin_px: 3.0,
+            brightness,
+            diffusion_um2_s: Distribution::Fixed(diffusion),
+            ..SimParams::default()
+        }
+    }
+
+    fn settings(particles: usize) -> LikelihoodParams {
+        LikelihoodParams {
+            particles,
+            ..LikelihoodParams::default()
+        }
+    }
+
+    #[test]
+    fn the_likelihood_ratio_is_the_poisson_probabilities_ratio() {
+        let poisson =
+            |k: u32, mean: f64| (1..=k).fold((-mean).exp(), |p, i| p * mean / f64::from(i));
+        for (count, signal, background) in
+            [(0, 0.5, 8.4), (3, 2.0, 8.4), (17, 7.4, 8.4), (2, 1.5, 0.0)]
+        {
+            let expected = if background > 0.0 {
+                poisson(count, background + signal) / poisson(count, background)
+            } else {
+                // Without background: the probability times count!.
+                poisson(count, signal) * (1..=count).map(f64::from).product::<f64>()
+            };
+            let got = poisson_likelihood_ratio(f64::from(count), signal, background);
+            assert!(
+                (got - expected).abs() <= 1e-12 * expected,
+                "{got} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn predictions_do_not_depend_on_the_thread_count() {
+        let microscope = small(12, 1.0, 20.0);
+        let dataset =
+            crate::sim::simulate(&microscope, 4, 0..5, &crate::progress::hidden()).unwrap();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    locate_stack(
+                        &dataset.frames,
+                        &microscope,
+                        &settings(300),
+                        9,
+                        &crate::progress::hidden(),
+                    )
+                    .unwrap()
+                })
+        };
+        let one = run(1);
+        assert_eq!(one.len(), 5);
+        assert_eq!(
+            one.iter().map(|p| p.frame).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
+        assert_eq!(one, run(3));
+        // The seed matters, and each frame has its own stream.
+        let other_seed = locate_stack(
+            &dataset.frames,
+            &microscope,
+            &settings(300),
+            10,
+            &crate::progress::hidden(),
+        )
+        .unwrap();
+        assert_ne!(one, other_seed);
+    }
+
+    #[test]
+    fn a_fast_qd_scores_lower_than_a_static_one() {
+        // The score is the posterior mass within 1 px of the estimate: a
+        // static QD's centroid is pinned down by the frame, a fast one's
+        // path between the rows that see it is not.
+        let mean_score = |diffusion: f64| {
+            let microscope = small(14, diffusion, 20.0);
+            let dataset =
+                crate::sim::simulate(&microscope, 7, 0..6, &crate::progress::hidden()).unwrap();
+            let predictions = locate_stack(
+                &dataset.frames,
+                &microscope,
+                &settings(1000),
+                3,
+                &crate::progress::hidden(),
+            )
+            .unwrap();
+            predictions.iter().map(|p| p.score).sum::<f64>() / predictions.len() as f64
+        };
+        let (still, fast) = (mean_score(0.0), mean_score(8.0));
+        assert!(still > 0.9, "static QD: mean score {still}");
+        assert!(fast < 0.5 * still, "fast {fast} against static {still}");
+    }
+
+    #[test]
+    fn parameters_and_frames_that_cannot_be_modelled_are_refused() {
+        let microscope = small(12, 1.0, 7.0);
+        let frames = FrameStack::zeros(1, 12, 12);
+        let hidden = crate::progress::hidden();
+        for (bad, field) in [
+            (settings(1), "particles"),
+            (
+                LikelihoodParams {
+                    score_radius_px: 0.0,
+                    ..settings(10)
+                },
+                "score_radius_px",
+            ),
+            (
+                LikelihoodParams {
+                    diffusion_um2_s: Some(Distribution::Fixed(-1.0)),
+                    ..settings(10)
+                },
+                "diffusion_um2_s",
+            ),
+        ] {
+            let error = bad.validate().unwrap_err();
+            assert_eq!(error.field(), field);
+            let error = locate_stack(&frames, &microscope, &bad, 0, &hidden).unwrap_err();
+            assert_eq!(crate::error::exit_code(&error), 2, "{error}");
+        }
+        let error = locate_stack(
+            &FrameStack::zeros(1, 12, 13),
+            &microscope,
+            &settings(10),
+            0,
+            &hidden,
+        )
+        .unwrap_err();
+        assert!(
+            error.to_string().contains("12×12 frames, got 12×13"),
+            "{error}"
+        );
+        let pmt = SimParams {
+            detector_noise: DetectorNoise::Pmt {
+                excess_noise_factor: 2.0,
+            },
+            ..microscope.clone()
+        };
+        let error = locate_stack(&frames, &pmt, &settings(10), 0, &hidden).unwrap_err();
+        assert!(error.to_string().contains("Poisson counts only"), "{error}");
+        // An empty frame still gets its one prediction, inside the field.
+        let predictions = locate_stack(&frames, &microscope, &settings(50), 0, &hidden).unwrap();
+        assert_eq!(predictions.len(), 1);
+        assert!((-0.5..11.5).contains(&predictions[0].x));
+        assert!((0.0..=1.0).contains(&predictions[0].score));
+    }
+}

@@ -1,0 +1,233 @@
+//! The likelihood detector: its estimator against the Cramér–Rao floor on a
+//! static QD, and as a manifest detector and a `locate` method.
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use scanloc::bench::tradeoff::cramer_rao_rmse_px;
+use scanloc::detect::likelihood::{LikelihoodParams, locate_stack};
+use scanloc::sim::{Distribution, SimParams, noise, static_emitter_image};
+use scanloc::types::FrameStack;
+
+use crate::common::*;
+
+#[test]
+fn on_a_static_qd_the_estimator_reaches_the_cramer_rao_floor() {
+    // A static, in-focus QD (D = 0) at the 3 × 3 sub-pixel positions near
+    // the frame centre the floor is averaged over, each seen in `repeats`
+    // noisy frames (the simulator's forward model, Poisson counts). The
+    // posterior mean is asymptotically efficient: its mean squared error
+    // must match the floor's variance within the sampling error of M
+    // frames. With errors near Gaussian, |error|² ≈ floor² · χ²₂ / 2, whose
+    // mean over M frames has a relative standard error of 1/√M; allowed: 3.
+    let params = SimParams {
+        height: 14,
+        width: 14,
+        brightness: 15.0,
+        margin_px: 4.0,
+        diffusion_um2_s: Distribution::Fixed(0.0),
+        ..SimParams::default()
+    };
+    let positions = 3;
+    let repeats = 16;
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut truths = Vec::new();
+    let mut data = Vec::new();
+    for iy in 0..positions {
+        for ix in 0..positions {
+            // The positions `cramer_rao_rmse_px` averages over.
+            let x = params.width as f64 / 2.0 - 0.5 + ix as f64 / positions as f64;
+            let y = params.height as f64 / 2.0 - 0.5 + iy as f64 / positions as f64;
+            let expected = static_emitter_image(&params, x, y, 0.0).expected;
+            for _ in 0..repeats {
+                truths.push((x, y));
+                data.extend(
+                    expected
+                        .iter()
+                        .map(|&mean| noise::poisson(&mut rng, mean) as u32),
+                );
+            }
+        }
+    }
+    let frames = FrameStack::from_vec(truths.len(), params.height, params.width, data).unwrap();
+    let settings = LikelihoodParams {
+        particles: 8000,
+        ..LikelihoodParams::default()
+    };
+    let predictions =
+        locate_stack(&frames, &params, &settings, 5, &scanloc::progress::hidden()).unwrap();
+    let m = predictions.len() as f64;
+    let mse = predictions
+        .iter()
+        .zip(&truths)
+        .map(|(p, (x, y))| (p.x - x).powi(2) + (p.y - y).powi(2))
+        .sum::<f64>()
+        / m;
+    let floor = cramer_rao_rmse_px(&params, positions);
+    let ratio = mse / (floor * floor);
+    assert!(
+        (ratio - 1.0).abs() < 3.0 / m.sqrt(),
+        "RMSE {:.4} px against the floor {floor:.4} px (MSE ratio {ratio:.3}, {m} frames)",
+        mse.sqrt()
+    );
+}
+
+/// A manifest scoring the likelihood detector (known D and a prior over D)
+/// on the first 2 frames of a small dataset.
+const SMALL_MANIFEST: &str = "name: bound-small
+seed: 5
+microscope: {height: 12, width: 12, margin_px: 3, brightness: 20}
+datasets:
+  test: {frames: 4, diffusion_um2_s: 1.0}
+detectors:
+  known: {likelihood: {particles: 200}}
+  marginal: {likelihood: {particles: 200, diffusion_um2_s: {uniform: [0.5, 1.5]}}}
+evaluations:
+  - {detector: known, datasets: [test], frames: 2}
+  - {detector: marginal, datasets: [test], frames: 2}
+";
+
+#[test]
+fn a_manifest_scores_the_likelihood_detector_on_the_first_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = dir.path().join("bound.yaml");
+    std::fs::write(&manifest, SMALL_MANIFEST).unwrap();
+    let registry = dir.path().join("registry");
+    let run = run_json(&manifest, &registry, &[]);
+    let steps: Vec<&str> = run["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["step"].as_str().unwrap())
+        .collect();
+    assert!(steps.contains(&"dataset/test+first2"), "{steps:?}");
+    assert!(steps.contains(&"evaluation/known@test+first2"), "{steps:?}");
+    let auc = run["auc"].as_array().unwrap();
+    assert_eq!(auc.len(), 6, "{auc:?}");
+    for cell in auc {
+        assert_eq!(cell["dataset"], "test+first2");
+        assert!(
+            (0.0..=1.0).contains(&cell["auc"].as_f64().unwrap()),
+            "{cell}"
+        );
+    }
+    // One prediction per scored frame, from the detector's recorded seed.
+    let output = scanloc(&[
+        "registry",
+        "sql",
+        "--registry",
+        registry.to_str().unwrap(),
+        "--json",
+        "SELECT count FROM predictions",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let counts: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    assert_eq!(counts, serde_json::json!([{"count": 2}, {"count": 2}]));
+    // The plan records the filter's seed; a second run makes nothing anew.
+    let again = run_json(&manifest, &registry, &[]);
+    assert_eq!(again["computed_steps"], 0);
+    assert_eq!(again["auc"], run["auc"]);
+}
+
+#[test]
+fn evaluations_that_cannot_run_are_refused_by_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = dir.path().join("bad.yaml");
+    for (text, message) in [
+        (
+            SMALL_MANIFEST.replace(
+                "frames: 2}\n  - {detector: marginal",
+                "frames: 5}\n  - {detector: marginal",
+            ),
+            "evaluations[0].frames: 5 frames asked of `test`, which has 4",
+        ),
+        (
+            SMALL_MANIFEST.replace(
+                "frames: 2}\n  - {detector: marginal",
+                "frames: 0}\n  - {detector: marginal",
+            ),
+            "evaluations[0].frames: must be a positive integer",
+        ),
+        (
+            SMALL_MANIFEST.replace(
+                "diffusion_um2_s: 1.0}",
+                "diffusion_um2_s: 1.0, detector_noise: {pmt: {excess_noise_factor: 2}}}",
+            ),
+            "`known` cannot model `test`",
+        ),
+        (
+            SMALL_MANIFEST.replace("particles: 200}}\n  marginal", "particles: 1}}\n  marginal"),
+            "detectors.known.likelihood.particles: must be between 2",
+        ),
+    ] {
+        std::fs::write(&manifest, &text).unwrap();
+        let output = scanloc(&["check", manifest.to_str().unwrap()]);
+        assert_eq!(output.status.code(), Some(2), "{text}");
+        assert!(stderr(&output).contains(message), "{}", stderr(&output));
+    }
+}
+
+#[test]
+fn locate_with_the_likelihood_method_writes_one_row_per_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
+    let (frames, truth, locs) = (path("f.npy"), path("t.csv"), path("l.csv"));
+    let out = scanloc(&[
+        "simulate",
+        "--frames",
+        "3",
+        "--height",
+        "12",
+        "--width",
+        "12",
+        "--brightness",
+        "20",
+        "--margin-px",
+        "3",
+        "--out",
+        &frames,
+        "--truth",
+        &truth,
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let locate = |extra: &[&str]| {
+        let mut args = vec![
+            "locate",
+            "--method",
+            "likelihood",
+            "--input",
+            &frames,
+            "--out",
+            &locs,
+            "--brightness",
+            "20",
+            "--margin-px",
+            "3",
+        ];
+        args.extend_from_slice(extra);
+        scanloc(&args)
+    };
+    let out = locate(&["--particles", "300", "--diffusion", "uniform:0.5,1.5"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&locs).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines[0], "frame,x,y,score");
+    assert_eq!(lines.len(), 4, "{text}");
+    for (frame, line) in lines[1..].iter().enumerate() {
+        assert!(line.starts_with(&format!("{frame},")), "{line}");
+    }
+    for (bad, message) in [
+        (vec!["--particles", "1"], "particles"),
+        (
+            vec!["--particles", "10", "--diffusion", "-1"],
+            "diffusion_um2_s",
+        ),
+        (
+            vec!["--particles", "10", "--score-radius-px", "0"],
+            "score_radius_px",
+        ),
+    ] {
+        let out = locate(&bad);
+        assert_eq!(out.status.code(), Some(2), "{bad:?}");
+        assert!(stderr(&out).contains(message), "{}", stderr(&out));
+    }
+}
