@@ -160,6 +160,14 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
     for summary in [&by_prefix, &by_key, &by_folder] {
         assert_eq!(model_hash(summary), model_hash(&by_run));
     }
+    // … which is the hash of the model's blob in the registry.
+    let query = format!("SELECT sha256 FROM artefact_blobs WHERE artefact_key = '{key}'");
+    let output = scanloc(&["registry", "--registry", text(&registry), "sql", &query]);
+    assert!(
+        stdout(&output).contains(model_hash(&by_run)),
+        "{}",
+        stdout(&output)
+    );
 
     // Bad references: one line each, exit code 2.
     let out = path("refused.csv");
