@@ -113,15 +113,43 @@ impl Registry {
         if self.run_exists(id)? {
             return Ok(id.to_string());
         }
-        let runs = self.matching_prefix("SELECT id FROM runs WHERE id LIKE ?1 LIMIT 2", id)?;
-        match runs.as_slice() {
-            [run] => Ok(run.clone()),
+        self.unique_prefix(
+            "SELECT id FROM runs WHERE id LIKE ?1 LIMIT 2",
+            id,
+            "run with this id",
+            "",
+        )
+    }
+
+    /// The model whose content key is `key` or starts with it.
+    fn unique_model_key(&self, key: &str) -> anyhow::Result<String> {
+        self.unique_prefix(
+            "SELECT key FROM models WHERE key LIKE ?1 LIMIT 2",
+            key,
+            "model with this key",
+            " (name a model by RUN:DETECTOR or its key)",
+        )
+    }
+
+    /// The one row of `sql` (see [`Self::matching_prefix`]) starting with
+    /// `prefix`; an error naming `what` (`run with this id`) if there is
+    /// none, with `hint` appended, or if there are several.
+    fn unique_prefix(
+        &self,
+        sql: &str,
+        prefix: &str,
+        what: &str,
+        hint: &str,
+    ) -> anyhow::Result<String> {
+        let found = self.matching_prefix(sql, prefix)?;
+        match found.as_slice() {
+            [one] => Ok(one.clone()),
             [] => Err(input_error(format!(
-                "{id}: no run with this id or prefix in {}",
+                "{prefix}: no {what} or prefix in {}{hint}",
                 self.dir().display()
             ))),
             _ => Err(input_error(format!(
-                "{id}: ambiguous, the prefix of several runs; give more characters"
+                "{prefix}: ambiguous, the prefix of several; give more characters"
             ))),
         }
     }
@@ -173,21 +201,6 @@ impl Registry {
                 models.join(", ")
             }
         )
-    }
-
-    /// The model whose content key is `key` or starts with it.
-    fn unique_model_key(&self, key: &str) -> anyhow::Result<String> {
-        let keys = self.matching_prefix("SELECT key FROM models WHERE key LIKE ?1 LIMIT 2", key)?;
-        match keys.as_slice() {
-            [key] => Ok(key.clone()),
-            [] => Err(input_error(format!(
-                "{key}: no model with this key or prefix in {} (name a model by RUN:DETECTOR or its key)",
-                self.dir().display()
-            ))),
-            _ => Err(input_error(format!(
-                "{key}: ambiguous, the prefix of several models; give more characters"
-            ))),
-        }
     }
 
     /// The first column of `sql` (one `LIKE ?1` parameter) for rows

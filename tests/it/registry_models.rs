@@ -31,10 +31,10 @@ fn text(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
-/// `scanloc locate --method cnn --model MODEL` over `frames` into `out`:
-/// its stdout, after asserting success.
-fn locate(model: &str, registry: &Path, frames: &Path, out: &Path) -> String {
-    let output = scanloc(&[
+/// The arguments of `scanloc locate --method cnn --model MODEL` over
+/// `frames` into `out`.
+fn locate_args(model: &str, registry: &Path, frames: &Path, out: &Path) -> Vec<String> {
+    [
         "locate",
         "--method",
         "cnn",
@@ -46,7 +46,31 @@ fn locate(model: &str, registry: &Path, frames: &Path, out: &Path) -> String {
         text(frames),
         "--out",
         text(out),
-    ]);
+    ]
+    .map(str::to_string)
+    .to_vec()
+}
+
+/// The arguments of `scanloc registry model MODEL --out OUT`.
+fn export_args(model: &str, registry: &Path, out: &Path) -> Vec<String> {
+    [
+        "registry",
+        "--registry",
+        text(registry),
+        "model",
+        model,
+        "--out",
+        text(out),
+    ]
+    .map(str::to_string)
+    .to_vec()
+}
+
+/// Runs `scanloc locate --method cnn --model MODEL` over `frames` into
+/// `out`: its stdout, after asserting success.
+fn locate(model: &str, registry: &Path, frames: &Path, out: &Path) -> String {
+    let args = locate_args(model, registry, frames, out);
+    let output = scanloc(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(output.status.success(), "{model}: {}", stderr(&output));
     stdout(&output)
 }
@@ -131,15 +155,8 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
 
     // Written out as a folder, it is the same model.
     let folder = path("exported");
-    let output = scanloc(&[
-        "registry",
-        "--registry",
-        text(&registry),
-        "model",
-        &format!("{run}:cnn"),
-        "--out",
-        text(&folder),
-    ]);
+    let args = export_args(&format!("{run}:cnn"), &registry, &folder);
+    let output = scanloc(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(output.status.success(), "{}", stderr(&output));
     assert!(stdout(&output).contains(&key));
     for file in ["model.bpk", "config.json", "training.json"] {
@@ -171,23 +188,6 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
 
     // Bad references: one line each, exit code 2.
     let out = path("refused.csv");
-    let locate_args = |model: &str| -> Vec<String> {
-        [
-            "locate",
-            "--method",
-            "cnn",
-            "--model",
-            model,
-            "--registry",
-            text(&registry),
-            "--input",
-            text(&frames),
-            "--out",
-            text(&out),
-        ]
-        .map(str::to_string)
-        .to_vec()
-    };
     let common_prefix: String = run
         .chars()
         .zip(other.chars())
@@ -208,7 +208,7 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
         (format!("{run}:trackpy"), "not a CNN"),
         ("ffffffffffff".to_string(), "no model with this key"),
     ] {
-        let args = locate_args(&model);
+        let args = locate_args(&model, &registry, &frames, &out);
         refused(
             &args.iter().map(String::as_str).collect::<Vec<_>>(),
             expected,
@@ -219,16 +219,9 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
     // The export refuses to replace what is not a regular file.
     let blocked = path("blocked");
     std::fs::create_dir_all(blocked.join("model.bpk")).unwrap();
+    let args = export_args(&format!("{run}:cnn"), &registry, &blocked);
     refused(
-        &[
-            "registry",
-            "--registry",
-            text(&registry),
-            "model",
-            &format!("{run}:cnn"),
-            "--out",
-            text(&blocked),
-        ],
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
         "model.bpk",
     );
 }
