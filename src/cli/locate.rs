@@ -1,13 +1,15 @@
 //! `scanloc locate`: localise QDs in a frame file.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
+use scanloc::detect::cnn::TrainedCnn;
 use scanloc::detect::crocker_grier::{self, CrockerGrierParams};
 use scanloc::detect::likelihood::{self, LikelihoodParams};
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
+use scanloc::registry::{ModelOrigin, Registry};
 use scanloc::sim::{Distribution, SimParams};
 
 /// Localise QDs in every frame of a .npy or .tif stack and write a CSV.
@@ -15,12 +17,16 @@ use scanloc::sim::{Distribution, SimParams};
 /// With `--method crocker-grier` (TrackPy's `locate`, same parameters and
 /// defaults) the columns are frame,x,y,mass,size,ecc,signal,raw_mass,ep,score
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
-/// --model DIR` (a model saved by `scanloc train`) the columns are
-/// frame,x,y,score. With `--method likelihood` (a particle filter under the
-/// simulator's model of the paper's microscope, with the flags below for D,
-/// brightness, background and margin) the columns are frame,x,y,score: one
-/// row per frame, the posterior mean of the QD's trajectory centroid and
-/// the posterior mass within --score-radius-px of it.
+/// --model MODEL` (a model folder saved by `scanloc train`, or a model of
+/// the registry: RUN:DETECTOR or a content key) the columns are
+/// frame,x,y,score, and a line on standard output names the model (its
+/// registry key, run and detector, or folder) and the sha256 of its bytes,
+/// the same for a registry model and its exported folder. With `--method
+/// likelihood` (a particle filter under the simulator's model of the
+/// paper's microscope, with the flags below for D, brightness, background
+/// and margin) the columns are frame,x,y,score: one row per frame, the
+/// posterior mean of the QD's trajectory centroid and the posterior mass
+/// within --score-radius-px of it.
 ///
 /// Frames are photon counts: integers, or floats whose values are whole
 /// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs
@@ -45,9 +51,16 @@ pub struct LocateArgs {
     /// stack (an ImageJ hyperstack with channels).
     #[arg(long)]
     channel: Option<usize>,
-    /// With `--method cnn`: the model folder written by `scanloc train`.
+    /// With `--method cnn`: a model folder (written by `scanloc train` or
+    /// `scanloc registry model`), or a model in the registry named
+    /// RUN:DETECTOR (a run id or unique prefix, and the detector's name in
+    /// its manifest) or by its content key or a unique prefix. An existing
+    /// path is taken as a folder.
     #[arg(long, required_if_eq("method", "cnn"))]
-    model: Option<PathBuf>,
+    model: Option<String>,
+    /// The registry `--model` names a model of (when it is not a folder).
+    #[command(flatten)]
+    registry: super::RegistryDir,
     /// Feature diameter in pixels (odd, ≥ 3).
     #[arg(long, default_value_t = 7)]
     diameter: usize,
@@ -122,9 +135,34 @@ enum Method {
     Likelihood,
 }
 
+/// The CNN named by `reference` (RUN:DETECTOR or a key) in `registry`,
+/// decoded, with where it came from.
+pub(super) fn registry_cnn(
+    registry: &Registry,
+    reference: &str,
+) -> anyhow::Result<(TrainedCnn, ModelOrigin)> {
+    let stored = registry.stored_model(reference, "cnn")?;
+    let model = TrainedCnn::from_bytes(&stored.bytes)
+        .map_err(|e| input_error(format!("{reference}: {e:#}")))?;
+    Ok((model, stored.origin))
+}
+
+/// "detector D of run R" for a model read from the registry.
+pub(super) fn describe_origin(origin: &ModelOrigin) -> String {
+    match &origin.run {
+        Some(run) => format!("detector {} of run {run}", origin.detector),
+        None => format!("detector {}", origin.detector),
+    }
+}
+
 pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
+    let model_folder = args
+        .model
+        .as_deref()
+        .map(Path::new)
+        .filter(|path| path.exists());
     let mut inputs = vec![("--input", args.input.as_path())];
-    inputs.extend(args.model.as_deref().map(|model| ("--model", model)));
+    inputs.extend(model_folder.map(|model| ("--model", model)));
     io::refuse_shared_paths(&inputs, &[("--out", &args.out)])?;
     match args.method {
         Method::CrockerGrier => {
@@ -157,16 +195,40 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             )?;
         }
         Method::Cnn => {
-            let model_dir = args
+            let reference = args
                 .model
                 .as_deref()
                 .ok_or_else(|| input_error("--model: required with --method cnn"))?;
-            let model = scanloc::detect::cnn::TrainedCnn::load(model_dir)?;
+            let (model, origin) = match model_folder {
+                Some(folder) => (
+                    TrainedCnn::load(folder)?,
+                    format!("folder {}", folder.display()),
+                ),
+                None => {
+                    let registry = Registry::open_existing(&args.registry.dir).map_err(|e| {
+                        input_error(format!(
+                            "--model {reference}: not a model folder, and {e:#}"
+                        ))
+                    })?;
+                    let (model, origin) = registry_cnn(&registry, reference)?;
+                    (
+                        model,
+                        format!("{} ({})", origin.model_key, describe_origin(&origin)),
+                    )
+                }
+            };
+            let model_sha256 = scanloc::registry::hashing::sha256_hex(&model.to_bytes()?);
             let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             let bar = scanloc::progress::bar(frames.n as u64, "locating");
             let predictions = model.locate(&frames, &bar)?;
             bar.finish_and_clear();
             csv_tables::write_predictions(&args.out, &predictions)?;
+            println!(
+                "located {} QDs in {} frames with model {origin}, model.bin sha256 {model_sha256}; wrote {}",
+                predictions.len(),
+                frames.n,
+                args.out.display()
+            );
         }
         Method::Likelihood => {
             let settings = LikelihoodParams {

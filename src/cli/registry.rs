@@ -10,7 +10,8 @@ use scanloc::report::summary::run_summary;
 
 /// Query the registry: runs, datasets, models, evaluations, one run or
 /// artefact in full, the differences between two runs, blob verification,
-/// garbage collection and read-only SQL.
+/// garbage collection, read-only SQL, and a trained model written out as a
+/// model folder.
 ///
 /// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
@@ -69,6 +70,18 @@ enum RegistryCommand {
     Import {
         #[arg(required = true)]
         shards: Vec<PathBuf>,
+    },
+    /// Write a trained model out as a model folder that `scanloc locate
+    /// --method cnn --model DIR` reads (docs/detectors.md). The model is
+    /// named RUN:DETECTOR (a run id or unique prefix, and the detector's
+    /// name in its manifest) or by its content key or a unique prefix.
+    Model {
+        /// RUN:DETECTOR, or a model's content key or unique prefix.
+        model: String,
+        /// The model folder to write (created; existing files in it are
+        /// replaced, anything but a regular file is refused).
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Run one read-only SQL statement, e.g.
     /// "SELECT detector, dataset, eps_px, auc FROM run_auc WHERE run_id = '…'".
@@ -231,6 +244,23 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
                 println!("{}", serde_json::to_string(&report)?);
             } else {
                 println!("exported to {}: {}", out.display(), report.summary());
+            }
+        }
+        RegistryCommand::Model { model, out } => {
+            let (cnn, origin) = super::locate::registry_cnn(&registry, &model)?;
+            cnn.save(&out)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({"out": out.display().to_string(), "model": origin})
+                );
+            } else {
+                println!(
+                    "wrote model {} ({}) to {}",
+                    origin.model_key,
+                    super::locate::describe_origin(&origin),
+                    out.display()
+                );
             }
         }
         RegistryCommand::Sql { .. } | RegistryCommand::Import { .. } => {

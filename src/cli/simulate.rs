@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, PendingFile};
-use scanloc::sim::{self, DetectorNoise, Distribution, SimParams};
+use scanloc::sim::{self, DetectorNoise, Distribution, EmitterCount, SimParams};
 
 /// Simulate point-scanning 2PM frames of diffusing QDs (docs/simulator.md).
 ///
@@ -62,9 +62,10 @@ pub struct SimulateArgs {
     /// PSF samples per pixel dwell (1 = the paper).
     #[arg(long, default_value_t = 1)]
     substeps: u32,
-    /// QDs per frame.
-    #[arg(long, default_value_t = 1)]
-    emitters: u32,
+    /// QDs per frame: N, or drawn per frame with choice:N,N,... (optionally
+    /// /weights:W,W,...).
+    #[arg(long, default_value = "1")]
+    emitters: EmitterCount,
     /// Detector noise: `poisson`, or `pmt:F2` for a PMT with excess-noise factor F² > 1.
     #[arg(long, default_value = "poisson", value_parser = parse_detector_noise)]
     detector_noise: DetectorNoise,

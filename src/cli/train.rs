@@ -10,12 +10,13 @@ use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
 use scanloc::manifest::derive_seed;
 use scanloc::metrics;
-use scanloc::sim::{self, Distribution, SimParams};
+use scanloc::sim::{self, Distribution, EmitterCount, SimParams};
 
 /// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
 /// Simulates `--frames` frames of the paper's microscope (with the given
-/// brightness, margin and diffusion) as the fixed dataset, of which
+/// brightness, margin, diffusion, QDs per frame and start depth) as the
+/// fixed dataset, of which
 /// `--validation-fraction` selects the best epoch, optionally adds
 /// `--fresh-frames-per-epoch` newly simulated frames every epoch, trains, and
 /// writes the model folder `--out` (model.bpk in burn's record format,
@@ -43,6 +44,15 @@ pub struct TrainArgs {
     /// Diffusion coefficient in µm²/s: a number or uniform:LOW,HIGH (per frame).
     #[arg(long, default_value = "uniform:0.75,1.75")]
     diffusion: Distribution,
+    /// QDs per training frame: N, or drawn per frame with choice:N,N,...
+    /// (optionally /weights:W,W,...), e.g. choice:0,1,2,3 for scenes of no,
+    /// one or several QDs (docs/detectors.md).
+    #[arg(long, default_value = "1")]
+    emitters: EmitterCount,
+    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH
+    /// (per frame).
+    #[arg(long, default_value = "0")]
+    z_start: Distribution,
     /// Master seed: derives the dataset's seed, the fresh frames', the
     /// weight initialisation, the split and the batch order.
     #[arg(long, default_value_t = 0)]
@@ -92,6 +102,10 @@ pub struct TrainArgs {
     /// Diffusion coefficients of the test sets, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
     test_diffusion: Vec<f64>,
+    /// QDs per test frame (same forms as --emitters); the test sets have
+    /// the training frames' start depth.
+    #[arg(long, default_value = "1")]
+    test_emitters: EmitterCount,
     /// Output model folder.
     #[arg(long)]
     out: PathBuf,
@@ -130,11 +144,19 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         brightness: args.brightness,
         margin_px: args.margin_px,
         diffusion_um2_s: args.diffusion,
+        emitters: args.emitters.clone(),
+        z_start: args.z_start,
         ..SimParams::default()
     };
-    params
-        .validate()
-        .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
+    let test_params = SimParams {
+        emitters: args.test_emitters.clone(),
+        ..params.clone()
+    };
+    for params in [&params, &test_params] {
+        params
+            .validate()
+            .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
+    }
     for &d in &args.test_diffusion {
         scanloc::error::require_non_negative("--test-diffusion", d)?;
     }
@@ -200,7 +222,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     if args.test_frames > 0 {
         let table = bench::cnn::auc_table(
             &model,
-            &params,
+            &test_params,
             &args.test_diffusion,
             args.test_frames,
             derive_seed(args.seed, "dataset", "test"),

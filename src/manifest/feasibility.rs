@@ -84,9 +84,9 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
         let Some(dataset) = manifest.dataset(name) else {
             continue;
         };
-        if dataset.params.emitters == 0 {
+        if dataset.params.emitters.max() == 0 {
             // Inherited from the microscope unless the microscope has some.
-            let path: &[&str] = if manifest.microscope.emitters == 0 {
+            let path: &[&str] = if manifest.microscope.emitters.max() == 0 {
                 &["microscope", "emitters"]
             } else {
                 &["datasets", name, "emitters"]

@@ -449,6 +449,54 @@ mod tests {
     }
 
     #[test]
+    fn datasets_draw_their_qd_count_from_a_choice() {
+        use crate::sim::{CountChoice, EmitterCount};
+        let text = "name: t\nseed: 3\ndatasets:\n  a:\n    frames: 5\n    emitters: {choice: [0, 1, 2, 3]}\n  b:\n    frames: 5\n    emitters: {choice: [0, 2], weights: [1, 3]}\n  c:\n    frames: 5\n    emitters: 2\n";
+        let manifest = parse(text, "t.yaml").unwrap();
+        assert_eq!(
+            manifest.datasets[0].params.emitters,
+            EmitterCount::Random(CountChoice {
+                choice: vec![0, 1, 2, 3],
+                weights: None
+            })
+        );
+        assert_eq!(
+            manifest.datasets[1].params.emitters,
+            EmitterCount::Random(CountChoice {
+                choice: vec![0, 2],
+                weights: Some(vec![1.0, 3.0])
+            })
+        );
+        assert_eq!(manifest.datasets[2].params.emitters, EmitterCount::Fixed(2));
+        let resolved = manifest.to_resolved_yaml().unwrap();
+        assert!(resolved.contains("choice:") && resolved.contains("weights:"));
+        for (emitters, expected) in [
+            (
+                "{choice: [0, 2], weights: [1]}",
+                "x.yaml:6: datasets.a.emitters: weights must give one weight per count",
+            ),
+            (
+                "{choice: [0, 2], wieghts: [1, 1]}",
+                "x.yaml:6: datasets.a.emitters: must be a whole number or {choice",
+            ),
+            (
+                "1.5",
+                "x.yaml:6: datasets.a.emitters: must be a whole number or {choice",
+            ),
+            (
+                "{choice: []}",
+                "x.yaml:6: datasets.a.emitters: choice must list at least one count",
+            ),
+        ] {
+            let text = format!(
+                "name: t\nseed: 3\ndatasets:\n  a:\n    frames: 2\n    emitters: {emitters}\n"
+            );
+            let error = parse(&text, "x.yaml").unwrap_err().to_string();
+            assert!(error.starts_with(expected), "{error}");
+        }
+    }
+
+    #[test]
     fn errors_name_file_line_and_path() {
         let text = "name: t\nseed: 3\ndatasets:\n  test-1.00:\n    frames: 0\n";
         let error = parse(text, "x.yaml").unwrap_err().to_string();

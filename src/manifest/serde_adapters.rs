@@ -56,12 +56,14 @@ impl<'de, V: Deserialize<'de>> Deserialize<'de> for Named<V> {
 
 /// A one-entry mapping `{variant: value}` whose key is a plain name, as
 /// the tagged value `!variant value` serde_yaml 0.9 expects for an enum;
-/// anything else unchanged. (Distributions, being untagged, accept both.)
+/// anything else unchanged. (Distributions, being untagged, accept both;
+/// a count's `{choice: [...]}` is a struct, not an enum.)
 pub(super) fn as_tagged_enum(value: &serde_yaml::Value) -> serde_yaml::Value {
     if let serde_yaml::Value::Mapping(mapping) = value
         && mapping.len() == 1
         && let Some((serde_yaml::Value::String(variant), inner)) = mapping.iter().next()
         && variant != "uniform"
+        && variant != "choice"
         && variant.chars().all(|c| c.is_ascii_lowercase() || c == '_')
     {
         return serde_yaml::Value::Tagged(Box::new(serde_yaml::value::TaggedValue {

@@ -4,6 +4,7 @@
 //! `schema.sql` and `schema_v2.sql` (a cross-validation run's plan) and
 //! documented in `docs/registry.md`. Writing is here; reading back is in
 //! [`record`] (runs, typed), [`sql`] (listings, artefacts, read-only SQL),
+//! [`models`] (trained models by run and detector, or by key),
 //! [`verify`], [`gc`] and [`diff`].
 //!
 //! Concurrency: the database is in WAL mode with a long busy timeout and
@@ -19,6 +20,7 @@ pub mod dates;
 pub mod diff;
 pub mod gc;
 pub mod hashing;
+pub mod models;
 pub mod record;
 pub mod shard;
 pub mod sql;
@@ -35,6 +37,7 @@ use serde::{Deserialize, Serialize};
 
 pub use blobs::{BlobState, BlobStore};
 pub use dates::utc_now;
+pub use models::{ModelOrigin, StoredModel};
 pub use record::{
     AucRow, CrossValidationPlan, RunKind, RunRecord, RunStart, RunStatus, RunSummary, StepCounts,
     StepOutcome, StepRecord,

@@ -578,7 +578,7 @@ fn example_frames(out: &Path, microscope: &SimParams, seed: u64) -> anyhow::Resu
         .map(|(i, &d)| {
             let params = SimParams {
                 diffusion_um2_s: Distribution::Fixed(d),
-                emitters: 1,
+                emitters: 1.into(),
                 ..microscope.clone()
             };
             let dataset = sim::simulate(&params, seed, i..i + 1, &hidden())?;

@@ -189,7 +189,7 @@ mod tests {
             )
         );
         let crowded = SimParams {
-            emitters: 3,
+            emitters: 3.into(),
             substeps: 2,
             margin_px: 4.0,
             z_start: Distribution::Random(RandomDistribution::Uniform([-0.5, 0.5])),

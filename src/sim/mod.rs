@@ -14,7 +14,7 @@
 //!
 //! Determinism: frame `i` of a dataset with seed `s` draws only from
 //! ChaCha8 stream `i` of key `s`, in a fixed order (diffusion coefficient;
-//! then per emitter its start x, y, z and its walk; then the detector noise
+//! the number of emitters when it is drawn; then per emitter its start x, y, z and its walk; then the detector noise
 //! pixel by pixel). Frames are therefore identical whatever the thread count
 //! and however a dataset is split into calls.
 
@@ -29,7 +29,9 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-pub use params::{DetectorNoise, Distribution, RandomDistribution, SimParams};
+pub use params::{
+    CountChoice, DetectorNoise, Distribution, EmitterCount, RandomDistribution, SimParams,
+};
 
 use crate::error::input_error;
 use crate::types::{Dataset, FrameStack, TruthRow};
@@ -214,6 +216,7 @@ fn render_signal(
 ) -> ChaCha8Rng {
     let mut rng = frame_rng(pre.seed, index);
     let diffusion = params.diffusion_um2_s.sample(&mut rng);
+    let emitters = params.emitters.sample(&mut rng);
     let a = params.pixel_size_um;
     let s = params.substeps as usize;
     let samples_per_row = params.width * s;
@@ -222,7 +225,7 @@ fn render_signal(
     let moving = diffusion > 0.0;
     let (x_range, y_range) = start_ranges_px(params);
 
-    for _ in 0..params.emitters {
+    for _ in 0..emitters {
         let x0 = x_range.0 + (x_range.1 - x_range.0) * rng.random::<f64>();
         let y0 = y_range.0 + (y_range.1 - y_range.0) * rng.random::<f64>();
         let z0 = params.z_start.sample(&mut rng);
@@ -472,7 +475,7 @@ pub fn simulate(
                 ..Scratch::default()
             },
             |scratch, (offset, counts)| {
-                let mut truth = Vec::with_capacity(params.emitters as usize);
+                let mut truth = Vec::with_capacity(params.emitters.max() as usize);
                 maker.make(range.start + offset, counts, scratch, &mut truth)?;
                 progress.inc(1);
                 Ok(truth)
@@ -489,6 +492,7 @@ pub fn simulate(
 mod tests {
     use super::*;
     use crate::sim::params::RandomDistribution;
+    use rand::RngExt;
 
     /// A static emitter's frame, as the simulator renders it, and the
     /// emitter's truth row.
@@ -537,6 +541,106 @@ mod tests {
                 assert!((model - simulated).abs() <= 1e-12 * simulated.abs().max(1.0));
             }
         }
+    }
+
+    /// Truth rows per frame of `dataset`.
+    fn counts_per_frame(dataset: &Dataset) -> Vec<usize> {
+        let mut counts = vec![0; dataset.frames.n];
+        for row in &dataset.truth {
+            counts[row.frame] += 1;
+        }
+        counts
+    }
+
+    #[test]
+    fn drawn_emitter_counts_are_deterministic_and_follow_their_weights() {
+        let params = SimParams {
+            height: 12,
+            width: 12,
+            emitters: EmitterCount::Random(CountChoice {
+                choice: vec![0, 1, 2, 3],
+                weights: Some(vec![1.0, 0.0, 2.0, 1.0]),
+            }),
+            ..SimParams::default()
+        };
+        let hidden = ProgressBar::hidden();
+        let dataset = simulate(&params, 7, 0..400, &hidden).unwrap();
+        let again = simulate(&params, 7, 0..400, &hidden).unwrap();
+        assert_eq!(dataset.frames.data, again.frames.data);
+        assert_eq!(dataset.truth, again.truth);
+        // A frame is the same made alone.
+        let alone = simulate(&params, 7, 123..124, &hidden).unwrap();
+        assert_eq!(alone.frames.frame(0), dataset.frames.frame(123));
+        let counts = counts_per_frame(&dataset);
+        let share = |n: usize| counts.iter().filter(|&&c| c == n).count() as f64 / 400.0;
+        assert_eq!(share(1), 0.0, "a weight of 0 is never drawn");
+        // Expected shares 1/4, 1/2, 1/4: within 4.5 standard errors.
+        for (n, p) in [(0, 0.25), (2, 0.5), (3, 0.25)] {
+            let se = (p * (1.0 - p) / 400.0f64).sqrt();
+            assert!((share(n) - p).abs() < 4.5 * se, "{n}: {}", share(n));
+        }
+        // Empty frames are background only: mean ≈ N_bkg.
+        let empty: Vec<usize> = (0..400).filter(|&i| counts[i] == 0).collect();
+        let mean = empty
+            .iter()
+            .flat_map(|&i| dataset.frames.frame(i))
+            .map(|&c| f64::from(c))
+            .sum::<f64>()
+            / (empty.len() * 144) as f64;
+        assert!((mean - params.background).abs() < 0.2, "{mean}");
+    }
+
+    #[test]
+    fn a_fixed_count_draws_nothing_so_its_frames_never_change() {
+        // Fixed(2) against a one-entry choice of 2: the same counts, but
+        // the choice consumes a uniform, so only the fixed count keeps the
+        // frames simulated before counts could be drawn.
+        let fixed = SimParams {
+            height: 10,
+            width: 10,
+            emitters: EmitterCount::Fixed(2),
+            ..SimParams::default()
+        };
+        let drawn = SimParams {
+            emitters: EmitterCount::Random(CountChoice {
+                choice: vec![2],
+                weights: None,
+            }),
+            ..fixed.clone()
+        };
+        let hidden = ProgressBar::hidden();
+        let a = simulate(&fixed, 3, 0..5, &hidden).unwrap();
+        let b = simulate(&drawn, 3, 0..5, &hidden).unwrap();
+        assert_eq!(counts_per_frame(&a), vec![2; 5]);
+        assert_eq!(counts_per_frame(&b), vec![2; 5]);
+        assert_ne!(a.truth[0].x_start, b.truth[0].x_start);
+        // The first draw after D is the first QD's start x (uniform on
+        // the field): check it against the stream directly.
+        let mut rng = frame_rng(3, 0);
+        let _diffusion = fixed.diffusion_um2_s.sample(&mut rng);
+        let x0 = -0.5 + 10.0 * rng.random::<f64>();
+        assert_eq!(a.truth[0].x_start, x0);
+    }
+
+    #[test]
+    fn counts_parse_print_and_refuse_bad_weights() {
+        for text in ["3", "choice:0,1,2,3", "choice:0,2/weights:1,3.5"] {
+            let count: EmitterCount = text.parse().unwrap();
+            assert_eq!(count.to_string(), text);
+        }
+        assert!("choice:0,x".parse::<EmitterCount>().is_err());
+        assert!("choice:0,1/w:1,2".parse::<EmitterCount>().is_err());
+        assert!("-1".parse::<EmitterCount>().is_err());
+        let bad = |text: &str| {
+            let count: EmitterCount = text.parse().unwrap();
+            count.validate("emitters", 10).unwrap_err().to_string()
+        };
+        assert!(bad("choice:0,1/weights:1").contains("one weight per count"));
+        assert!(bad("choice:0,1/weights:0,0").contains("not all be 0"));
+        assert!(bad("choice:0,1/weights:1,-1").contains("emitters"));
+        assert!(bad("choice:0,11").contains("at most 10"));
+        assert!(bad("11").contains("at most 10"));
+        assert_eq!("choice:4,0,2".parse::<EmitterCount>().unwrap().max(), 4);
     }
 
     #[test]

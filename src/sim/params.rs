@@ -117,6 +117,189 @@ impl FromStr for Distribution {
     }
 }
 
+/// The number of QDs in a frame: fixed or drawn once per frame.
+///
+/// In YAML: a whole number (`2`), or a mapping `{choice: [0, 1, 2, 3]}`
+/// (each count equally likely) with optional relative `weights: [1, 2, 2,
+/// 2]` (one per count, ≥ 0, not all 0). On the command line: `2`,
+/// `choice:0,1,2,3` or `choice:0,1,2,3/weights:1,2,2,2`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum EmitterCount {
+    /// The same count in every frame.
+    Fixed(u32),
+    /// Drawn per frame.
+    Random(CountChoice),
+}
+
+/// A per-frame draw of a count from a list of counts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CountChoice {
+    /// The possible counts (a count listed twice is twice as likely
+    /// without weights).
+    pub choice: Vec<u32>,
+    /// Relative weight of each entry of `choice`; absent: all equal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub weights: Option<Vec<f64>>,
+}
+
+impl From<u32> for EmitterCount {
+    fn from(count: u32) -> Self {
+        EmitterCount::Fixed(count)
+    }
+}
+
+impl EmitterCount {
+    /// Draws one count. A fixed count consumes no randomness (so datasets
+    /// with a fixed count are the same frames as before counts could be
+    /// drawn); a choice consumes one uniform.
+    pub fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> u32 {
+        match self {
+            EmitterCount::Fixed(count) => *count,
+            EmitterCount::Random(CountChoice { choice, weights }) => {
+                let weight = |i: usize| weights.as_ref().map_or(1.0, |w| w[i]);
+                let total: f64 = (0..choice.len()).map(weight).sum();
+                let mut target = total * rng.random::<f64>();
+                for (i, &count) in choice.iter().enumerate() {
+                    target -= weight(i);
+                    if target < 0.0 {
+                        return count;
+                    }
+                }
+                // Rounding left the target at the end: the last entry
+                // with a weight.
+                (0..choice.len())
+                    .rev()
+                    .find(|&i| weight(i) > 0.0)
+                    .map_or(0, |i| choice[i])
+            }
+        }
+    }
+
+    /// The largest count a frame can have.
+    pub fn max(&self) -> u32 {
+        match self {
+            EmitterCount::Fixed(count) => *count,
+            EmitterCount::Random(CountChoice { choice, .. }) => {
+                choice.iter().copied().max().unwrap_or(0)
+            }
+        }
+    }
+
+    /// The count of every frame, if it is fixed.
+    pub fn fixed(&self) -> Option<u32> {
+        match self {
+            EmitterCount::Fixed(count) => Some(*count),
+            EmitterCount::Random(_) => None,
+        }
+    }
+
+    /// Checks the counts (at most `max_count`) and weights, naming the
+    /// parameter `name` in the error.
+    pub fn validate(&self, name: &str, max_count: u32) -> Result<(), FieldError> {
+        let counts: &[u32] = match self {
+            EmitterCount::Fixed(count) => std::slice::from_ref(count),
+            EmitterCount::Random(CountChoice { choice, weights }) => {
+                if choice.is_empty() {
+                    return Err(FieldError::new(name, "choice must list at least one count"));
+                }
+                if let Some(weights) = weights {
+                    if weights.len() != choice.len() {
+                        return Err(FieldError::new(
+                            name,
+                            format!(
+                                "weights must give one weight per count: {} counts, {} weights",
+                                choice.len(),
+                                weights.len()
+                            ),
+                        ));
+                    }
+                    for &w in weights {
+                        require_non_negative(name, w)?;
+                    }
+                    if weights.iter().sum::<f64>() <= 0.0 {
+                        return Err(FieldError::new(name, "weights must not all be 0"));
+                    }
+                    if !weights.iter().sum::<f64>().is_finite() {
+                        return Err(FieldError::new(name, "weights must have a finite sum"));
+                    }
+                }
+                choice
+            }
+        };
+        if let Some(&count) = counts.iter().find(|&&c| c > max_count) {
+            return Err(FieldError::new(
+                name,
+                format!("must be at most {max_count}, got {count}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Display for EmitterCount {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let list = |values: &mut dyn Iterator<Item = String>| values.collect::<Vec<_>>().join(",");
+        match self {
+            EmitterCount::Fixed(count) => write!(f, "{count}"),
+            EmitterCount::Random(CountChoice { choice, weights }) => {
+                write!(f, "choice:{}", list(&mut choice.iter().map(u32::to_string)))?;
+                if let Some(weights) = weights {
+                    write!(
+                        f,
+                        "/weights:{}",
+                        list(&mut weights.iter().map(f64::to_string))
+                    )?;
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+impl FromStr for EmitterCount {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        const FORMS: &str = "N, choice:N,N,... or choice:N,N,.../weights:W,W,...";
+        let text = text.trim();
+        let Some(rest) = text.strip_prefix("choice:") else {
+            return text
+                .parse::<u32>()
+                .map(EmitterCount::Fixed)
+                .map_err(|_| format!("expected {FORMS}, got {text:?}"));
+        };
+        let (counts, weights) = match rest.split_once('/') {
+            None => (rest, None),
+            Some((counts, weights)) => match weights.strip_prefix("weights:") {
+                Some(weights) => (counts, Some(weights)),
+                None => return Err(format!("expected {FORMS}, got {text:?}")),
+            },
+        };
+        let choice = counts
+            .split(',')
+            .map(|c| {
+                c.trim()
+                    .parse::<u32>()
+                    .map_err(|_| format!("not a whole number: {c:?} (expected {FORMS})"))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let weights = weights
+            .map(|w| {
+                w.split(',')
+                    .map(|v| {
+                        v.trim()
+                            .parse::<f64>()
+                            .map_err(|_| format!("not a number: {v:?} (expected {FORMS})"))
+                    })
+                    .collect::<Result<Vec<_>, _>>()
+            })
+            .transpose()?;
+        Ok(EmitterCount::Random(CountChoice { choice, weights }))
+    }
+}
+
 /// How recorded counts are drawn from the expected photon number.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
@@ -172,8 +355,8 @@ pub struct SimParams {
     pub margin_px: f64,
     /// PSF samples per pixel dwell (1 = the paper).
     pub substeps: u32,
-    /// QDs per frame.
-    pub emitters: u32,
+    /// QDs per frame: fixed or drawn per frame.
+    pub emitters: EmitterCount,
     /// Detector noise model.
     pub detector_noise: DetectorNoise,
     /// Lateral PSF cut-off in units of σ_xy: a sample farther than this from
@@ -201,7 +384,7 @@ impl Default for SimParams {
             z_start: Distribution::Fixed(0.0),
             margin_px: 0.0,
             substeps: 1,
-            emitters: 1,
+            emitters: EmitterCount::Fixed(1),
             detector_noise: DetectorNoise::Poisson,
             psf_cutoff_sigma: Some(DEFAULT_PSF_CUTOFF_SIGMA),
         }
@@ -246,12 +429,7 @@ impl SimParams {
                 format!("must be between 1 and 1024, got {}", self.substeps),
             ));
         }
-        if self.emitters > 10_000 {
-            return Err(FieldError::new(
-                "emitters",
-                format!("must be at most 10000, got {}", self.emitters),
-            ));
-        }
+        self.emitters.validate("emitters", MAX_EMITTERS)?;
         if let DetectorNoise::Pmt {
             excess_noise_factor,
         } = self.detector_noise
@@ -281,7 +459,7 @@ impl SimParams {
                 ),
             ));
         }
-        let brightest = match self.emitters {
+        let brightest = match self.emitters.max() {
             0 => self.background,
             n => f64::from(n) * self.psf_peak() + self.background,
         };
@@ -290,7 +468,7 @@ impl SimParams {
                 "brightness",
                 format!(
                     "{} emitter(s) of brightness {} with sigma_xy_um {} and sigma_z_um {} expect up to {} photons in one pixel, more than a uint32 count holds with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e}); lower brightness or widen the PSF",
-                    self.emitters,
+                    self.emitters.max(),
                     readable(self.brightness),
                     readable(self.sigma_xy_um),
                     readable(self.sigma_z_um),
@@ -329,6 +507,9 @@ impl SimParams {
         (self.height * self.width) as f64 * dwell + (self.height.saturating_sub(1)) as f64 * retrace
     }
 }
+
+/// Most QDs a frame can hold.
+pub const MAX_EMITTERS: u32 = 10_000;
 
 /// `value` as plain digits when short, in scientific notation when very
 /// large or small (an error quoting 1e300 stays one readable line).

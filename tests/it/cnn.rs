@@ -204,7 +204,7 @@ fn locates_in_frames_of_another_size_with_several_qds() {
     let big = SimParams {
         height: 48,
         width: 64,
-        emitters: 3,
+        emitters: 3.into(),
         ..params(40.0)
     };
     let test = sim::simulate(&big, 62, 0..20, &hidden()).unwrap();

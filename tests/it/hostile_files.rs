@@ -398,7 +398,7 @@ fn cnn_batches_by_pixels_and_batching_never_changes_a_prediction() {
         height: 40,
         width: 50,
         brightness: 40.0,
-        emitters: 3,
+        emitters: 3.into(),
         margin_px: 4.0,
         ..SimParams::default()
     };

@@ -22,6 +22,7 @@ mod manifest_errors;
 mod manifest_fuzz;
 mod metric;
 mod registry_crash;
+mod registry_models;
 mod registry_runs;
 mod report;
 mod simulator;

@@ -222,7 +222,7 @@ fn frames_are_identical_across_thread_counts_and_chunking() {
 #[test]
 fn several_emitters_give_one_truth_row_each() {
     let params = SimParams {
-        emitters: 3,
+        emitters: 3.into(),
         height: 40,
         width: 40,
         ..paper(1.0)
@@ -235,7 +235,7 @@ fn several_emitters_give_one_truth_row_each() {
     // Three emitters add three times the signal of one on average.
     let one = simulate(
         &SimParams {
-            emitters: 1,
+            emitters: 1.into(),
             ..params.clone()
         },
         2,
@@ -317,7 +317,7 @@ fn per_frame_diffusion_follows_its_uniform_distribution() {
 #[test]
 fn trajectories_replay_the_walk_behind_the_truth() {
     let params = SimParams {
-        emitters: 2,
+        emitters: 2.into(),
         substeps: 2,
         ..paper(1.75)
     };

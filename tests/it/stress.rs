@@ -43,7 +43,7 @@ prop_compose! {
             diffusion_um2_s: Distribution::Fixed(diffusion),
             z_start: Distribution::Fixed(z_start),
             substeps,
-            emitters,
+            emitters: emitters.into(),
             psf_cutoff_sigma: cutoff,
             ..SimParams::default()
         }
@@ -60,7 +60,7 @@ proptest! {
         match simulate(&params, seed, 0..frames, &hidden()) {
             Ok(dataset) => {
                 prop_assert_eq!(dataset.frames.data.len(), frames * params.height * params.width);
-                prop_assert_eq!(dataset.truth.len(), frames * params.emitters as usize);
+                prop_assert_eq!(dataset.truth.len(), frames * params.emitters.max() as usize);
                 for t in &dataset.truth {
                     for value in [t.x, t.y, t.x_start, t.y_start, t.x_end, t.y_end, t.z_mean, t.diffusion] {
                         prop_assert!(value.is_finite(), "non-finite truth {:?}", t);

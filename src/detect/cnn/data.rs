@@ -16,7 +16,10 @@
 //!   (Chebyshev) of the nearest pixel, so that the offset read at a score
 //!   peak one pixel off the nearest pixel still points at the centroid.
 //!
-//! An emitter whose nearest pixel lies outside the frame has no target.
+//! An emitter whose nearest pixel lies outside the frame has no target. A
+//! frame may hold any number of emitters: none (every pixel a full-weight
+//! negative, no offset supervised), one, or several (one positive pixel
+//! each; where offset boxes overlap, the nearer emitter's offset).
 
 use burn::prelude::*;
 
@@ -204,6 +207,83 @@ mod tests {
         assert!((t.offset[len + p] - 0.6).abs() < 1e-6);
         // Far pixels weigh almost fully as negatives.
         assert!(t.negative_weight[0] > 0.9);
+    }
+
+    #[test]
+    fn two_qds_get_a_positive_each_and_share_offsets_by_nearness() {
+        let shape = TargetShape {
+            sigma_px: 1.0,
+            offset_radius_px: 1,
+        };
+        // A 3×5 frame with A at (x 0.2, y 1.1) → pixel (row 1, col 0) and
+        // B at (x 2.4, y 1.0) → pixel (row 1, col 2). Their offset boxes
+        // (cols 0–1 and 1–3, rows 0–2) overlap in column 1, which is A's:
+        // 0.8 px from A's centroid along x against 1.4 px from B's.
+        let emitters: [&[(f64, f64)]; 1] = [&[(0.2, 1.1), (2.4, 1.0)]];
+        let t = targets(3, 5, &emitters, shape);
+        let len = 15;
+        let pixel = |row: usize, col: usize| row * 5 + col;
+        let positives: Vec<usize> = (0..len).filter(|&p| t.positive[p] > 0.0).collect();
+        assert_eq!(positives, vec![pixel(1, 0), pixel(1, 2)]);
+        assert_eq!(t.negative_weight[pixel(1, 0)], 0.0);
+        assert_eq!(t.negative_weight[pixel(1, 2)], 0.0);
+        // Supervised offsets: the union of both boxes, columns 0–3.
+        let masked: Vec<usize> = (0..len).filter(|&p| t.offset_mask[p] > 0.0).collect();
+        let expected: Vec<usize> = (0..3)
+            .flat_map(|row| (0..4).map(move |col| pixel(row, col)))
+            .collect();
+        assert_eq!(masked, expected);
+        let offset = |row, col| (t.offset[pixel(row, col)], t.offset[len + pixel(row, col)]);
+        let close =
+            |(a, b): (f32, f32), (x, y): (f32, f32)| (a - x).abs() < 1e-6 && (b - y).abs() < 1e-6;
+        // Column 1 belongs to A: (0.2 − 1, 1.1 − row).
+        assert!(close(offset(1, 1), (-0.8, 0.1)));
+        assert!(close(offset(0, 1), (-0.8, 1.1)));
+        // Columns 2 and 3 are B's: (2.4 − col, 1.0 − row).
+        assert!(close(offset(1, 2), (0.4, 0.0)));
+        assert!(close(offset(2, 3), (-0.6, -1.0)));
+        // Column 0 is A's own pixel.
+        assert!(close(offset(1, 0), (0.2, 0.1)));
+        // Negative weight at (1, 1): the larger Gaussian is A's,
+        // exp(−(0.8² + 0.1²)/2); B's is exp(−1.4²/2).
+        let heat = (-(0.64f64 + 0.01) / 2.0).exp();
+        assert!(heat > (-1.96f64 / 2.0).exp());
+        let weight = (1.0 - heat as f32).powi(4);
+        assert!((t.negative_weight[pixel(1, 1)] - weight).abs() < 1e-6);
+        // Column 4 is off both boxes.
+        assert_eq!(t.offset_mask[pixel(1, 4)], 0.0);
+    }
+
+    #[test]
+    fn an_empty_frame_is_all_negative_and_leaves_its_neighbours_alone() {
+        let shape = TargetShape {
+            sigma_px: 1.0,
+            offset_radius_px: 1,
+        };
+        let one: &[(f64, f64)] = &[(1.0, 1.0)];
+        let none: &[(f64, f64)] = &[];
+        // The empty frame between two copies of the same one-QD frame.
+        let t = targets(3, 3, &[one, none, one], shape);
+        let len = 9;
+        let frame = |values: &[f32], b: usize, channels: usize| {
+            values[channels * b * len..channels * (b + 1) * len].to_vec()
+        };
+        assert!(frame(&t.positive, 1, 1).iter().all(|&p| p == 0.0));
+        assert!(frame(&t.offset_mask, 1, 1).iter().all(|&m| m == 0.0));
+        assert!(frame(&t.offset, 1, 2).iter().all(|&o| o == 0.0));
+        // Every pixel of an empty frame is a full-weight negative.
+        assert!(frame(&t.negative_weight, 1, 1).iter().all(|&w| w == 1.0));
+        // The frames around it are each other's copies, with their QD.
+        for (values, channels) in [
+            (&t.positive, 1),
+            (&t.negative_weight, 1),
+            (&t.offset, 2),
+            (&t.offset_mask, 1),
+        ] {
+            assert_eq!(frame(values, 0, channels), frame(values, 2, channels));
+        }
+        assert_eq!(t.positive[4], 1.0);
+        assert_eq!(t.offset_mask.iter().filter(|&&m| m > 0.0).count(), 18);
     }
 
     #[test]

@@ -56,6 +56,9 @@ pub(super) fn apply_sim_overrides(
             let message = error.to_string();
             let message = if message.contains("untagged enum Distribution") {
                 "must be a number or {uniform: [LOW, HIGH]}".to_string()
+            } else if message.contains("untagged enum EmitterCount") {
+                "must be a whole number or {choice: [N, ...]} with optional weights: [W, ...]"
+                    .to_string()
             } else {
                 message
             };
