@@ -8,14 +8,20 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::bench;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn};
+use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 use scanloc::sim::{Distribution, RandomDistribution, SimParams};
 
-/// Measure CNN training and inference throughput on paper-sized frames.
+/// Measure CNN training and inference throughput on paper-sized frames,
+/// against PyTorch on the same network.
 ///
-/// Trains one epoch of `--samples` fresh frames (N_qd 7, margin 4, D uniform
-/// [0.75, 1.75]) and locates `--locate-frames` frames in batches of 256.
-/// Threads: rayon's (RAYON_NUM_THREADS).
+/// scanloc trains one epoch of `--samples` fresh frames (N_qd 7, margin 4,
+/// D uniform [0.75, 1.75]) and locates `--locate-frames` frames in batches
+/// of 256. The PyTorch reference (`--reference`, run with `--python` when
+/// `torch` imports; eager float32 on the CPU, with glibc's malloc keeping
+/// its buffers) trains and runs the same network on synthetic batches of
+/// the same size. The two alternate `--repeats` times at each `--threads`
+/// count; medians and scanloc/torch ratios are printed. Without torch,
+/// scanloc's figures are printed alone.
 #[derive(Debug, Args)]
 pub struct BenchTrainArgs {
     /// Training samples to time.
@@ -35,11 +41,52 @@ pub struct BenchTrainArgs {
     dilations: Option<Vec<usize>>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Thread counts to measure at, comma-separated (scanloc's rayon pool,
+    /// torch's intra-op threads).
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    threads: Vec<usize>,
+    /// Alternating scanloc/torch repetitions per thread count; medians are
+    /// reported.
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Python interpreter with torch (the comparison is skipped if missing).
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// The PyTorch reference script.
+    #[arg(long, default_value = "benches/reference/torch_train.py")]
+    reference: PathBuf,
+    /// Measure scanloc alone.
+    #[arg(long)]
+    no_reference: bool,
 }
+
+/// Most thread counts and repetitions `bench train` accepts.
+const MAX_BENCH_THREADS: usize = 256;
+const MAX_REPEATS: usize = 100;
 
 pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
     super::bench::paper_sized("--samples", args.samples)?;
     super::bench::paper_sized("--locate-frames", args.locate_frames)?;
+    if args.samples == 0 || args.locate_frames == 0 {
+        scanloc::bail_input!("--samples and --locate-frames: must be ≥ 1");
+    }
+    if args.threads.is_empty()
+        || args
+            .threads
+            .iter()
+            .any(|&t| t == 0 || t > MAX_BENCH_THREADS)
+    {
+        scanloc::bail_input!(
+            "--threads: each must be in 1..={MAX_BENCH_THREADS}, got {:?}",
+            args.threads
+        );
+    }
+    if args.repeats == 0 || args.repeats > MAX_REPEATS {
+        scanloc::bail_input!(
+            "--repeats: must be in 1..={MAX_REPEATS}, got {}",
+            args.repeats
+        );
+    }
     let defaults = CnnArchitecture::default();
     let arch = CnnArchitecture {
         channels: args.channels.unwrap_or(defaults.channels),
@@ -47,24 +94,62 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         ..defaults
     };
     arch.validate()?;
-    let result = bench::cnn::throughput(
+    let settings = TrainingSettings {
+        batch_size: args.batch_size,
+        ..TrainingSettings::default()
+    };
+    settings.validate()?;
+    let reference = (!args.no_reference).then(|| bench::cnn::TorchReference {
+        python: args.python.clone(),
+        script: args.reference.clone(),
+    });
+    let comparisons = bench::cnn::compare_with_torch(
         &arch,
         args.batch_size,
         args.samples,
         args.locate_frames,
         args.seed,
+        &args.threads,
+        args.repeats,
+        reference.as_ref(),
     )?;
     println!(
-        "channels {} dilations {:?} batch {} threads {}: training {:.1} samples/s ({} samples), inference {:.1} frames/s ({} frames, batch 256)",
-        result.architecture.channels,
-        result.architecture.dilations,
-        result.batch_size,
-        result.threads,
-        result.train_samples_per_second,
-        result.train_samples,
-        result.locate_frames_per_second,
-        result.locate_frames
+        "channels {} dilations {:?} batch {}; training {} samples, inference {} frames (batch {}); medians of {} alternating runs",
+        arch.channels,
+        arch.dilations,
+        args.batch_size,
+        args.samples,
+        args.locate_frames,
+        cnn::inference::INFERENCE_BATCH,
+        args.repeats
     );
+    println!(
+        "threads  scanloc train/s  torch train/s  ratio   scanloc frames/s  torch frames/s  ratio"
+    );
+    for c in &comparisons {
+        let (torch_train, torch_frames, train_ratio, frames_ratio) = match (c.torch, c.ratios()) {
+            (Some(t), Some((rt, rf))) => (
+                format!("{:.1}", t.train_samples_per_second),
+                format!("{:.1}", t.frames_per_second),
+                format!("{rt:.2}×"),
+                format!("{rf:.2}×"),
+            ),
+            _ => ("-".into(), "-".into(), "-".into(), "-".into()),
+        };
+        println!(
+            "{:>7}  {:>15.1}  {:>13}  {:>5}   {:>16.1}  {:>14}  {:>5}",
+            c.threads,
+            c.scanloc.train_samples_per_second,
+            torch_train,
+            train_ratio,
+            c.scanloc.frames_per_second,
+            torch_frames,
+            frames_ratio
+        );
+    }
+    if let Some(reason) = comparisons.iter().find_map(|c| c.torch_skipped.as_ref()) {
+        println!("torch reference skipped: {reason}");
+    }
     Ok(ExitCode::SUCCESS)
 }
 

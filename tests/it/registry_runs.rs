@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "d703b579a4eaf091fb3e0bfcd8604dd416abb42f9ebc6f469066634e703b4b9a",
+            "0eb00e20c62a8550291627375f763ef636b467a87d98996645aa7cf186280593",
         ),
         (
             "predictions/cnn@test-0.75",
-            "36e5624f3eab4558854f62c6c43778c8fe5894d11d2b64e2cb69b204a31f1479",
+            "a403658a4b3ca59ea538d450d27c914ac63c840c105a442ea2c785c428b61f23",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "36e4cba866d7040176f3619fd549c703cb80d57f240ee75b00d1ebdacdf263aa",
+            "ef1126d928a469510a2aeea4eb8fa1bee7f2111566b713ae1130167ce9b8e3f6",
         ),
         (
             "predictions/cnn@test-1.00",
-            "6e1177667223e108862ed44fa247231a01cde441e032799165eb499e17dc281f",
+            "21e186aa02b274d49ae8c252a15d103adb4145db35fb921b27f8ee506c2b1fdf",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "d6e3594facd7eab1d2378cd8e6f79e8dc87729af0b6737d6982123a592709aa7",
+            "0403fa7417a4177063b733d8745b2e6c6b89bdbc58c8ed5f7025eb7968119a34",
         ),
         (
             "predictions/cnn@test-1.75",
-            "46150b04a50ee12c4a15fab61e3f0ca40d90129d0e567c145b9dedfb22f29adc",
+            "9609b15f51c4491c7c31811d01a57e4cf77b89cc6f30696b2e75d6b41e9ab6ed",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "5ffe16d44f310a88d9b526b6722acc885d78d4e1a8b560f634861983975e09a7",
+            "c183ed503396e839d1a93a16482584bf010f10ccf4c1ae778fe9509b84089c87",
         ),
     ];
     assert_eq!(planned, recorded);
