@@ -8,8 +8,9 @@ frames of the same size.
 
 Times training steps (samples/s, after warm-up steps) and inference
 (frames/s, `torch.inference_mode`, eval-mode batch norm, batches of
---inference-batch). Prints `train_samples_per_second=<number>` and
-`frames_per_second=<number>` last.
+--inference-batch), in wall-clock and in CPU seconds of the process.
+Prints `train_samples_per_second=`, `train_samples_per_cpu_second=`,
+`frames_per_cpu_second=` and `frames_per_second=<number>` last.
 
 glibc's malloc returns PyTorch's large activation buffers to the system
 after every step unless told to keep them; the script sets
@@ -136,12 +137,14 @@ def main():
     model.train()
     for i in range(args.warmup_steps):
         step(i)
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     for i in range(steps):
         loss = step(i)
     loss.item()
     train_seconds = time.perf_counter() - start
+    train_cpu_seconds = time.process_time() - cpu_start
     train_rate = steps * args.batch_size / train_seconds
+    train_cpu_rate = steps * args.batch_size / train_cpu_seconds
 
     model.eval()
     frames = torch.cat([b[0] for b in batches])
@@ -152,14 +155,18 @@ def main():
         if inputs.shape[0] < args.inference_batch:
             repeat = math.ceil(args.inference_batch / inputs.shape[0])
             inputs = inputs.repeat(repeat, 1, 1, 1)[: args.inference_batch]
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         for _ in range(chunks):
             torch.sigmoid(model(inputs)[:, :1])
         locate_seconds = time.perf_counter() - start
+        locate_cpu_seconds = time.process_time() - cpu_start
     locate_rate = chunks * args.inference_batch / locate_seconds
+    locate_cpu_rate = chunks * args.inference_batch / locate_cpu_seconds
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     print(f"train_samples_per_second={train_rate:.1f}")
+    print(f"train_samples_per_cpu_second={train_cpu_rate:.1f}")
+    print(f"frames_per_cpu_second={locate_cpu_rate:.1f}")
     print(f"frames_per_second={locate_rate:.1f}")
 
 

@@ -125,6 +125,23 @@ pub struct Throughput {
     /// Inference frames per second in batches of 256, peak finding included.
     pub locate_frames_per_second: f64,
     pub locate_frames: usize,
+    /// CPU seconds (user + system, all threads of the process) the
+    /// training and the inference took: on a loaded machine, samples per
+    /// CPU second of a one-thread run estimate the idle rate.
+    pub train_cpu_seconds: f64,
+    pub locate_cpu_seconds: f64,
+}
+
+/// CPU seconds (user + system) this process has used so far.
+pub fn process_cpu_seconds() -> f64 {
+    let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: getrusage fills the struct it is given.
+    let usage = unsafe {
+        libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr());
+        usage.assume_init()
+    };
+    let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    seconds(usage.ru_utime) + seconds(usage.ru_stime)
 }
 
 /// Measures training and inference throughput of `arch` on paper-sized
@@ -153,6 +170,7 @@ pub fn throughput(
         ..TrainingSettings::default()
     };
     let empty = Dataset::default();
+    let cpu_started = process_cpu_seconds();
     let started = Instant::now();
     // No validation frames: the score is never computed.
     let model = cnn::train(
@@ -165,15 +183,18 @@ pub fn throughput(
         &ProgressBar::hidden(),
     )?;
     let train_seconds = started.elapsed().as_secs_f64();
+    let train_cpu_seconds = process_cpu_seconds() - cpu_started;
     let test = sim::simulate(
         &params,
         derive_seed(seed, "dataset", "throughput-locate"),
         0..locate_frames,
         &ProgressBar::hidden(),
     )?;
+    let cpu_started = process_cpu_seconds();
     let started = Instant::now();
     model.locate(&test.frames, &ProgressBar::hidden())?;
     let locate_seconds = started.elapsed().as_secs_f64();
+    let locate_cpu_seconds = process_cpu_seconds() - cpu_started;
     Ok(Throughput {
         architecture: arch.clone(),
         batch_size,
@@ -182,6 +203,8 @@ pub fn throughput(
         train_samples,
         locate_frames_per_second: locate_frames as f64 / locate_seconds.max(1e-9),
         locate_frames,
+        train_cpu_seconds,
+        locate_cpu_seconds,
     })
 }
 
@@ -207,6 +230,9 @@ pub struct TorchReference {
 pub struct Rates {
     pub train_samples_per_second: f64,
     pub frames_per_second: f64,
+    /// The same per CPU second of the process (see [`Throughput`]).
+    pub train_samples_per_cpu_second: f64,
+    pub frames_per_cpu_second: f64,
 }
 
 /// Medians over the repetitions at one thread count; `torch` is `None`
@@ -227,6 +253,16 @@ impl Comparison {
             (
                 self.scanloc.train_samples_per_second / torch.train_samples_per_second,
                 self.scanloc.frames_per_second / torch.frames_per_second,
+            )
+        })
+    }
+
+    /// scanloc's rates per CPU second over torch's (training, inference).
+    pub fn cpu_ratios(&self) -> Option<(f64, f64)> {
+        self.torch.map(|torch| {
+            (
+                self.scanloc.train_samples_per_cpu_second / torch.train_samples_per_cpu_second,
+                self.scanloc.frames_per_cpu_second / torch.frames_per_cpu_second,
             )
         })
     }
@@ -280,6 +316,9 @@ pub fn compare_with_torch(
             ours.push(Rates {
                 train_samples_per_second: result.train_samples_per_second,
                 frames_per_second: result.locate_frames_per_second,
+                train_samples_per_cpu_second: train_samples as f64
+                    / result.train_cpu_seconds.max(1e-9),
+                frames_per_cpu_second: locate_frames as f64 / result.locate_cpu_seconds.max(1e-9),
             });
             let Some(reference) = reference.filter(|_| skipped.is_none()) else {
                 continue;
@@ -322,28 +361,32 @@ pub fn compare_with_torch(
                 &reference.script,
                 &args,
                 &env,
-                ["train_samples_per_second", "frames_per_second"],
+                [
+                    "train_samples_per_second",
+                    "frames_per_second",
+                    "train_samples_per_cpu_second",
+                    "frames_per_cpu_second",
+                ],
             ) {
-                Ok([train, frames]) => theirs.push(Rates {
+                Ok([train, frames, train_cpu, frames_cpu]) => theirs.push(Rates {
                     train_samples_per_second: train,
                     frames_per_second: frames,
+                    train_samples_per_cpu_second: train_cpu,
+                    frames_per_cpu_second: frames_cpu,
                 }),
                 Err(reason) => skipped = Some(reason),
             }
         }
-        let medians = |rates: &[Rates]| Rates {
-            train_samples_per_second: median(
-                &mut rates
-                    .iter()
-                    .map(|r| r.train_samples_per_second)
-                    .collect::<Vec<_>>(),
-            ),
-            frames_per_second: median(
-                &mut rates
-                    .iter()
-                    .map(|r| r.frames_per_second)
-                    .collect::<Vec<_>>(),
-            ),
+        let medians = |rates: &[Rates]| {
+            let of = |figure: fn(&Rates) -> f64| {
+                median(&mut rates.iter().map(figure).collect::<Vec<_>>())
+            };
+            Rates {
+                train_samples_per_second: of(|r| r.train_samples_per_second),
+                frames_per_second: of(|r| r.frames_per_second),
+                train_samples_per_cpu_second: of(|r| r.train_samples_per_cpu_second),
+                frames_per_cpu_second: of(|r| r.frames_per_cpu_second),
+            }
         };
         let torch_ran = skipped.is_none() && !theirs.is_empty();
         out.push(Comparison {

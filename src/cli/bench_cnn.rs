@@ -147,6 +147,34 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
             frames_ratio
         );
     }
+    println!(
+        "per CPU second of the process (on a loaded machine, the 1-thread rows estimate the idle rates):"
+    );
+    println!(
+        "threads  scanloc train/cpu-s  torch train/cpu-s  ratio   scanloc frames/cpu-s  torch frames/cpu-s  ratio"
+    );
+    for c in &comparisons {
+        let (torch_train, torch_frames, train_ratio, frames_ratio) = match (c.torch, c.cpu_ratios())
+        {
+            (Some(t), Some((rt, rf))) => (
+                format!("{:.1}", t.train_samples_per_cpu_second),
+                format!("{:.1}", t.frames_per_cpu_second),
+                format!("{rt:.2}×"),
+                format!("{rf:.2}×"),
+            ),
+            _ => ("-".into(), "-".into(), "-".into(), "-".into()),
+        };
+        println!(
+            "{:>7}  {:>19.1}  {:>17}  {:>5}   {:>20.1}  {:>18}  {:>5}",
+            c.threads,
+            c.scanloc.train_samples_per_cpu_second,
+            torch_train,
+            train_ratio,
+            c.scanloc.frames_per_cpu_second,
+            torch_frames,
+            frames_ratio
+        );
+    }
     if let Some(reason) = comparisons.iter().find_map(|c| c.torch_skipped.as_ref()) {
         println!("torch reference skipped: {reason}");
     }

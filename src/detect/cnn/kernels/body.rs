@@ -156,7 +156,7 @@ pub fn infer(
         let mut x = padded_from_nchw(&input[start * map_in..end * map_in], in_channels, &geometry);
         let mut channels = in_channels;
         for layer in &folded {
-            let mut y = geometry.zeros(layer.out_channels);
+            let mut y = geometry.buffer(layer.out_channels);
             let conv = Conv3x3 {
                 weights: &layer.weights,
                 bias: Some(&layer.bias),
@@ -166,10 +166,11 @@ pub fn infer(
                 relu: true,
             };
             conv3x3_forward(&x, &mut y, &geometry, &conv);
-            x = y;
+            geometry.recycle(channels, std::mem::replace(&mut x, y));
             channels = layer.out_channels;
         }
         out.extend(nchw_from_padded(&x, channels, &geometry));
+        geometry.recycle(channels, x);
     }
     out
 }
@@ -180,10 +181,27 @@ pub struct Tape {
     geometry: Geometry,
     /// The input and each layer's output (after ReLU), padded.
     activations: Vec<Vec<f32>>,
+    /// Channels of each of `activations`.
+    activation_channels: Vec<usize>,
     /// Each layer's convolution output, padded.
     pre_norm: Vec<Vec<f32>>,
     /// Each layer's batch statistics (batch norm layers).
     statistics: Vec<Option<NormStatistics>>,
+}
+
+impl Drop for Tape {
+    /// Gives the buffers back for the next step.
+    fn drop(&mut self) {
+        let activations = std::mem::take(&mut self.activations);
+        for (buffer, &channels) in activations.into_iter().zip(&self.activation_channels) {
+            self.geometry.recycle(channels, buffer);
+        }
+        let pre_norm = std::mem::take(&mut self.pre_norm);
+        // Each layer's conv output has the channels of its activation.
+        for (buffer, &channels) in pre_norm.into_iter().zip(&self.activation_channels[1..]) {
+            self.geometry.recycle(channels, buffer);
+        }
+    }
 }
 
 /// One layer's updated running statistics after a training forward pass.
@@ -218,7 +236,7 @@ pub fn train_forward(
     let mut running = Vec::with_capacity(layers.len());
     for layer in layers {
         let x = activations.last().expect("the input is first");
-        let mut z = geometry.zeros(layer.out_channels);
+        let mut z = geometry.buffer(layer.out_channels);
         let conv = Conv3x3 {
             weights: &layer.weights,
             bias: layer.bias.as_deref(),
@@ -228,7 +246,7 @@ pub fn train_forward(
             relu: false,
         };
         conv3x3_forward(x, &mut z, &geometry, &conv);
-        let mut a = geometry.zeros(layer.out_channels);
+        let mut a = geometry.buffer(layer.out_channels);
         match &layer.norm {
             Some(norm) => {
                 let stats = channel_statistics(&z, layer.out_channels, &geometry);
@@ -277,6 +295,9 @@ pub fn train_forward(
         output,
         Tape {
             geometry,
+            activation_channels: std::iter::once(in_channels)
+                .chain(layers.iter().map(|l| l.out_channels))
+                .collect(),
             activations,
             pre_norm,
             statistics,
@@ -326,6 +347,7 @@ pub fn backward(layers: &[BodyLayer], tape: &Tape, output_grad: &[f32]) -> Vec<L
             layer.out_channels,
             geometry,
             norm,
+            geometry.buffer(layer.out_channels),
         );
         let conv = Conv3x3 {
             weights: &layer.weights,
@@ -346,10 +368,11 @@ pub fn backward(layers: &[BodyLayer], tape: &Tape, output_grad: &[f32]) -> Vec<L
                 dilation: layer.dilation,
                 relu: false,
             };
-            let mut input_grad = geometry.zeros(layer.in_channels);
+            let mut input_grad = geometry.buffer(layer.in_channels);
             conv3x3_forward(&z_grad, &mut input_grad, geometry, &back);
-            grad = input_grad;
+            geometry.recycle(layer.out_channels, std::mem::replace(&mut grad, input_grad));
         }
+        geometry.recycle(layer.out_channels, z_grad);
         let with_norm = layer.norm.is_some();
         gradients.push(LayerGradients {
             weights,
@@ -357,6 +380,9 @@ pub fn backward(layers: &[BodyLayer], tape: &Tape, output_grad: &[f32]) -> Vec<L
             gamma: with_norm.then_some(gamma_grad),
             beta: with_norm.then_some(beta_grad),
         });
+    }
+    if let Some(first) = layers.first() {
+        geometry.recycle(first.out_channels, grad);
     }
     gradients.reverse();
     gradients

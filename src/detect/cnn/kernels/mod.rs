@@ -74,7 +74,48 @@ impl Geometry {
     pub fn zeros(&self, channels: usize) -> Vec<f32> {
         vec![0.0; self.pixels() * channels]
     }
+
+    /// A padded buffer of `channels` per pixel whose border is zero and
+    /// whose interior is unspecified: a buffer given back with
+    /// [`recycle`](Self::recycle) if one of this shape is free, else a new
+    /// zeroed one. For outputs of which every interior value is written
+    /// (as every kernel here does); reusing buffers spares the page
+    /// faults of fresh large allocations at every training step.
+    pub fn buffer(&self, channels: usize) -> Vec<f32> {
+        let mut pool = BUFFER_POOL.lock().unwrap_or_else(|e| e.into_inner());
+        match pool
+            .iter()
+            .position(|(geometry, c, _)| geometry == self && *c == channels)
+        {
+            Some(index) => pool.swap_remove(index).2,
+            None => {
+                drop(pool);
+                self.zeros(channels)
+            }
+        }
+    }
+
+    /// Gives back a buffer of this shape whose border is still zero (one
+    /// from [`buffer`](Self::buffer) or [`zeros`](Self::zeros) written only
+    /// in its interior) for reuse.
+    pub fn recycle(&self, channels: usize, buffer: Vec<f32>) {
+        debug_assert_eq!(buffer.len(), self.pixels() * channels);
+        let mut pool = BUFFER_POOL.lock().unwrap_or_else(|e| e.into_inner());
+        if pool.len() == POOL_BUFFERS {
+            // Forget the oldest: shapes change rarely (frame size, batch).
+            pool.remove(0);
+        }
+        pool.push((*self, channels, buffer));
+    }
 }
+
+/// Most buffers kept for reuse (a training step of the default network
+/// uses about 16 at a time).
+const POOL_BUFFERS: usize = 24;
+
+/// Free padded buffers with their shape (see [`Geometry::buffer`]).
+static BUFFER_POOL: std::sync::Mutex<Vec<(Geometry, usize, Vec<f32>)>> =
+    std::sync::Mutex::new(Vec::new());
 
 /// Row-major `[n, channels, height, width]` values as a zero-padded
 /// channels-last buffer of `geometry`.
@@ -83,7 +124,7 @@ pub fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) ->
         n, height, width, ..
     } = *geometry;
     assert_eq!(values.len(), n * channels * height * width);
-    let mut out = geometry.zeros(channels);
+    let mut out = geometry.buffer(channels);
     let plane = height * width;
     for map in 0..n {
         for row in 0..height {

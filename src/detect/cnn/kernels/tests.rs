@@ -207,6 +207,7 @@ fn batch_norm_relu_and_its_gradients_match_burn() {
             channels,
             &geometry,
             Some((&stats, &gamma, epsilon)),
+            geometry.zeros(channels),
         );
         assert_close(
             &format!("{what} input gradient"),
