@@ -74,14 +74,36 @@ impl Conv3x3<'_> {
 /// Rows are computed in parallel; each output value sums the bias, then
 /// the taps in raster order, each over the input channels in order.
 pub fn conv3x3_forward(input: &[f32], output: &mut [f32], geometry: &Geometry, conv: &Conv3x3) {
+    conv3x3_forward_on(input, output, geometry, conv, Isa::Detect)
+}
+
+/// Which instruction-set path a kernel takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Isa {
+    /// The fastest the CPU has.
+    Detect,
+    /// Plain Rust (for checking that the paths agree bit for bit).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Portable,
+}
+
+/// [`conv3x3_forward`] on the path `isa`.
+pub(super) fn conv3x3_forward_on(
+    input: &[f32],
+    output: &mut [f32],
+    geometry: &Geometry,
+    conv: &Conv3x3,
+    isa: Isa,
+) {
     conv.check(geometry);
     assert_eq!(input.len(), geometry.pixels() * conv.in_channels);
     assert_eq!(output.len(), geometry.pixels() * conv.out_channels);
     let offsets = conv.tap_offsets(geometry);
     let row_floats = geometry.padded_width() * conv.out_channels;
     let padded_height = geometry.padded_height();
-    let avx512 = has_avx512() && conv.out_channels.is_multiple_of(16);
-    let avx2 = has_avx2_fma();
+    let detect = isa == Isa::Detect;
+    let avx512 = detect && has_avx512() && conv.out_channels.is_multiple_of(16);
+    let avx2 = detect && has_avx2_fma();
     output
         .par_chunks_mut(row_floats)
         .enumerate()
@@ -172,13 +194,25 @@ pub fn conv3x3_weight_grad(
     geometry: &Geometry,
     conv: &Conv3x3,
 ) -> Vec<f32> {
+    conv3x3_weight_grad_on(input, output_grad, geometry, conv, Isa::Detect)
+}
+
+/// [`conv3x3_weight_grad`] on the path `isa`.
+pub(super) fn conv3x3_weight_grad_on(
+    input: &[f32],
+    output_grad: &[f32],
+    geometry: &Geometry,
+    conv: &Conv3x3,
+    isa: Isa,
+) -> Vec<f32> {
     conv.check(geometry);
     let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
     assert_eq!(input.len(), geometry.pixels() * ci_n);
     assert_eq!(output_grad.len(), geometry.pixels() * co_n);
     let offsets = conv.tap_offsets(geometry);
-    let avx512 = has_avx512() && co_n.is_multiple_of(16);
-    let avx2 = has_avx2_fma();
+    let detect = isa == Isa::Detect;
+    let avx512 = detect && has_avx512() && co_n.is_multiple_of(16);
+    let avx2 = detect && has_avx2_fma();
     let per_map: Vec<Vec<f32>> = (0..geometry.n)
         .into_par_iter()
         .map(|map| {

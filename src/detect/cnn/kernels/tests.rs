@@ -381,3 +381,60 @@ fn training_gives_the_same_bits_on_one_and_two_threads() {
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_eq!(bits(&one_output), bits(&two_output));
 }
+
+#[test]
+fn the_vector_paths_give_the_portable_paths_bits() {
+    use super::conv::{Isa, conv3x3_forward_on, conv3x3_weight_grad_on};
+    let mut rng = ChaCha8Rng::seed_from_u64(20);
+    for case in 0..20 {
+        let (n, height, width, ci_n, co_n, dilation, pad) = random_case(&mut rng);
+        let geometry = Geometry {
+            n,
+            height,
+            width,
+            pad,
+        };
+        let x = padded_from_nchw(
+            &random(&mut rng, n * ci_n * height * width),
+            ci_n,
+            &geometry,
+        );
+        let g = padded_from_nchw(
+            &random(&mut rng, n * co_n * height * width),
+            co_n,
+            &geometry,
+        );
+        let weights = random(&mut rng, 9 * ci_n * co_n);
+        let bias = random(&mut rng, co_n);
+        let conv = Conv3x3 {
+            weights: &weights,
+            bias: (case % 2 == 0).then_some(bias.as_slice()),
+            in_channels: ci_n,
+            out_channels: co_n,
+            dilation,
+            relu: case % 3 == 0,
+        };
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let (mut fast, mut portable) = (geometry.zeros(co_n), geometry.zeros(co_n));
+        conv3x3_forward_on(&x, &mut fast, &geometry, &conv, Isa::Detect);
+        conv3x3_forward_on(&x, &mut portable, &geometry, &conv, Isa::Portable);
+        assert_eq!(bits(&fast), bits(&portable), "case {case}: forward");
+        assert_eq!(
+            bits(&conv3x3_weight_grad_on(
+                &x,
+                &g,
+                &geometry,
+                &conv,
+                Isa::Detect
+            )),
+            bits(&conv3x3_weight_grad_on(
+                &x,
+                &g,
+                &geometry,
+                &conv,
+                Isa::Portable
+            )),
+            "case {case}: weight gradient"
+        );
+    }
+}
