@@ -246,28 +246,6 @@ pub struct Comparison {
     pub torch_skipped: Option<String>,
 }
 
-impl Comparison {
-    /// scanloc's rates over torch's (training, inference).
-    pub fn ratios(&self) -> Option<(f64, f64)> {
-        self.torch.map(|torch| {
-            (
-                self.scanloc.train_samples_per_second / torch.train_samples_per_second,
-                self.scanloc.frames_per_second / torch.frames_per_second,
-            )
-        })
-    }
-
-    /// scanloc's rates per CPU second over torch's (training, inference).
-    pub fn cpu_ratios(&self) -> Option<(f64, f64)> {
-        self.torch.map(|torch| {
-            (
-                self.scanloc.train_samples_per_cpu_second / torch.train_samples_per_cpu_second,
-                self.scanloc.frames_per_cpu_second / torch.frames_per_cpu_second,
-            )
-        })
-    }
-}
-
 fn median(values: &mut [f64]) -> f64 {
     values.sort_by(f64::total_cmp);
     let mid = values.len() / 2;

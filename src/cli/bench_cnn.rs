@@ -123,62 +123,54 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         cnn::inference::INFERENCE_BATCH,
         args.repeats
     );
-    println!(
-        "threads  scanloc train/s  torch train/s  ratio   scanloc frames/s  torch frames/s  ratio"
-    );
-    for c in &comparisons {
-        let (torch_train, torch_frames, train_ratio, frames_ratio) = match (c.torch, c.ratios()) {
-            (Some(t), Some((rt, rf))) => (
-                format!("{:.1}", t.train_samples_per_second),
-                format!("{:.1}", t.frames_per_second),
-                format!("{rt:.2}×"),
-                format!("{rf:.2}×"),
-            ),
-            _ => ("-".into(), "-".into(), "-".into(), "-".into()),
-        };
-        println!(
-            "{:>7}  {:>15.1}  {:>13}  {:>5}   {:>16.1}  {:>14}  {:>5}",
-            c.threads,
-            c.scanloc.train_samples_per_second,
-            torch_train,
-            train_ratio,
-            c.scanloc.frames_per_second,
-            torch_frames,
-            frames_ratio
-        );
-    }
+    print_table(&comparisons, "/s", |r| {
+        (r.train_samples_per_second, r.frames_per_second)
+    });
     println!(
         "per CPU second of the process (on a loaded machine, the 1-thread rows estimate the idle rates):"
     );
-    println!(
-        "threads  scanloc train/cpu-s  torch train/cpu-s  ratio   scanloc frames/cpu-s  torch frames/cpu-s  ratio"
-    );
-    for c in &comparisons {
-        let (torch_train, torch_frames, train_ratio, frames_ratio) = match (c.torch, c.cpu_ratios())
-        {
-            (Some(t), Some((rt, rf))) => (
-                format!("{:.1}", t.train_samples_per_cpu_second),
-                format!("{:.1}", t.frames_per_cpu_second),
-                format!("{rt:.2}×"),
-                format!("{rf:.2}×"),
-            ),
-            _ => ("-".into(), "-".into(), "-".into(), "-".into()),
-        };
-        println!(
-            "{:>7}  {:>19.1}  {:>17}  {:>5}   {:>20.1}  {:>18}  {:>5}",
-            c.threads,
-            c.scanloc.train_samples_per_cpu_second,
-            torch_train,
-            train_ratio,
-            c.scanloc.frames_per_cpu_second,
-            torch_frames,
-            frames_ratio
-        );
-    }
+    print_table(&comparisons, "/cpu-s", |r| {
+        (r.train_samples_per_cpu_second, r.frames_per_cpu_second)
+    });
     if let Some(reason) = comparisons.iter().find_map(|c| c.torch_skipped.as_ref()) {
         println!("torch reference skipped: {reason}");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Prints one row per thread count: scanloc's and torch's (training,
+/// inference) `figures` and their ratios; `unit` names them.
+fn print_table(
+    comparisons: &[bench::cnn::Comparison],
+    unit: &str,
+    figures: fn(&bench::cnn::Rates) -> (f64, f64),
+) {
+    println!(
+        "threads  {:>19}  {:>17}  ratio   {:>20}  {:>18}  ratio",
+        format!("scanloc train{unit}"),
+        format!("torch train{unit}"),
+        format!("scanloc frames{unit}"),
+        format!("torch frames{unit}"),
+    );
+    for c in comparisons {
+        let (train, frames) = figures(&c.scanloc);
+        let torch = c.torch.as_ref().map(figures);
+        let show = |v: Option<f64>, ratio: bool| match v {
+            Some(v) if ratio => format!("{v:.2}×"),
+            Some(v) => format!("{v:.1}"),
+            None => "-".to_string(),
+        };
+        println!(
+            "{:>7}  {:>19.1}  {:>17}  {:>5}   {:>20.1}  {:>18}  {:>5}",
+            c.threads,
+            train,
+            show(torch.map(|t| t.0), false),
+            show(torch.map(|t| train / t.0), true),
+            frames,
+            show(torch.map(|t| t.1), false),
+            show(torch.map(|t| frames / t.1), true),
+        );
+    }
 }
 
 /// Score a saved CNN on fresh simulated test sets and time its inference.

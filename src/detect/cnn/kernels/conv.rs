@@ -213,6 +213,13 @@ pub(super) fn conv3x3_weight_grad_on(
     let detect = isa == Isa::Detect;
     let avx512 = detect && has_avx512() && co_n.is_multiple_of(16);
     let avx2 = detect && has_avx2_fma();
+    let job = WeightGradJob {
+        input,
+        output_grad,
+        geometry,
+        offsets,
+        conv,
+    };
     let per_map: Vec<Vec<f32>> = (0..geometry.n)
         .into_par_iter()
         .map(|map| {
@@ -221,37 +228,17 @@ pub(super) fn conv3x3_weight_grad_on(
             if avx512 {
                 // SAFETY: AVX-512F is present; taps stay inside the map's
                 // padded area (padding ≥ dilation).
-                unsafe {
-                    avx512::weight_grad_map(
-                        input,
-                        output_grad,
-                        geometry,
-                        map,
-                        &offsets,
-                        conv,
-                        &mut grad,
-                    )
-                };
+                unsafe { avx512::weight_grad_map(&job, map, &mut grad) };
                 return grad;
             }
             #[cfg(target_arch = "x86_64")]
             if avx2 {
                 // SAFETY: AVX2 and FMA are present.
-                unsafe {
-                    weight_grad_map_avx2(
-                        input,
-                        output_grad,
-                        geometry,
-                        map,
-                        &offsets,
-                        conv,
-                        &mut grad,
-                    )
-                };
+                unsafe { weight_grad_map_avx2(&job, map, &mut grad) };
                 return grad;
             }
             let _ = (avx512, avx2);
-            weight_grad_map_portable(input, output_grad, geometry, map, &offsets, conv, &mut grad);
+            weight_grad_map_portable(&job, map, &mut grad);
             grad
         })
         .collect();
@@ -264,31 +251,31 @@ pub(super) fn conv3x3_weight_grad_on(
     total
 }
 
+/// The operands of a weight gradient.
+struct WeightGradJob<'a> {
+    input: &'a [f32],
+    output_grad: &'a [f32],
+    geometry: &'a Geometry,
+    offsets: [isize; 9],
+    conv: &'a Conv3x3<'a>,
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn weight_grad_map_avx2(
-    input: &[f32],
-    output_grad: &[f32],
-    geometry: &Geometry,
-    map: usize,
-    offsets: &[isize; 9],
-    conv: &Conv3x3,
-    grad: &mut [f32],
-) {
-    weight_grad_map_portable(input, output_grad, geometry, map, offsets, conv, grad)
+unsafe fn weight_grad_map_avx2(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+    weight_grad_map_portable(job, map, grad)
 }
 
 /// One map's contribution to the weight gradient (added to `grad`).
 #[inline(always)]
-fn weight_grad_map_portable(
-    input: &[f32],
-    output_grad: &[f32],
-    geometry: &Geometry,
-    map: usize,
-    offsets: &[isize; 9],
-    conv: &Conv3x3,
-    grad: &mut [f32],
-) {
+fn weight_grad_map_portable(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+    let &WeightGradJob {
+        input,
+        output_grad,
+        geometry,
+        offsets,
+        conv,
+    } = job;
     let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
     for row in 0..geometry.height {
         for col in 0..geometry.width {
@@ -317,7 +304,7 @@ mod avx512 {
 
     use std::arch::x86_64::*;
 
-    use super::{Conv3x3, Geometry};
+    use super::{Conv3x3, Geometry, WeightGradJob};
 
     /// Pixels per forward tile.
     const PIXELS: usize = 8;
@@ -416,15 +403,14 @@ mod avx512 {
     }
 
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn weight_grad_map(
-        input: &[f32],
-        output_grad: &[f32],
-        geometry: &Geometry,
-        map: usize,
-        offsets: &[isize; 9],
-        conv: &Conv3x3,
-        grad: &mut [f32],
-    ) {
+    pub(super) unsafe fn weight_grad_map(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+        let &WeightGradJob {
+            input,
+            output_grad,
+            geometry,
+            offsets,
+            conv,
+        } = job;
         let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
         for (tap, &offset) in offsets.iter().enumerate() {
             let mut ci = 0;

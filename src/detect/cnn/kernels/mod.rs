@@ -117,49 +117,52 @@ const POOL_BUFFERS: usize = 24;
 static BUFFER_POOL: std::sync::Mutex<Vec<(Geometry, usize, Vec<f32>)>> =
     std::sync::Mutex::new(Vec::new());
 
-/// Row-major `[n, channels, height, width]` values as a zero-padded
-/// channels-last buffer of `geometry`.
-pub fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
+/// Calls `f(padded, planar)` for every interior pixel of `geometry`: the
+/// float index of its channel 0 in the padded channels-last buffer and in
+/// the row-major `[n, channels, height, width]` array (where channel `c` is
+/// `c · height · width` further).
+fn for_each_interior_pixel(geometry: &Geometry, channels: usize, mut f: impl FnMut(usize, usize)) {
     let Geometry {
         n, height, width, ..
     } = *geometry;
-    assert_eq!(values.len(), n * channels * height * width);
-    let mut out = geometry.buffer(channels);
     let plane = height * width;
     for map in 0..n {
         for row in 0..height {
             for col in 0..width {
-                let target = geometry.pixel(map, row, col) * channels;
-                let source = map * channels * plane + row * width + col;
-                for c in 0..channels {
-                    out[target + c] = values[source + c * plane];
-                }
+                f(
+                    geometry.pixel(map, row, col) * channels,
+                    map * channels * plane + row * width + col,
+                );
             }
         }
     }
+}
+
+/// Row-major `[n, channels, height, width]` values as a zero-padded
+/// channels-last buffer of `geometry`.
+pub fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
+    assert_eq!(values.len(), geometry.interior_pixels() * channels);
+    let plane = geometry.height * geometry.width;
+    let mut out = geometry.buffer(channels);
+    for_each_interior_pixel(geometry, channels, |padded, planar| {
+        for c in 0..channels {
+            out[padded + c] = values[planar + c * plane];
+        }
+    });
     out
 }
 
 /// The interior of a zero-padded channels-last buffer as row-major
 /// `[n, channels, height, width]` values.
 pub fn nchw_from_padded(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
-    let Geometry {
-        n, height, width, ..
-    } = *geometry;
     assert_eq!(values.len(), geometry.pixels() * channels);
-    let plane = height * width;
-    let mut out = vec![0.0; n * channels * plane];
-    for map in 0..n {
-        for row in 0..height {
-            for col in 0..width {
-                let source = geometry.pixel(map, row, col) * channels;
-                let target = map * channels * plane + row * width + col;
-                for c in 0..channels {
-                    out[target + c * plane] = values[source + c];
-                }
-            }
+    let plane = geometry.height * geometry.width;
+    let mut out = vec![0.0; geometry.interior_pixels() * channels];
+    for_each_interior_pixel(geometry, channels, |padded, planar| {
+        for c in 0..channels {
+            out[planar + c * plane] = values[padded + c];
         }
-    }
+    });
     out
 }
 
