@@ -252,8 +252,13 @@ pub fn train_forward(
                 let stats = channel_statistics(&z, layer.out_channels, &geometry);
                 let scale: Vec<f32> = (0..layer.out_channels)
                     .map(|c| {
-                        norm.gamma[c]
-                            * (1.0 / (f64::from(stats.variance[c]) + norm.epsilon).sqrt()) as f32
+                        let (mean, variance) = (stats.mean[c], stats.variance[c]);
+                        if !(mean.is_finite() && variance.is_finite()) {
+                            // The layer's values overflow: the training
+                            // diverged; NaN carries that to the loss.
+                            return f32::NAN;
+                        }
+                        norm.gamma[c] * (1.0 / (f64::from(variance) + norm.epsilon).sqrt()) as f32
                     })
                     .collect();
                 let shift: Vec<f32> = (0..layer.out_channels)

@@ -177,7 +177,7 @@ fn conv_row_portable(
         }
         if conv.relu {
             for a in acc.iter_mut() {
-                *a = a.max(0.0);
+                *a = super::relu(*a);
             }
         }
     }
@@ -393,7 +393,8 @@ mod avx512 {
         let zero = _mm512_setzero_ps();
         for (p, a) in acc.iter().enumerate() {
             for (lane, &v) in a.iter().enumerate() {
-                let v = if conv.relu { _mm512_max_ps(v, zero) } else { v };
+                // max(0, v): NaN passes, as in `super::relu`.
+                let v = if conv.relu { _mm512_max_ps(zero, v) } else { v };
                 let index = (col + p) * co_n + co + 16 * lane;
                 debug_assert!(index + 16 <= out.len());
                 // SAFETY: pixel col + p < width, channel block inside co_n.

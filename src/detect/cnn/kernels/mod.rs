@@ -17,6 +17,10 @@
 //! on scheduling. Every multiply-add is fused (`f32::mul_add`, or the
 //! vector FMA instructions), so the AVX-512, AVX2 and portable paths give
 //! the same bits.
+//!
+//! Divergence: NaN passes through ReLU, and batch statistics that are not
+//! finite (squared deviations beyond f32's range) make the layer's output
+//! NaN, so a training that blows up ends in a non-finite loss.
 
 pub mod body;
 mod conv;
@@ -164,6 +168,14 @@ pub fn nchw_from_padded(values: &[f32], channels: usize, geometry: &Geometry) ->
         }
     });
     out
+}
+
+/// ReLU that lets NaN through (as burn's does, so a diverged network's NaN
+/// reaches the loss instead of being clamped to 0): `0 > v ? 0 : v`, the
+/// semantics of the `vmaxps(0, v)` instruction the vector kernels use.
+#[inline(always)]
+pub fn relu(v: f32) -> f32 {
+    if 0.0 > v { 0.0 } else { v }
 }
 
 /// Whether this CPU runs the AVX-512 kernels (checked once).

@@ -126,7 +126,7 @@ pub fn bn_relu_forward(
             .zip(z[row].chunks_exact(channels))
         {
             for (((o, &z), &a), &b) in out.iter_mut().zip(z).zip(scale).zip(shift) {
-                *o = (z * a + b).max(0.0);
+                *o = super::relu(z * a + b);
             }
         }
     });
