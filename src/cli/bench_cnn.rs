@@ -8,14 +8,20 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::bench;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn};
+use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 use scanloc::sim::{Distribution, RandomDistribution, SimParams};
 
-/// Measure CNN training and inference throughput on paper-sized frames.
+/// Measure CNN training and inference throughput on paper-sized frames,
+/// against PyTorch on the same network.
 ///
-/// Trains one epoch of `--samples` fresh frames (N_qd 7, margin 4, D uniform
-/// [0.75, 1.75]) and locates `--locate-frames` frames in batches of 256.
-/// Threads: rayon's (RAYON_NUM_THREADS).
+/// scanloc trains one epoch of `--samples` fresh frames (N_qd 7, margin 4,
+/// D uniform [0.75, 1.75]) and locates `--locate-frames` frames in batches
+/// of 256. The PyTorch reference (`--reference`, run with `--python` when
+/// `torch` imports; eager float32 on the CPU, with glibc's malloc keeping
+/// its buffers) trains and runs the same network on synthetic batches of
+/// the same size. The two alternate `--repeats` times at each `--threads`
+/// count; medians and scanloc/torch ratios are printed. Without torch,
+/// scanloc's figures are printed alone.
 #[derive(Debug, Args)]
 pub struct BenchTrainArgs {
     /// Training samples to time.
@@ -35,11 +41,52 @@ pub struct BenchTrainArgs {
     dilations: Option<Vec<usize>>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Thread counts to measure at, comma-separated (scanloc's rayon pool,
+    /// torch's intra-op threads).
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    threads: Vec<usize>,
+    /// Alternating scanloc/torch repetitions per thread count; medians are
+    /// reported.
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Python interpreter with torch (the comparison is skipped if missing).
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// The PyTorch reference script.
+    #[arg(long, default_value = "benches/reference/torch_train.py")]
+    reference: PathBuf,
+    /// Measure scanloc alone.
+    #[arg(long)]
+    no_reference: bool,
 }
+
+/// Most thread counts and repetitions `bench train` accepts.
+const MAX_BENCH_THREADS: usize = 256;
+const MAX_REPEATS: usize = 100;
 
 pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
     super::bench::paper_sized("--samples", args.samples)?;
     super::bench::paper_sized("--locate-frames", args.locate_frames)?;
+    if args.samples == 0 || args.locate_frames == 0 {
+        scanloc::bail_input!("--samples and --locate-frames: must be ≥ 1");
+    }
+    if args.threads.is_empty()
+        || args
+            .threads
+            .iter()
+            .any(|&t| t == 0 || t > MAX_BENCH_THREADS)
+    {
+        scanloc::bail_input!(
+            "--threads: each must be in 1..={MAX_BENCH_THREADS}, got {:?}",
+            args.threads
+        );
+    }
+    if args.repeats == 0 || args.repeats > MAX_REPEATS {
+        scanloc::bail_input!(
+            "--repeats: must be in 1..={MAX_REPEATS}, got {}",
+            args.repeats
+        );
+    }
     let defaults = CnnArchitecture::default();
     let arch = CnnArchitecture {
         channels: args.channels.unwrap_or(defaults.channels),
@@ -47,25 +94,83 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         ..defaults
     };
     arch.validate()?;
-    let result = bench::cnn::throughput(
+    let settings = TrainingSettings {
+        batch_size: args.batch_size,
+        ..TrainingSettings::default()
+    };
+    settings.validate()?;
+    let reference = (!args.no_reference).then(|| bench::cnn::TorchReference {
+        python: args.python.clone(),
+        script: args.reference.clone(),
+    });
+    let comparisons = bench::cnn::compare_with_torch(
         &arch,
         args.batch_size,
         args.samples,
         args.locate_frames,
         args.seed,
+        &args.threads,
+        args.repeats,
+        reference.as_ref(),
     )?;
     println!(
-        "channels {} dilations {:?} batch {} threads {}: training {:.1} samples/s ({} samples), inference {:.1} frames/s ({} frames, batch 256)",
-        result.architecture.channels,
-        result.architecture.dilations,
-        result.batch_size,
-        result.threads,
-        result.train_samples_per_second,
-        result.train_samples,
-        result.locate_frames_per_second,
-        result.locate_frames
+        "channels {} dilations {:?} batch {}; training {} samples, inference {} frames (batch {}); medians of {} alternating runs",
+        arch.channels,
+        arch.dilations,
+        args.batch_size,
+        args.samples,
+        args.locate_frames,
+        cnn::inference::INFERENCE_BATCH,
+        args.repeats
     );
+    print_table(&comparisons, "/s", |r| {
+        (r.train_samples_per_second, r.frames_per_second)
+    });
+    println!(
+        "per CPU second of the process (on a loaded machine, the 1-thread rows estimate the idle rates):"
+    );
+    print_table(&comparisons, "/cpu-s", |r| {
+        (r.train_samples_per_cpu_second, r.frames_per_cpu_second)
+    });
+    if let Some(reason) = comparisons.iter().find_map(|c| c.torch_skipped.as_ref()) {
+        println!("torch reference skipped: {reason}");
+    }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Prints one row per thread count: scanloc's and torch's (training,
+/// inference) `figures` and their ratios; `unit` names them.
+fn print_table(
+    comparisons: &[bench::cnn::Comparison],
+    unit: &str,
+    figures: fn(&bench::cnn::Rates) -> (f64, f64),
+) {
+    println!(
+        "threads  {:>19}  {:>17}  ratio   {:>20}  {:>18}  ratio",
+        format!("scanloc train{unit}"),
+        format!("torch train{unit}"),
+        format!("scanloc frames{unit}"),
+        format!("torch frames{unit}"),
+    );
+    for c in comparisons {
+        let (train, frames) = figures(&c.scanloc);
+        let torch = c.torch.as_ref().map(figures);
+        let show = |v: Option<f64>, ratio: bool| match v {
+            Some(v) if ratio => format!("{v:.2}×"),
+            Some(v) => format!("{v:.1}"),
+            None => "-".to_string(),
+        };
+        println!(
+            "{:>7}  {:>19.1}  {:>17}  {:>5}   {:>20.1}  {:>18}  {:>5}",
+            c.threads,
+            train,
+            show(torch.map(|t| t.0), false),
+            show(torch.map(|t| train / t.0), true),
+            frames,
+            show(torch.map(|t| t.1), false),
+            show(torch.map(|t| frames / t.1), true),
+        );
+    }
 }
 
 /// Score a saved CNN on fresh simulated test sets and time its inference.

@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "d703b579a4eaf091fb3e0bfcd8604dd416abb42f9ebc6f469066634e703b4b9a",
+            "0eb00e20c62a8550291627375f763ef636b467a87d98996645aa7cf186280593",
         ),
         (
             "predictions/cnn@test-0.75",
-            "36e5624f3eab4558854f62c6c43778c8fe5894d11d2b64e2cb69b204a31f1479",
+            "a403658a4b3ca59ea538d450d27c914ac63c840c105a442ea2c785c428b61f23",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "489544b5b8f605a9753dd41d154dab71aadd4702e7688149f914955cba8bb9fc",
+            "b58e954987ef11d8e880c327e9dbeaab8a4aa0026f7411ecd29cae9abf986f22",
         ),
         (
             "predictions/cnn@test-1.00",
-            "6e1177667223e108862ed44fa247231a01cde441e032799165eb499e17dc281f",
+            "21e186aa02b274d49ae8c252a15d103adb4145db35fb921b27f8ee506c2b1fdf",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "8ba78e4844862bf3365a0c47f7acb81ff0748db798123c0b8e395eb994e888a4",
+            "e3a94e1e8f0d221c3e4505befb8ec32e1f2f6044f6345b9b9e008889a235013d",
         ),
         (
             "predictions/cnn@test-1.75",
-            "46150b04a50ee12c4a15fab61e3f0ca40d90129d0e567c145b9dedfb22f29adc",
+            "9609b15f51c4491c7c31811d01a57e4cf77b89cc6f30696b2e75d6b41e9ab6ed",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "7f707bb5db0ed1ab4cd13f4beb4406d3eae0e7e984224fa67b75c6e213143397",
+            "11d006d99e383d7bc5d23fab67a890b74fe3eceac76e5b78178c9111f8f24cbf",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -2,7 +2,7 @@
 
 use indicatif::ProgressBar;
 
-use super::data::input_tensor;
+use super::data::normalised_input;
 use super::model::{Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL};
 use super::{CnnArchitecture, TrainedCnn, inference_device};
 use crate::types::{FrameStack, Prediction};
@@ -71,10 +71,14 @@ impl TrainedCnn {
         let batch = inference_batch(frames.frame_len());
         for start in (0..frames.n).step_by(batch) {
             let end = (start + batch).min(frames.n);
-            let input = input_tensor(frames, start..end, self.architecture.edge_channel, &device);
+            let input = normalised_input(
+                (start..end).map(|i| frames.frame(i)),
+                frames.frame_len(),
+                self.architecture.edge_channel,
+            );
             let values = self
                 .net
-                .forward(input)
+                .forward_inference(&input, [end - start, frames.height, frames.width], &device)
                 .into_data()
                 .try_to_vec::<f32>()
                 .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))?;
@@ -128,9 +132,13 @@ pub(crate) fn locate_with(
     };
     for start in (0..frames.n).step_by(batch.max(1)) {
         let end = (start + batch).min(frames.n);
-        let input = input_tensor(frames, start..end, arch.edge_channel, &device);
+        let input = normalised_input(
+            (start..end).map(|i| frames.frame(i)),
+            len,
+            arch.edge_channel,
+        );
         let output = net
-            .forward(input)
+            .forward_inference(&input, [end - start, height, width], &device)
             .into_data()
             .try_to_vec::<f32>()
             .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))?;

@@ -20,6 +20,7 @@
 
 pub mod data;
 pub mod inference;
+pub mod kernels;
 pub mod model;
 pub mod training;
 
@@ -329,7 +330,7 @@ pub const FORMAT: &str = "scanloc-cnn/1";
 /// data augmentation, selection) or the predictions made from them
 /// (decoding, peak suppression), so cached models made by the old code are
 /// not reused. Kept apart from [`FORMAT`], which only names the encoding.
-pub const CODE_VERSION: &str = "scanloc-cnn/1";
+pub const CODE_VERSION: &str = "scanloc-cnn/2";
 /// First bytes of a [`TrainedCnn::to_bytes`] blob.
 const MAGIC: &[u8] = b"SCANLOC-CNN\n";
 /// File names inside a saved model folder.

@@ -14,6 +14,7 @@
 use burn::module::{Param, ParamId, RunningState};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
+use burn::optim::GradientsParams;
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use rand::SeedableRng;
@@ -21,6 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution as _, Normal};
 
 use super::CnnArchitecture;
+use super::kernels::body::{self, BodyLayer, LayerNorm, Tape};
 
 /// Output channel holding the centre score logit.
 pub const SCORE_CHANNEL: usize = 0;
@@ -120,13 +122,170 @@ impl Net {
     }
 
     /// Maps normalised input `[batch, input_channels, H, W]` to the raw
-    /// output `[batch, 3, H, W]`: score logit, offset x, offset y.
+    /// output `[batch, OUTPUT_CHANNELS, H, W]` with burn's own operations
+    /// (the reference the kernels of [`forward_inference`](Self::forward_inference)
+    /// and [`forward_training`](Self::forward_training) are tested against).
     pub fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let mut x = input;
         for block in &self.blocks {
             x = block.forward(x);
         }
         self.head.forward(x)
+    }
+
+    /// The head: body features `[batch, channels, H, W]` to the raw output.
+    pub fn head_forward(&self, features: Tensor<4>) -> Tensor<4> {
+        self.head.forward(features)
+    }
+
+    /// The hidden layers' parameters as plain vectors, for the kernels.
+    pub(crate) fn body_layers(&self) -> Vec<BodyLayer> {
+        let values = |tensor: Tensor<1>| -> Vec<f32> {
+            tensor
+                .into_data()
+                .try_to_vec::<f32>()
+                .expect("float parameters")
+        };
+        self.blocks
+            .iter()
+            .map(|block| {
+                let [out_channels, in_channels, _, _] = block.conv.weight.dims();
+                let oihw = block
+                    .conv
+                    .weight
+                    .val()
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .expect("float parameters");
+                BodyLayer {
+                    dilation: block.conv.dilation[0],
+                    in_channels,
+                    out_channels,
+                    weights: body::weights_from_oihw(&oihw, in_channels, out_channels),
+                    bias: block.conv.bias.as_ref().map(|b| values(b.val())),
+                    norm: block.norm.as_ref().map(|norm| LayerNorm {
+                        gamma: values(norm.gamma.val()),
+                        beta: values(norm.beta.val()),
+                        running_mean: values(norm.running_mean.value()),
+                        running_var: values(norm.running_var.value()),
+                        epsilon: norm.epsilon,
+                        momentum: norm.momentum,
+                    }),
+                }
+            })
+            .collect()
+    }
+
+    /// Inference on row-major input `[n, input_channels, height, width]`:
+    /// the body on the deterministic kernels with batch norm folded into
+    /// the convolutions, then the head. Returns `[n, OUTPUT_CHANNELS,
+    /// height, width]` on `device`.
+    pub fn forward_inference(
+        &self,
+        input: &[f32],
+        [n, height, width]: [usize; 3],
+        device: &Device,
+    ) -> Tensor<4> {
+        let layers = self.body_layers();
+        let channels = layers.last().map_or(0, |l| l.out_channels);
+        let features = body::infer(&layers, input, n, height, width);
+        let features = Tensor::from_data(
+            TensorData::new(features, [n, channels, height, width]),
+            device,
+        );
+        self.head_forward(features)
+    }
+
+    /// A training forward pass on row-major input `[n, input_channels,
+    /// height, width]` (`self` on an autodiff device): the body on the
+    /// deterministic kernels (batch norm with the batch's statistics, the
+    /// running statistics updated), the head in burn. Returns the output
+    /// and the step whose [`BodyStep::gradients`] completes the backward
+    /// pass.
+    pub fn forward_training(
+        &self,
+        input: &[f32],
+        [n, height, width]: [usize; 3],
+        device: &Device,
+    ) -> (Tensor<4>, BodyStep) {
+        let layers = self.body_layers();
+        let channels = layers.last().map_or(0, |l| l.out_channels);
+        let (features, tape, running) = body::train_forward(&layers, input, n, height, width);
+        for (block, running) in self.blocks.iter().zip(running) {
+            if let (Some(norm), Some(running)) = (&block.norm, running) {
+                let len = running.mean.len();
+                norm.running_mean.update(Tensor::from_data(
+                    TensorData::new(running.mean, [len]),
+                    device,
+                ));
+                norm.running_var.update(Tensor::from_data(
+                    TensorData::new(running.var, [len]),
+                    device,
+                ));
+            }
+        }
+        let features = Tensor::<4>::from_data(
+            TensorData::new(features, [n, channels, height, width]),
+            device,
+        )
+        .require_grad();
+        let output = self.head_forward(features.clone());
+        (
+            output,
+            BodyStep {
+                layers,
+                tape,
+                features,
+            },
+        )
+    }
+}
+
+/// The body's part of one training step (see [`Net::forward_training`]).
+pub struct BodyStep {
+    layers: Vec<BodyLayer>,
+    tape: Tape,
+    /// The body's output as the head saw it (a leaf that records its
+    /// gradient).
+    features: Tensor<4>,
+}
+
+impl BodyStep {
+    /// The gradients of every parameter of `net` from the gradients of a
+    /// loss computed from this step's output: the head's from burn, the
+    /// body's from the kernels' backward pass.
+    pub fn gradients(self, mut grads: burn::tensor::Gradients, net: &Net) -> GradientsParams {
+        let features_grad = self
+            .features
+            .grad_remove(&mut grads)
+            .map(|g| g.into_data().try_to_vec::<f32>().expect("float gradients"));
+        let mut params = GradientsParams::from_grads(grads, net);
+        let Some(features_grad) = features_grad else {
+            // The loss does not depend on the body.
+            return params;
+        };
+        let device = super::inference_device();
+        let layer_grads = body::backward(&self.layers, &self.tape, &features_grad);
+        let vector = |values: Vec<f32>| {
+            let len = values.len();
+            Tensor::<1>::from_data(TensorData::new(values, [len]), &device)
+        };
+        for ((block, layer), grads) in net.blocks.iter().zip(&self.layers).zip(layer_grads) {
+            let (ci_n, co_n) = (layer.in_channels, layer.out_channels);
+            let weights = body::oihw_from_weights(&grads.weights, ci_n, co_n);
+            params.register(
+                block.conv.weight.id,
+                Tensor::<4>::from_data(TensorData::new(weights, [co_n, ci_n, 3, 3]), &device),
+            );
+            if let (Some(bias), Some(grad)) = (&block.conv.bias, grads.bias) {
+                params.register(bias.id, vector(grad));
+            }
+            if let (Some(norm), Some(gamma), Some(beta)) = (&block.norm, grads.gamma, grads.beta) {
+                params.register(norm.gamma.id, vector(gamma));
+                params.register(norm.beta.id, vector(beta));
+            }
+        }
+        params
     }
 }
 

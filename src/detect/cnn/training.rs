@@ -3,7 +3,7 @@
 //! freshly simulated frames every epoch, and selection of the epoch with the
 //! best validation AUC.
 
-use burn::optim::{AdamConfig, GradientsParams};
+use burn::optim::AdamConfig;
 use burn::prelude::*;
 use burn::tensor::activation::{log_sigmoid, sigmoid};
 use indicatif::ProgressBar;
@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{NonFiniteOutput, inference_batch, locate_with};
-use super::model::Net;
+use super::model::{BodyStep, Net};
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
 use crate::sim::{self, SimParams};
 use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
@@ -88,14 +88,15 @@ fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
     })
 }
 
-/// The loss of one batch: `(total, focal score loss, offset loss)`.
+/// The loss of one batch: `(total, focal score loss, offset loss)`, and
+/// the network body's step that completes the backward pass.
 fn batch_loss(
     net: &Net,
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
     items: &[(&Source, usize)],
     device: &Device,
-) -> (Tensor<1>, Tensor<1>, Tensor<1>) {
+) -> (Tensor<1>, Tensor<1>, Tensor<1>, BodyStep) {
     let frames0 = items[0].0.frames;
     let (height, width) = (frames0.height, frames0.width);
     let len = height * width;
@@ -126,13 +127,12 @@ fn batch_loss(
             device,
         )
     };
-    let input = map(input, arch.input_channels());
     let positive = map(target.positive, 1);
     let negative_weight = map(target.negative_weight, 1);
     let offset_target = map(target.offset, 2);
     let offset_mask = map(target.offset_mask, 1);
 
-    let output = net.forward(input);
+    let (output, body) = net.forward_training(&input, [n, height, width], device);
     let logit = output.clone().narrow(1, 0, 1);
     let offset = output.narrow(1, 1, 2);
     // Focal loss (CenterNet, α = 2, β = 4), from log-sigmoids for stability.
@@ -150,7 +150,7 @@ fn batch_loss(
         .sum()
         .div_scalar(masked.max(1) as f64);
     let total = score_loss.clone() + offset_loss.clone().mul_scalar(settings.offset_loss_weight);
-    (total, score_loss, offset_loss)
+    (total, score_loss, offset_loss, body)
 }
 
 /// The validation score of `net` on `validation`, one value per matching
@@ -381,7 +381,8 @@ fn train_and_select(
         let epoch_learning_rate = learning_rate(settings, step, total_steps);
         let (mut sum_loss, mut sum_score, mut sum_offset) = (0.0, 0.0, 0.0);
         for (batch_index, batch) in items.chunks(settings.batch_size).enumerate() {
-            let (loss, score_loss, offset_loss) = batch_loss(&net, arch, settings, batch, &device);
+            let (loss, score_loss, offset_loss, body) =
+                batch_loss(&net, arch, settings, batch, &device);
             let loss_value = loss.clone().into_scalar::<f32>() as f64;
             if !loss_value.is_finite() {
                 // The settings (usually the learning rate) are at fault: bad input.
@@ -393,7 +394,7 @@ fn train_and_select(
             sum_loss += loss_value;
             sum_score += score_loss.into_scalar::<f32>() as f64;
             sum_offset += offset_loss.into_scalar::<f32>() as f64;
-            let gradients = GradientsParams::from_grads(loss.backward(), &net);
+            let gradients = body.gradients(loss.backward(), &net);
             net = optimiser.step(learning_rate(settings, step, total_steps), net, gradients);
             step += 1;
             progress.inc(1);
