@@ -44,7 +44,7 @@ pub struct ScoreArgs {
     curve: Option<PathBuf>,
 }
 
-pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(curve) = &args.curve {
         io::refuse_shared_paths(
             &[("--truth", &args.truth), ("--locs", &args.locs)],
@@ -84,13 +84,12 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
             Ok(())
         })?;
     }
-    let mut stdout = std::io::stdout().lock();
     if args.json {
         let mut summary = score.clone();
         for per_eps in &mut summary.per_eps {
             per_eps.curve.clear();
         }
-        serde_json::to_writer(&mut stdout, &summary)?;
+        serde_json::to_writer(&mut *stdout, &summary)?;
         writeln!(stdout)?;
     } else {
         writeln!(
