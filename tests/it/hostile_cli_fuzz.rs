@@ -125,9 +125,33 @@ fn exit_number(code: ExitCode) -> Option<i32> {
         .map(i32::from)
 }
 
+/// Counts the in-process cases of each command and writes a line every
+/// 10,000 (straight to standard error, past the harness's capture), so a
+/// long `make fuzz` shows how far it is.
+fn count_case(command: &str) {
+    static COUNTS: std::sync::Mutex<Vec<(String, u64)>> = std::sync::Mutex::new(Vec::new());
+    let mut counts = COUNTS.lock().unwrap_or_else(|e| e.into_inner());
+    let count = match counts.iter_mut().find(|(name, _)| name == command) {
+        Some((_, count)) => count,
+        None => {
+            counts.push((command.to_string(), 0));
+            &mut counts.last_mut().expect("just pushed").1
+        }
+    };
+    *count += 1;
+    if (*count).is_multiple_of(10_000) {
+        let line = format!("fuzz progress: {count} {command} cases\n");
+        // SAFETY: writing a valid buffer to a file descriptor.
+        unsafe {
+            libc::write(2, line.as_ptr().cast(), line.len());
+        }
+    }
+}
+
 /// Runs the CLI in-process with `args` (paths taken inside `dir`), under
 /// the fuzz guards, its output captured.
 fn run_in_process(dir: &Path, args: &[String]) -> Ended {
+    count_case(args.first().map_or("", String::as_str));
     let args = inside(dir, args);
     let _case = hostile_fuzz_guard::Case::enter(format!(
         "scanloc {args:?} (input files in {})",
@@ -603,10 +627,11 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
     path
 }
 
-/// Whether `simulate` arguments ask for a dataset the limits allow that
-/// is still too big to be a cheap case (above 2²³ pixels): a legitimate
-/// request, not a hostile one; the limits themselves stay fuzzed (a size
-/// beyond them is kept, and must be refused at once).
+/// Whether `simulate` arguments ask for work the limits allow that is
+/// still too much for a cheap case: frames × pixels × substeps × emitters
+/// above 2²⁰ (valid values stay below 50,000; the defaults, 100 frames of
+/// 24 × 25, make 60,000). A legitimate request, not a hostile one; sizes
+/// beyond the limits stay fuzzed (they must be refused at once).
 fn legitimately_large(args: &[String]) -> bool {
     let value = |flag: &str, default: u64| -> Option<u64> {
         match args.iter().position(|a| a == flag) {
@@ -614,20 +639,27 @@ fn legitimately_large(args: &[String]) -> bool {
             None => Some(default),
         }
     };
-    let (Some(frames), Some(height), Some(width)) = (
+    let (Some(frames), Some(height), Some(width), Some(substeps), Some(emitters)) = (
         value("--frames", 100),
         value("--height", 24),
         value("--width", 25),
+        value("--substeps", 1),
+        value("--emitters", 1),
     ) else {
         return false;
     };
     let side_limit = scanloc::limits::MAX_FRAME_SIDE as u64;
     let pixels = frames.saturating_mul(height).saturating_mul(width);
-    frames <= scanloc::limits::MAX_FRAMES as u64
+    let within_limits = frames <= scanloc::limits::MAX_FRAMES as u64
         && (1..=side_limit).contains(&height)
         && (1..=side_limit).contains(&width)
         && pixels <= scanloc::limits::MAX_DATASET_PIXELS as u64
-        && pixels > 1 << 23
+        && (1..=1024).contains(&substeps)
+        && emitters <= 10_000;
+    let work = pixels
+        .saturating_mul(substeps)
+        .saturating_mul(emitters.max(1));
+    within_limits && work > 1 << 20
 }
 
 fn simulate_case(
