@@ -3,21 +3,48 @@
 //! recordings, fractional or negative) for the detectors that can use them;
 //! [`Recording`] is either, as read from a file.
 //!
-//! Frames are stored row-major (C order) as `u32` counts, frame after frame,
-//! exactly like the `(n, H, W)` `.npy` arrays scanloc writes. Pixel `(row r,
+//! Frames are stored row-major (C order), counts as `u32`, frame after
+//! frame, exactly like the `(n, H, W)` `.npy` arrays scanloc writes. Pixel `(row r,
 //! column c)` of frame `i` is `data[(i * height + r) * width + c]`. In TrackPy's
 //! convention `x` is the column and `y` the row, with pixel centres at integer
 //! coordinates.
 
 use crate::error::input_error;
 
-/// `n` frames of `height × width` photon counts.
+/// `n` frames of `height × width` values of type `T`, row-major, frame
+/// after frame: [`FrameStack`] (photon counts) or [`RealFrameStack`].
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct FrameStack {
+pub struct Frames<T> {
     pub n: usize,
     pub height: usize,
     pub width: usize,
-    pub data: Vec<u32>,
+    pub data: Vec<T>,
+}
+
+/// `n` frames of `height × width` photon counts.
+pub type FrameStack = Frames<u32>;
+
+/// `n` frames of `height × width` real values (finite, of any sign): a
+/// recording that is not photon counts, such as a background-subtracted or
+/// normalised one.
+pub type RealFrameStack = Frames<f64>;
+
+/// A value a frame holds.
+pub trait Sample: Copy {
+    /// Why `self` cannot be in a frame, if it cannot.
+    fn refusal(self) -> Option<String>;
+}
+
+impl Sample for u32 {
+    fn refusal(self) -> Option<String> {
+        None
+    }
+}
+
+impl Sample for f64 {
+    fn refusal(self) -> Option<String> {
+        (!self.is_finite()).then(|| format!("{self}; frames must hold finite numbers"))
+    }
 }
 
 impl FrameStack {
@@ -31,88 +58,30 @@ impl FrameStack {
         }
     }
 
-    /// Wraps existing data, checking that its length is `n · height · width`.
-    pub fn from_vec(n: usize, height: usize, width: usize, data: Vec<u32>) -> anyhow::Result<Self> {
-        if data.len() != n * height * width {
-            return Err(input_error(format!(
-                "frame data has {} values, expected {n} × {height} × {width}",
-                data.len()
-            )));
-        }
-        Ok(Self {
-            n,
-            height,
-            width,
-            data,
-        })
-    }
-
-    /// Number of pixels in one frame.
-    pub fn frame_len(&self) -> usize {
-        self.height * self.width
-    }
-
-    /// The counts of frame `index`, row-major.
-    pub fn frame(&self, index: usize) -> &[u32] {
-        let len = self.frame_len();
-        &self.data[index * len..(index + 1) * len]
-    }
-
-    /// Iterates over the frames in order.
-    pub fn iter(&self) -> impl Iterator<Item = &[u32]> {
-        // `max(1)` keeps `chunks_exact` valid for zero-sized frames.
-        self.data.chunks_exact(self.frame_len().max(1)).take(self.n)
-    }
-
     /// The largest count in the stack (0 when empty).
     pub fn max_count(&self) -> u32 {
         self.data.iter().copied().max().unwrap_or(0)
     }
-
-    /// Appends the frames of `other`, which must have the same frame size.
-    pub fn append(&mut self, other: FrameStack) -> anyhow::Result<()> {
-        if self.n == 0 && self.data.is_empty() {
-            *self = other;
-            return Ok(());
-        }
-        if (other.height, other.width) != (self.height, self.width) {
-            return Err(input_error(format!(
-                "cannot append {}×{} frames to {}×{} frames",
-                other.height, other.width, self.height, self.width
-            )));
-        }
-        self.n += other.n;
-        self.data.extend(other.data);
-        Ok(())
-    }
 }
 
-/// `n` frames of `height × width` real values (finite, of any sign): a
-/// recording that is not photon counts, such as a background-subtracted or
-/// normalised one. Same layout as [`FrameStack`].
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct RealFrameStack {
-    pub n: usize,
-    pub height: usize,
-    pub width: usize,
-    pub data: Vec<f64>,
-}
-
-impl RealFrameStack {
+impl<T: Sample> Frames<T> {
     /// Wraps existing data, checking that its length is `n · height · width`
-    /// and that every value is finite (the first that is not is named by
-    /// its flat index).
-    pub fn from_vec(n: usize, height: usize, width: usize, data: Vec<f64>) -> anyhow::Result<Self> {
+    /// and that every value can be in a frame (real values must be finite;
+    /// the first that is not is named by its flat index).
+    pub fn from_vec(n: usize, height: usize, width: usize, data: Vec<T>) -> anyhow::Result<Self> {
         if data.len() != n * height * width {
             return Err(input_error(format!(
                 "frame data has {} values, expected {n} × {height} × {width}",
                 data.len()
             )));
         }
-        if let Some(index) = data.iter().position(|v| !v.is_finite()) {
+        if let Some((index, refusal)) = data
+            .iter()
+            .enumerate()
+            .find_map(|(index, value)| value.refusal().map(|refusal| (index, refusal)))
+        {
             return Err(input_error(format!(
-                "value at flat index {index} is {}; frames must hold finite numbers",
-                data[index]
+                "value at flat index {index} is {refusal}"
             )));
         }
         Ok(Self {
@@ -129,15 +98,19 @@ impl RealFrameStack {
     }
 
     /// The values of frame `index`, row-major.
-    pub fn frame(&self, index: usize) -> &[f64] {
+    pub fn frame(&self, index: usize) -> &[T] {
         let len = self.frame_len();
         &self.data[index * len..(index + 1) * len]
     }
-}
 
-impl RealFrameStack {
+    /// Iterates over the frames in order.
+    pub fn iter(&self) -> impl Iterator<Item = &[T]> {
+        // `max(1)` keeps `chunks_exact` valid for zero-sized frames.
+        self.data.chunks_exact(self.frame_len().max(1)).take(self.n)
+    }
+
     /// Appends the frames of `other`, which must have the same frame size.
-    pub fn append(&mut self, other: RealFrameStack) -> anyhow::Result<()> {
+    pub fn append(&mut self, other: Frames<T>) -> anyhow::Result<()> {
         if self.n == 0 && self.data.is_empty() {
             *self = other;
             return Ok(());

@@ -20,9 +20,9 @@
 //! 6. Of features closer than `separation`, the dimmer is dropped; then
 //!    `minmass`, `maxsize` and `topn` filter.
 //!
-//! Input frames are integer counts ([`FrameStack`]): like TrackPy on a
+//! Input frames are integer counts ([`crate::types::FrameStack`]): like TrackPy on a
 //! `uint16` array (or `uint32` when a count exceeds 65,535), which sets the
-//! rescaling range; or real values ([`RealFrameStack`]: fractional,
+//! rescaling range; or real values ([`crate::types::RealFrameStack`]: fractional,
 //! negative), like TrackPy on a `float64` array, which differs in three
 //! places: the default `threshold` is 1/255 instead of 1, the boxcar
 //! background is not truncated to integers, and the image the peaks are
@@ -40,7 +40,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{FieldError, input_error, require_finite};
 use crate::limits::check_feature_px;
-use crate::types::{FrameStack, Prediction, RealFrameStack, Recording};
+use crate::types::{Frames, Prediction, Recording};
 
 /// A raw pixel value the locator takes: a photon count (`u32`, TrackPy's
 /// integer-image path) or a real value (`f64`, its float-image path).
@@ -654,27 +654,11 @@ fn close_pairs_to_drop(features: &[Feature], separation: f64) -> Vec<usize> {
     dropped
 }
 
-/// Locates features in every frame of a stack of counts, in parallel.
-/// Results are ordered by frame, then by descending mass (ties by x, then
-/// y), whatever the thread count.
-pub fn locate_stack(
-    frames: &FrameStack,
-    params: &CrockerGrierParams,
-    progress: &ProgressBar,
-) -> anyhow::Result<Vec<(usize, Feature)>> {
-    locate_frames(
-        &frames.data,
-        frames.n,
-        frames.height,
-        frames.width,
-        params,
-        progress,
-    )
-}
-
-/// [`locate_stack`] of real-valued frames (TrackPy's float-image path).
-pub fn locate_real_stack(
-    frames: &RealFrameStack,
+/// Locates features in every frame of a stack of counts or real values
+/// (see [`Pixel`]), in parallel. Results are ordered by frame, then by
+/// descending mass (ties by x, then y), whatever the thread count.
+pub fn locate_stack<P: Pixel>(
+    frames: &Frames<P>,
     params: &CrockerGrierParams,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
@@ -696,7 +680,7 @@ pub fn locate_recording(
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
     match recording {
         Recording::Counts(frames) => locate_stack(frames, params, progress),
-        Recording::Real(frames) => locate_real_stack(frames, params, progress),
+        Recording::Real(frames) => locate_stack(frames, params, progress),
     }
 }
 
