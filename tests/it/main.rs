@@ -27,6 +27,7 @@ mod hostile_cli_fuzz;
 mod hostile_files;
 mod hostile_fuzz_guard;
 mod hostile_manifest;
+mod hostile_real_frames;
 mod hostile_registry;
 mod layers;
 mod manifest_errors;
