@@ -66,13 +66,17 @@ bench-registry: build
 		$(BIN) run $(MANIFEST) --registry target/bench-registry --json > /dev/null; done
 
 # Fuzzing: the manifest loader on arbitrary, YAML-like and mutated text,
-# the .npy/.tif readers on damaged and random files, and the binary itself
-# on random simulate/locate/score arguments and CSV/TIFF/.npy bytes,
-# FUZZ_CASES cases per property (proptest; `make test` runs a few dozen to
-# a few thousand).
+# the .npy/.tif readers on damaged and random files, and the command line
+# on random simulate/locate/score arguments and CSV/TIFF/.npy bytes (called
+# in-process, under a per-case allocation limit and time limit; case files
+# in /dev/shm), FUZZ_CASES cases per property (proptest; `make test` runs a
+# few dozen to a few thousand). Run at a low priority: it is long.
+# Measured (2 cores shared with other work, nice 10): 300,000 cases of
+# every property in about 22 minutes, simulate the slowest (~250 cases/s);
+# a progress line every 10,000 command-line cases.
 FUZZ_CASES ?= 300000
 fuzz:
-	SCANLOC_FUZZ_CASES=$(FUZZ_CASES) $(CARGO) test --release --locked \
+	SCANLOC_FUZZ_CASES=$(FUZZ_CASES) nice -n 10 $(CARGO) test --release --locked \
 		--test it -- never_panic refused_cleanly
 
 clean:

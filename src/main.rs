@@ -4,13 +4,11 @@
 
 mod cli;
 
+use std::io::IsTerminal;
 use std::process::ExitCode;
-
-use clap::Parser;
 
 fn main() -> ExitCode {
     restore_default_sigpipe();
-    let args = cli::Cli::parse();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(
@@ -18,14 +16,13 @@ fn main() -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
         )
         .init();
-    match cli::run(args) {
-        Ok(code) => code,
-        Err(error) => {
-            // One line: the context chain joined by ": ".
-            eprintln!("error: {error:#}");
-            ExitCode::from(scanloc::error::exit_code(&error) as u8)
-        }
-    }
+    let styled = std::io::stderr().is_terminal();
+    cli::main_with(
+        std::env::args_os(),
+        &mut std::io::stdout(),
+        &mut std::io::stderr(),
+        styled,
+    )
 }
 
 /// Lets a closed stdout end the process quietly, for every command at once

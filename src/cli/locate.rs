@@ -28,8 +28,12 @@ use scanloc::sim::{Distribution, SimParams};
 /// posterior mean of the QD's trajectory centroid and the posterior mass
 /// within --score-radius-px of it.
 ///
-/// Frames are photon counts: integers, or floats whose values are whole
-/// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs
+/// Integer frames are photon counts. Float frames (float32/float64 .npy or
+/// TIFF pages; fractional or negative values, e.g. background-subtracted)
+/// are taken by crocker-grier as TrackPy takes a float array (threshold
+/// 1/255 by default, peaks found on an 8-bit rescaling); the CNN needs
+/// photon counts and refuses float values that are not whole and ≥ 0.
+/// NaN and infinities are refused. A multi-channel ImageJ hyperstack needs
 /// `--channel`. The CNN goes through the frames in batches of at most 2¹⁸
 /// pixels, so its memory beyond the frames themselves does not grow with
 /// the recording.
@@ -79,7 +83,8 @@ pub struct LocateArgs {
     /// Side of the boxcar background in pixels, odd [default: diameter].
     #[arg(long)]
     smoothing_size: Option<usize>,
-    /// Band-pass values below this are set to 0 [default: 1].
+    /// Band-pass values below this are set to 0 [default: 1; 1/255 for
+    /// float frames].
     #[arg(long)]
     threshold: Option<f64>,
     /// Peaks must be brighter than this percentile of non-zero pixels.
@@ -182,9 +187,9 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             params
                 .validate()
                 .map_err(|e| input_error(format!("invalid crocker-grier parameter: {e}")))?;
-            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
-            let bar = scanloc::progress::bar(frames.n as u64, "locating");
-            let features = crocker_grier::locate_stack(&frames, &params, &bar)?;
+            let frames = io::read_recording_of_channel(&args.input, args.channel)?;
+            let bar = scanloc::progress::bar(frames.shape().0 as u64, "locating");
+            let features = crocker_grier::locate_recording(&frames, &params, &bar)?;
             bar.finish_and_clear();
             csv_tables::write_localisations(
                 &args.out,

@@ -16,6 +16,8 @@ mod simulate;
 mod sweep;
 mod train;
 
+use std::ffi::OsString;
+use std::io::Write;
 use std::ops::Deref;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -55,13 +57,64 @@ enum Command {
     Sweep(sweep::SweepArgs),
 }
 
-/// Runs the parsed command.
-pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+/// The whole command: parses `args` (the program name first), runs the
+/// command and returns its exit code (0 success, 1 a check failed, 2 bad
+/// input). Results a command prints go to `stdout`; a refusal is one
+/// `error: …` line on `stderr`, as are clap's usage errors (help and
+/// `--version` go to `stdout`, exit 0). `styled` keeps clap's colours, for
+/// a terminal.
+///
+/// Progress lines and warnings still go to the process's standard error.
+/// `main` passes the process's streams; the in-process fuzz tests pass
+/// buffers.
+pub fn main_with<I, T>(
+    args: I,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+    styled: bool,
+) -> ExitCode
+where
+    I: IntoIterator<Item = T>,
+    T: Into<OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(cli) => cli,
+        Err(usage) => {
+            let text = usage.render();
+            let text = if styled {
+                text.ansi().to_string()
+            } else {
+                text.to_string()
+            };
+            let stream: &mut dyn Write = if usage.use_stderr() {
+                &mut *stderr
+            } else {
+                &mut *stdout
+            };
+            // Nothing to report a failed write to (a closed stream).
+            let _ = stream
+                .write_all(text.as_bytes())
+                .and_then(|_| stream.flush());
+            return ExitCode::from(usage.exit_code().clamp(0, 255) as u8);
+        }
+    };
+    match run(cli, stdout) {
+        Ok(code) => code,
+        Err(error) => {
+            // One line: the context chain joined by ": ".
+            let _ = writeln!(stderr, "error: {error:#}").and_then(|_| stderr.flush());
+            ExitCode::from(scanloc::error::exit_code(&error) as u8)
+        }
+    }
+}
+
+/// Runs the parsed command; results it prints go to `stdout`.
+pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Locate(args) => locate::run(args),
-        Command::Score(args) => score::run(args),
+        Command::Score(args) => score::run(args, stdout),
         Command::Train(args) => train::run(args),
         Command::Run(args) => run::run(args),
         Command::Check(args) => check::run(args),

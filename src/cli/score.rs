@@ -69,7 +69,7 @@ pub struct ScoreArgs {
     curve: Option<PathBuf>,
 }
 
-pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(curve) = &args.curve {
         io::refuse_shared_paths(
             &[("--truth", &args.truth), ("--locs", &args.locs)],
@@ -143,16 +143,15 @@ pub fn run(args: ScoreArgs) -> anyhow::Result<ExitCode> {
             Ok(())
         })?;
     }
-    let mut stdout = std::io::stdout().lock();
     if args.json {
         let mut summary = score.clone();
         for per_eps in &mut summary.per_eps {
             per_eps.curve.clear();
         }
-        serde_json::to_writer(&mut stdout, &summary)?;
+        serde_json::to_writer(&mut *stdout, &summary)?;
         writeln!(stdout)?;
     } else {
-        write_table(&mut stdout, &score)?;
+        write_table(stdout, &score)?;
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -194,7 +193,7 @@ fn maybe(value: Option<f64>) -> String {
 }
 
 /// The human-readable form of `score` (docs/metric.md names each figure).
-fn write_table(out: &mut impl Write, score: &Score) -> anyhow::Result<()> {
+fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
     writeln!(
         out,
         "{:>8} {:>8} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use crate::error::input_error;
-use crate::types::FrameStack;
+use crate::types::{FrameStack, Recording};
 
 /// The frame file formats, chosen by file extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -47,11 +47,12 @@ impl FrameFormat {
     }
 }
 
-/// Reads a frame stack from `.npy` or TIFF, by extension.
+/// Reads a frame stack of photon counts from `.npy` or TIFF, by extension.
 /// Refuses stacks no command can use (see
 /// [`check_stack_shape`](crate::limits::check_stack_shape)): no frames,
-/// frames without pixels, or more than the size limits; and multi-channel
-/// stacks (see [`read_frames_of_channel`]).
+/// frames without pixels, or more than the size limits; multi-channel
+/// stacks (see [`read_frames_of_channel`]); and values that are not counts
+/// (see [`Recording::into_counts`]).
 pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
     read_frames_of_channel(path, None)
 }
@@ -60,9 +61,18 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
 /// hyperstack, see [`tiff_stack::read_channel`]); `None` for a stack with
 /// one channel. A `.npy` stack has one channel (0).
 pub fn read_frames_of_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<FrameStack> {
-    let frames = match FrameFormat::from_path(path)? {
+    read_recording_of_channel(path, channel)?
+        .into_counts()
+        .map_err(|e| input_error(format!("{}: {e:#}", path.display())))
+}
+
+/// The frames of one channel of a `.npy` or TIFF stack as stored: photon
+/// counts from integer data, real values from float data (see
+/// [`Recording`]); otherwise as [`read_frames_of_channel`].
+pub fn read_recording_of_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
+    let recording = match FrameFormat::from_path(path)? {
         FrameFormat::Npy => match channel {
-            None | Some(0) => npy::read_frames(path),
+            None | Some(0) => npy::read_recording(path),
             Some(channel) => Err(input_error(format!(
                 "{}: --channel {channel} does not exist; a .npy stack (n, H, W) has one channel (0)",
                 path.display()
@@ -70,13 +80,9 @@ pub fn read_frames_of_channel(path: &Path, channel: Option<usize>) -> anyhow::Re
         },
         FrameFormat::Tiff => tiff_stack::read_channel(path, channel),
     }?;
-    crate::limits::check_stack_shape(
-        &path.display().to_string(),
-        frames.n,
-        frames.height,
-        frames.width,
-    )?;
-    Ok(frames)
+    let (n, height, width) = recording.shape();
+    crate::limits::check_stack_shape(&path.display().to_string(), n, height, width)?;
+    Ok(recording)
 }
 
 /// Writes a frame stack to `.npy` or TIFF, by extension, atomically.

@@ -3,9 +3,10 @@
 //! Written as 16-bit pages when every count fits, else 32-bit, uncompressed,
 //! which Fiji/ImageJ opens as a stack and tifffile as an `(n, H, W)` array.
 //! Read from 8/16/32/64-bit unsigned, signed or float greyscale pages of
-//! equal size; signed and float values must be whole non-negative numbers
-//! (see [`super::npy`]). ImageJ hyperstacks are read one channel at a time
-//! ([`read_channel`]).
+//! equal size: integer pages as photon counts (signed values must be ≥ 0),
+//! float pages as real values (finite; a stack with any float page is read
+//! as real-valued frames), see [`super::npy`]. ImageJ hyperstacks are read
+//! one channel at a time ([`read_channel`]).
 
 use std::io::{BufReader, Seek, Write};
 use std::path::Path;
@@ -14,10 +15,10 @@ use tiff::decoder::{Decoder, DecodingResult};
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
 
-use super::npy::count_from_f64;
 use super::open_input;
 use crate::error::input_error;
-use crate::types::FrameStack;
+use crate::types::frames::whole_count;
+use crate::types::{FrameStack, RealFrameStack, Recording};
 
 /// Writes one page per frame.
 pub fn write_frames<W: Write + Seek>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {
@@ -35,9 +36,12 @@ pub fn write_frames<W: Write + Seek>(writer: &mut W, frames: &FrameStack) -> any
     Ok(())
 }
 
-/// Reads every page of a TIFF file as one frame; see [`read_channel`].
+/// Reads every page of a TIFF file as one frame of photon counts; see
+/// [`read_channel`].
 pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    read_channel(path, None)
+    read_channel(path, None)?
+        .into_counts()
+        .map_err(|e| input_error(format!("{}: {e:#}", path.display())))
 }
 
 /// Reads the frames of a TIFF stack, one greyscale page per frame.
@@ -50,7 +54,7 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
 /// more than one sample per pixel (colour, or channels stored as
 /// contiguous samples or separate planes) are refused: no channel is ever
 /// dropped silently.
-pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<FrameStack> {
+pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
     let name = path.display();
     let bad = |e: tiff::TiffError| input_error(format!("{name}: not a readable TIFF stack: {e}"));
     let mut decoder = Decoder::new(BufReader::new(open_input(path)?)).map_err(bad)?;
@@ -72,7 +76,7 @@ pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Frame
         }
         (_, Some(channel)) => channel,
     };
-    let mut stack = FrameStack::default();
+    let mut stack = Recording::Counts(FrameStack::default());
     let mut page_index = 0usize;
     loop {
         if page_index % channels == selected {
@@ -113,12 +117,13 @@ fn imagej_channels<R: std::io::Read + Seek>(decoder: &mut Decoder<R>) -> usize {
         .unwrap_or(1)
 }
 
-/// Decodes the current page as one frame of counts.
+/// Decodes the current page as one frame: counts from integer samples,
+/// real values from float samples.
 fn read_page<R: std::io::Read + Seek>(
     decoder: &mut Decoder<R>,
     name: &impl std::fmt::Display,
     page_index: usize,
-) -> anyhow::Result<FrameStack> {
+) -> anyhow::Result<Recording> {
     let bad = |e: tiff::TiffError| input_error(format!("{name}: not a readable TIFF stack: {e}"));
     let (width, height) = decoder.dimensions().map_err(bad)?;
     let samples = decoder
@@ -131,44 +136,71 @@ fn read_page<R: std::io::Read + Seek>(
         )));
     }
     let page = decoder.read_image().map_err(bad)?;
-    let counts: Vec<u32> = match page {
-        DecodingResult::U8(values) => values.into_iter().map(u32::from).collect(),
-        DecodingResult::U16(values) => values.into_iter().map(u32::from).collect(),
-        DecodingResult::U32(values) => values,
-        DecodingResult::U64(values) => {
-            whole_counts(name, page_index, values.into_iter().map(|v| v as f64))?
-        }
-        DecodingResult::I8(values) => {
-            whole_counts(name, page_index, values.into_iter().map(f64::from))?
-        }
-        DecodingResult::I16(values) => {
-            whole_counts(name, page_index, values.into_iter().map(f64::from))?
-        }
-        DecodingResult::I32(values) => {
-            whole_counts(name, page_index, values.into_iter().map(f64::from))?
-        }
-        DecodingResult::I64(values) => {
-            whole_counts(name, page_index, values.into_iter().map(|v| v as f64))?
-        }
-        DecodingResult::F32(values) => {
-            whole_counts(name, page_index, values.into_iter().map(f64::from))?
-        }
-        DecodingResult::F64(values) => whole_counts(name, page_index, values.into_iter())?,
+    let pixels = (width as usize) * (height as usize);
+    let frame = match page {
+        DecodingResult::U8(values) => Page::Counts(values.into_iter().map(u32::from).collect()),
+        DecodingResult::U16(values) => Page::Counts(values.into_iter().map(u32::from).collect()),
+        DecodingResult::U32(values) => Page::Counts(values),
+        DecodingResult::U64(values) => Page::Counts(whole_counts(
+            name,
+            page_index,
+            values.into_iter().map(|v| v as f64),
+        )?),
+        DecodingResult::I8(values) => Page::Counts(whole_counts(
+            name,
+            page_index,
+            values.into_iter().map(f64::from),
+        )?),
+        DecodingResult::I16(values) => Page::Counts(whole_counts(
+            name,
+            page_index,
+            values.into_iter().map(f64::from),
+        )?),
+        DecodingResult::I32(values) => Page::Counts(whole_counts(
+            name,
+            page_index,
+            values.into_iter().map(f64::from),
+        )?),
+        DecodingResult::I64(values) => Page::Counts(whole_counts(
+            name,
+            page_index,
+            values.into_iter().map(|v| v as f64),
+        )?),
+        DecodingResult::F32(values) => Page::Real(values.into_iter().map(f64::from).collect()),
+        DecodingResult::F64(values) => Page::Real(values),
         _ => {
             return Err(input_error(format!(
-                "{name}: page {page_index} has an unsupported sample type; expected greyscale counts"
+                "{name}: page {page_index} has an unsupported sample type; expected greyscale counts or float values"
             )));
         }
     };
-    if counts.len() != (width as usize) * (height as usize) {
+    let samples = match &frame {
+        Page::Counts(values) => values.len(),
+        Page::Real(values) => values.len(),
+    };
+    if samples != pixels {
         return Err(input_error(format!(
-            "{name}: page {page_index} is not single-channel greyscale ({} samples for {width}×{height} pixels)",
-            counts.len()
+            "{name}: page {page_index} is not single-channel greyscale ({samples} samples for {width}×{height} pixels)"
         )));
     }
-    FrameStack::from_vec(1, height as usize, width as usize, counts)
+    let (height, width) = (height as usize, width as usize);
+    match frame {
+        Page::Counts(counts) => {
+            FrameStack::from_vec(1, height, width, counts).map(Recording::Counts)
+        }
+        Page::Real(values) => RealFrameStack::from_vec(1, height, width, values)
+            .map(Recording::Real)
+            .map_err(|e| input_error(format!("{name}: page {page_index}: {e}"))),
+    }
 }
 
+/// One decoded page's samples.
+enum Page {
+    Counts(Vec<u32>),
+    Real(Vec<f64>),
+}
+
+/// Integer samples as photon counts: whole and from 0 to `u32::MAX`.
 fn whole_counts(
     name: &impl std::fmt::Display,
     page: usize,
@@ -177,9 +209,10 @@ fn whole_counts(
     values
         .enumerate()
         .map(|(index, value)| {
-            count_from_f64(value).ok_or_else(|| {
+            whole_count(value).ok_or_else(|| {
                 input_error(format!(
-                    "{name}: page {page}, pixel {index}: {value} is not a photon count (a whole number ≥ 0)"
+                    "{name}: page {page}, pixel {index}: {value} is not a photon count (0 to {}) in an integer page; save background-subtracted or scaled frames as float pages (docs/detectors.md, \"Input frames\")",
+                    u32::MAX
                 ))
             })
         })

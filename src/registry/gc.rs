@@ -5,7 +5,7 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use rusqlite::{TransactionBehavior, params};
+use rusqlite::params;
 use serde::Serialize;
 
 use super::dates::{format_utc, parse_utc};
@@ -125,9 +125,7 @@ impl Registry {
             }
         }
         if !dry_run {
-            let tx = self
-                .conn
-                .transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let tx = self.write_transaction()?;
             for (key, _) in &artefacts {
                 tx.execute("DELETE FROM auc WHERE evaluation_key = ?1", [key])?;
                 for table in ["datasets", "models", "predictions", "evaluations"] {

@@ -27,12 +27,13 @@ pub mod sql;
 pub mod sql_guard;
 pub mod table;
 pub mod verify;
+pub mod write_lock;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
-use rusqlite::{Connection, OpenFlags, OptionalExtension, TransactionBehavior, params};
+use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use serde::{Deserialize, Serialize};
 
 pub use blobs::{BlobState, BlobStore};
@@ -46,6 +47,7 @@ pub use sql::{EvaluationRow, Found};
 pub use table::Table;
 
 use crate::error::input_error;
+use write_lock::{Holder, WriteTransaction};
 
 /// The schema version this code writes; see `schema.sql` (version 1) and
 /// `schema_v2.sql` (the migration to version 2).
@@ -211,6 +213,9 @@ pub struct Registry {
     /// Opened from a folder this process cannot write (a read-only mount,
     /// no write permission): artefacts are served, runs are not recorded.
     read_only: bool,
+    /// The run this process is recording (from `begin_run` to
+    /// `finish_run`), named to writers waiting for the write lock.
+    writer_run: Option<String>,
 }
 
 impl Registry {
@@ -277,7 +282,19 @@ impl Registry {
             conn,
             blobs: BlobStore::open(dir)?,
             read_only: true,
+            writer_run: None,
         })
+    }
+
+    /// Begins a write transaction (`BEGIN IMMEDIATE`), waiting for the
+    /// write lock and saying whose it is (see [`write_lock`]).
+    fn write_transaction(&self) -> anyhow::Result<WriteTransaction<'_>> {
+        WriteTransaction::begin(
+            &self.conn,
+            &self.dir,
+            &Holder::this_process(self.writer_run.as_deref()),
+            BUSY_TIMEOUT,
+        )
     }
 
     /// Whether this registry was opened read-only (see [`Registry::open`]):
@@ -352,6 +369,7 @@ impl Registry {
             conn,
             blobs: BlobStore::open(dir)?,
             read_only: false,
+            writer_run: None,
         };
         registry.migrate()?;
         Ok(registry)
@@ -365,9 +383,7 @@ impl Registry {
         if version == SCHEMA_VERSION {
             return Ok(());
         }
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let tx = self.write_transaction()?;
         // Read again under the lock: another process may have migrated.
         let version: i64 = tx.query_row("PRAGMA user_version", [], |row| row.get(0))?;
         if version > SCHEMA_VERSION {
@@ -452,9 +468,7 @@ impl Registry {
                 artefact.key
             )));
         }
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let tx = self.write_transaction()?;
         let now = utc_now();
         for blob in &artefact.blobs {
             let bytes = std::fs::metadata(self.blobs.path(&blob.sha256))
@@ -630,9 +644,7 @@ impl Registry {
         let mut marked = 0;
         for (id, host, pid) in candidates {
             if RunStatus::Running.in_effect(&host, pid) == RunStatus::Unfinished {
-                let tx = self
-                    .conn
-                    .transaction_with_behavior(TransactionBehavior::Immediate)?;
+                let tx = self.write_transaction()?;
                 marked += tx.execute(
                     "UPDATE runs SET status = 'unfinished',
                        error = 'the process (pid ' || pid || ') ended without finishing the run'
@@ -652,9 +664,8 @@ impl Registry {
         }
         let code = CodeVersion::current();
         let cv = start.cross_validation.as_ref();
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        self.writer_run = Some(start.id.clone());
+        let tx = self.write_transaction()?;
         tx.execute(
             "INSERT INTO runs (id, kind, parent_run, manifest_name, manifest_path, manifest_text,
                  manifest_sha256, resolved, seeds, crate_version, git_commit, git_dirty, rustc, host,
@@ -699,9 +710,7 @@ impl Registry {
             .iter()
             .map(|b| (b.role.clone(), serde_json::Value::String(b.sha256.clone())))
             .collect();
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let tx = self.write_transaction()?;
         tx.execute(
             "INSERT INTO run_steps (run_id, ordinal, step, kind, artefact_key, outcome, seconds, blobs, detail)
              VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
@@ -733,9 +742,7 @@ impl Registry {
         if self.read_only {
             return Ok(());
         }
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let tx = self.write_transaction()?;
         tx.execute(
             "UPDATE runs SET status = ?2, error = ?3, ended_at = ?4,
                  cached_steps = ?5, computed_steps = ?6, rebuilt_steps = ?7
@@ -766,6 +773,7 @@ impl Registry {
             )?;
         }
         tx.commit()?;
+        self.writer_run = None;
         Ok(())
     }
 }
@@ -776,7 +784,7 @@ impl Registry {
 /// nothing else ever parses names. A run that recorded no AUC rows (it
 /// was interrupted) keeps no plan: it is still listed and shown, and
 /// `reproduce` says it cannot re-plan it.
-fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result<()> {
+fn backfill_cross_validation_plans(tx: &Connection) -> anyhow::Result<()> {
     let runs: Vec<String> = {
         let mut statement =
             tx.prepare("SELECT id FROM runs WHERE kind = 'cv' AND cv_detector IS NULL")?;
@@ -823,10 +831,7 @@ fn backfill_cross_validation_plans(tx: &rusqlite::Transaction) -> anyhow::Result
 }
 
 /// Records which blobs make `artefact` (one row per role).
-fn insert_artefact_blobs(
-    tx: &rusqlite::Transaction<'_>,
-    artefact: &NewArtefact,
-) -> rusqlite::Result<()> {
+fn insert_artefact_blobs(tx: &Connection, artefact: &NewArtefact) -> rusqlite::Result<()> {
     for blob in &artefact.blobs {
         tx.execute(
             "INSERT INTO artefact_blobs (artefact_key, role, sha256) VALUES (?1, ?2, ?3)",
@@ -862,9 +867,7 @@ impl Registry {
         if self.read_only {
             return Ok(None);
         }
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let tx = self.write_transaction()?;
         let holder: Option<StepClaim> = tx
             .query_row(
                 "SELECT run_id, host, pid FROM step_claims WHERE key = ?1",
@@ -899,10 +902,12 @@ impl Registry {
         if self.read_only {
             return Ok(());
         }
-        self.conn.execute(
+        let tx = self.write_transaction()?;
+        tx.execute(
             "DELETE FROM step_claims WHERE run_id = ?1 AND (?2 IS NULL OR key = ?2)",
             params![run_id, key],
         )?;
+        tx.commit()?;
         Ok(())
     }
 }

@@ -9,6 +9,6 @@ pub mod frames;
 pub mod prediction;
 pub mod truth;
 
-pub use frames::FrameStack;
+pub use frames::{FrameStack, Frames, RealFrameStack, Recording};
 pub use prediction::Prediction;
 pub use truth::{Dataset, TruthRow};

@@ -119,3 +119,18 @@ pub fn fuzz_cases(default: u32) -> u32 {
         Err(_) => default,
     }
 }
+
+/// A fresh folder for one fuzzing case: in memory (/dev/shm) where there
+/// is one, since cases write (and the writers sync) files by the hundred
+/// thousand; else in the system's temporary folder.
+pub fn fuzz_case_dir() -> tempfile::TempDir {
+    let in_memory = Path::new("/dev/shm");
+    if in_memory.is_dir()
+        && let Ok(dir) = tempfile::Builder::new()
+            .prefix("scanloc-fuzz-")
+            .tempdir_in(in_memory)
+    {
+        return dir;
+    }
+    tempfile::tempdir().unwrap()
+}

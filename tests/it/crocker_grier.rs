@@ -4,9 +4,12 @@
 
 use std::path::{Path, PathBuf};
 
-use scanloc::detect::crocker_grier::{CrockerGrierParams, Feature, locate_frame, locate_stack};
+use scanloc::detect::crocker_grier::{
+    self, CrockerGrierParams, Feature, locate_frame, locate_stack,
+};
 use scanloc::io;
 use scanloc::progress::hidden;
+use scanloc::types::Recording;
 
 const CASES: [&str; 12] = [
     "paper_dim",
@@ -21,6 +24,17 @@ const CASES: [&str; 12] = [
     "large_options",
     "large_topn",
     "bright_counts",
+];
+
+/// Real-valued (float64) frames: normalised, background-subtracted,
+/// without preprocessing, every option, and whole numbers in a float array
+/// (TrackPy's float path all the same); made by make_float_fixtures.py.
+const FLOAT_CASES: [&str; 5] = [
+    "float_normalised",
+    "float_background_subtracted",
+    "float_no_preprocess",
+    "float_options",
+    "float_whole_counts",
 ];
 
 fn fixture(name: &str) -> PathBuf {
@@ -74,8 +88,12 @@ struct Deviations {
 }
 
 /// `|a − b| / |b|`, 0 when both are NaN (TrackPy's `ep` is NaN where the
-/// noise estimate is undefined) and ∞ when only one is.
+/// noise estimate is undefined) or equal (an infinite `ep`) and ∞ when
+/// only one is NaN.
 fn relative_deviation(a: f64, b: f64) -> f64 {
+    if a == b {
+        return 0.0;
+    }
     match (a.is_nan(), b.is_nan()) {
         (true, true) => 0.0,
         (false, false) => (a - b).abs() / b.abs().max(1e-300),
@@ -83,17 +101,28 @@ fn relative_deviation(a: f64, b: f64) -> f64 {
     }
 }
 
-#[test]
-fn features_match_trackpy_on_every_fixture() {
+/// The features of every frame of fixture `name`, as read from its file
+/// (counts or real values).
+fn located(name: &str) -> Vec<Vec<Feature>> {
+    let params = params(name);
+    match io::npy::read_recording(&fixture(&format!("{name}.npy"))).unwrap() {
+        Recording::Counts(frames) => (0..frames.n)
+            .map(|i| locate_frame(frames.frame(i), frames.height, frames.width, &params).unwrap())
+            .collect(),
+        Recording::Real(frames) => (0..frames.n)
+            .map(|i| locate_frame(frames.frame(i), frames.height, frames.width, &params).unwrap())
+            .collect(),
+    }
+}
+
+/// Compares the fixtures' features with TrackPy's; returns how many were
+/// compared and the largest deviations.
+fn compare_with_trackpy(cases: &[&str]) -> (usize, Deviations) {
     let mut compared = 0;
     let mut worst = Deviations::default();
-    for name in CASES {
-        let frames = io::read_frames(&fixture(&format!("{name}.npy"))).unwrap();
-        let params = params(name);
+    for &name in cases {
         let want = expected(name);
-        for index in 0..frames.n {
-            let got: Vec<Feature> =
-                locate_frame(frames.frame(index), frames.height, frames.width, &params).unwrap();
+        for (index, got) in located(name).into_iter().enumerate() {
             let want: Vec<&Expected> = want.iter().filter(|e| e.frame == index).collect();
             assert_eq!(got.len(), want.len(), "{name} frame {index}: feature count");
             for w in want {
@@ -148,8 +177,48 @@ fn features_match_trackpy_on_every_fixture() {
             }
         }
     }
+    (compared, worst)
+}
+
+#[test]
+fn features_match_trackpy_on_every_fixture() {
+    let (compared, worst) = compare_with_trackpy(&CASES);
     eprintln!("compared {compared} features; largest deviations {worst:?}");
     assert!(compared > 1000);
+}
+
+/// TrackPy's float-image path: real values (fractional, negative) are
+/// located as TrackPy locates a float64 array.
+#[test]
+fn features_match_trackpy_on_real_valued_frames() {
+    let (compared, worst) = compare_with_trackpy(&FLOAT_CASES);
+    eprintln!("compared {compared} features; largest deviations {worst:?}");
+    assert!(compared > 350);
+}
+
+/// The file's element type decides the path: the same whole numbers as
+/// counts and as floats give different features (as in TrackPy), and the
+/// stack entry point gives the per-frame ones.
+#[test]
+fn real_frames_take_the_float_path_through_the_stack_entry_point() {
+    let name = "float_whole_counts";
+    let recording = io::npy::read_recording(&fixture(&format!("{name}.npy"))).unwrap();
+    let Recording::Real(real) = &recording else {
+        panic!("a float64 .npy is read as real values")
+    };
+    let params = params(name);
+    let from_stack = crocker_grier::locate_recording(&recording, &params, &hidden()).unwrap();
+    let per_frame = located(name);
+    assert_eq!(
+        from_stack.len(),
+        per_frame.iter().map(Vec::len).sum::<usize>()
+    );
+    for (frame, feature) in &from_stack {
+        assert!(per_frame[*frame].contains(feature), "{feature:?}");
+    }
+    let counts = Recording::Real(real.clone()).into_counts().unwrap();
+    let as_counts = locate_stack(&counts, &params, &hidden()).unwrap();
+    assert_ne!(as_counts, from_stack, "counts take TrackPy's integer path");
 }
 
 #[test]

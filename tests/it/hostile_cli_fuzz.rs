@@ -1,27 +1,36 @@
 //! Fuzzing the command line: random argument values for `simulate`,
 //! `locate` and `score`, and random or damaged CSV, TIFF and .npy bytes
-//! given to them. Whatever comes in, the binary exits 0, 1 or 2, never
-//! panics or aborts, and a refusal is one `error:` line.
+//! given to them. Whatever comes in, the command exits 0, 1 or 2, never
+//! panics, and a refusal is one `error:` line.
 //!
-//! Each case runs the real binary, under an address-space limit (so an
-//! unbounded allocation aborts instead of swapping the machine) and a time
-//! limit. Valid values are kept small, so that every accepted case is
-//! cheap; hostile values are out of range, malformed or extreme. `make
-//! fuzz` runs these with `SCANLOC_FUZZ_CASES` cases per property.
+//! The properties call the CLI in-process (`cli::main_with`, the function
+//! `main` calls, with buffers for its output): thousands of cases a second
+//! instead of one process per case. Every path given to it is inside the
+//! case's own folder (the working directory is the whole test binary's).
+//! The guards of `hostile_fuzz_guard` stand in for a process's limits:
+//! an allocation no small case needs, or a case running too long, aborts
+//! the test binary naming the case. A few cases still run the real binary
+//! (`the_binary_keeps_the_contract`), for what only a process shows: its
+//! exit status and a panic's abort. Valid values are kept small, so that
+//! every accepted case is cheap; hostile values are out of range,
+//! malformed or extreme. `make fuzz` runs these with `SCANLOC_FUZZ_CASES`
+//! cases per property.
 
+use crate::cli;
 use crate::common;
+use crate::hostile_fuzz_guard;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Command, ExitCode, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use proptest::prelude::*;
 
-/// Address space a case may use: far above what any accepted (small) case
-/// needs, far below what would disturb the machine.
+/// Address space a subprocess case may use: far above what any accepted
+/// (small) case needs, far below what would disturb the machine.
 const MEMORY_LIMIT_BYTES: u64 = 4 << 30;
-/// Time a case may take; accepted cases take milliseconds.
+/// Time a subprocess case may take; accepted cases take milliseconds.
 const TIME_LIMIT: Duration = Duration::from_secs(10);
 
 /// How one invocation ended.
@@ -30,6 +39,8 @@ struct Ended {
     code: Option<i32>,
     stderr: String,
     timed_out: bool,
+    /// The panic's message, when the in-process call panicked.
+    panic: Option<String>,
 }
 
 /// Runs the binary with `args` in `dir` under the memory and time limits.
@@ -81,6 +92,97 @@ fn run_limited(dir: &Path, args: &[String]) -> Ended {
         code: status.code(),
         stderr: reader.join().unwrap_or_default(),
         timed_out,
+        panic: None,
+    }
+}
+
+/// The flags whose values are paths.
+const PATH_FLAGS: &[&str] = &["--out", "--truth", "--input", "--locs", "--curve"];
+
+/// `args` with every path made absolute inside `dir`: the in-process
+/// command shares the test binary's working directory. Values starting
+/// with `--` stay as they are (clap reads them as flags), and so does the
+/// empty path.
+fn inside(dir: &Path, args: &[String]) -> Vec<String> {
+    let mut placed = Vec::with_capacity(args.len());
+    let mut path_follows = false;
+    for arg in args {
+        let is_path = path_follows && !arg.is_empty() && !arg.starts_with("--");
+        placed.push(if is_path && Path::new(arg).is_relative() {
+            dir.join(arg).to_string_lossy().into_owned()
+        } else {
+            arg.clone()
+        });
+        path_follows = PATH_FLAGS.contains(&arg.as_str());
+    }
+    placed
+}
+
+/// The number `ExitCode` stands for (it has no accessor).
+fn exit_number(code: ExitCode) -> Option<i32> {
+    (0..=255u8)
+        .find(|&n| ExitCode::from(n) == code)
+        .map(i32::from)
+}
+
+/// Counts the in-process cases of each command and writes a line every
+/// 10,000 (straight to standard error, past the harness's capture), so a
+/// long `make fuzz` shows how far it is.
+fn count_case(command: &str) {
+    static COUNTS: std::sync::Mutex<Vec<(String, u64)>> = std::sync::Mutex::new(Vec::new());
+    let mut counts = COUNTS.lock().unwrap_or_else(|e| e.into_inner());
+    let count = match counts.iter_mut().find(|(name, _)| name == command) {
+        Some((_, count)) => count,
+        None => {
+            counts.push((command.to_string(), 0));
+            &mut counts.last_mut().expect("just pushed").1
+        }
+    };
+    *count += 1;
+    if (*count).is_multiple_of(10_000) {
+        let line = format!("fuzz progress: {count} {command} cases\n");
+        // SAFETY: writing a valid buffer to a file descriptor.
+        unsafe {
+            libc::write(2, line.as_ptr().cast(), line.len());
+        }
+    }
+}
+
+/// Runs the CLI in-process with `args` (paths taken inside `dir`), under
+/// the fuzz guards, its output captured.
+fn run_in_process(dir: &Path, args: &[String]) -> Ended {
+    count_case(args.first().map_or("", String::as_str));
+    let args = inside(dir, args);
+    let _case = hostile_fuzz_guard::Case::enter(format!(
+        "scanloc {args:?} (input files in {})",
+        dir.display()
+    ));
+    let mut stdout = Vec::new();
+    let mut stderr = Vec::new();
+    let argv = std::iter::once("scanloc".to_string()).chain(args.iter().cloned());
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        cli::main_with(argv, &mut stdout, &mut stderr, false)
+    }));
+    let stderr = String::from_utf8_lossy(&stderr).into_owned();
+    match outcome {
+        Ok(code) => Ended {
+            code: exit_number(code),
+            stderr,
+            timed_out: false,
+            panic: None,
+        },
+        Err(payload) => Ended {
+            code: None,
+            stderr,
+            timed_out: false,
+            panic: Some(
+                payload
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "a panic without a message".into()),
+            ),
+        },
     }
 }
 
@@ -89,6 +191,12 @@ fn run_limited(dir: &Path, args: &[String]) -> Ended {
 fn check_contract(args: &[String], ended: &Ended) -> Result<(), TestCaseError> {
     let context = format!("scanloc {args:?}\nstderr: {}", ended.stderr);
     prop_assert!(!ended.timed_out, "took over {:?}: {}", TIME_LIMIT, context);
+    prop_assert!(
+        ended.panic.is_none(),
+        "panicked: {:?}: {}",
+        ended.panic,
+        context
+    );
     prop_assert!(
         matches!(ended.code, Some(0..=2)),
         "exit {:?}: {}",
@@ -519,21 +627,110 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
     path
 }
 
+/// Whether `simulate` arguments ask for work the limits allow that is
+/// still too much for a cheap case: frames × pixels × substeps × emitters
+/// above 2²⁰ (valid values stay below 50,000; the defaults, 100 frames of
+/// 24 × 25, make 60,000). A legitimate request, not a hostile one; sizes
+/// beyond the limits stay fuzzed (they must be refused at once).
+fn legitimately_large(args: &[String]) -> bool {
+    let value = |flag: &str, default: u64| -> Option<u64> {
+        match args.iter().position(|a| a == flag) {
+            Some(at) => args.get(at + 1)?.parse().ok(),
+            None => Some(default),
+        }
+    };
+    let (Some(frames), Some(height), Some(width), Some(substeps), Some(emitters)) = (
+        value("--frames", 100),
+        value("--height", 24),
+        value("--width", 25),
+        value("--substeps", 1),
+        value("--emitters", 1),
+    ) else {
+        return false;
+    };
+    let side_limit = scanloc::limits::MAX_FRAME_SIDE as u64;
+    let pixels = frames.saturating_mul(height).saturating_mul(width);
+    let within_limits = frames <= scanloc::limits::MAX_FRAMES as u64
+        && (1..=side_limit).contains(&height)
+        && (1..=side_limit).contains(&width)
+        && pixels <= scanloc::limits::MAX_DATASET_PIXELS as u64
+        && (1..=1024).contains(&substeps)
+        && emitters <= 10_000;
+    let work = pixels
+        .saturating_mul(substeps)
+        .saturating_mul(emitters.max(1));
+    within_limits && work > 1 << 20
+}
+
+fn simulate_case(
+    dir: &Path,
+    args: &[String],
+    run: fn(&Path, &[String]) -> Ended,
+) -> Result<(), TestCaseError> {
+    write(dir, "in.npy", &inputs().npy);
+    let ended = run(dir, args);
+    check_contract(args, &ended)
+}
+
+fn locate_case(
+    dir: &Path,
+    args: &[String],
+    extension: &str,
+    bytes: &[u8],
+    run: fn(&Path, &[String]) -> Ended,
+) -> Result<(), TestCaseError> {
+    let input = format!("in.{extension}");
+    write(dir, &input, bytes);
+    let mut args = args.to_vec();
+    args.extend(["--input".to_string(), input]);
+    let ended = run(dir, &args);
+    check_contract(&args, &ended)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn score_case(
+    dir: &Path,
+    truth: &[u8],
+    locs: &[u8],
+    eps: Option<String>,
+    json: bool,
+    curve: Option<String>,
+    run: fn(&Path, &[String]) -> Ended,
+) -> Result<(), TestCaseError> {
+    write(dir, "truth.csv", truth);
+    write(dir, "locs.csv", locs);
+    let mut args: Vec<String> = ["score", "--truth", "truth.csv", "--locs", "locs.csv"]
+        .iter()
+        .map(|a| a.to_string())
+        .collect();
+    if let Some(eps) = eps {
+        args.push(format!("--eps={eps}"));
+    }
+    if json {
+        args.push("--json".into());
+    }
+    if let Some(curve) = curve {
+        args.extend(["--curve".to_string(), curve]);
+    }
+    let ended = run(dir, &args);
+    check_contract(&args, &ended)
+}
+
 proptest! {
-    // Little shrinking: a failing case may take the whole time limit.
+    // Little shrinking: a failing case may take seconds.
     #![proptest_config(ProptestConfig {
-        cases: common::fuzz_cases(48),
-        max_shrink_iters: 32,
+        cases: common::fuzz_cases(200),
+        max_shrink_iters: 256,
         max_shrink_time: 60_000,
         ..ProptestConfig::default()
     })]
 
     #[test]
-    fn simulate_never_panics_on_any_arguments(args in simulate_args()) {
-        let dir = tempfile::tempdir().unwrap();
-        write(dir.path(), "in.npy", &inputs().npy);
-        let ended = run_limited(dir.path(), &args);
-        check_contract(&args, &ended)?;
+    fn simulate_never_panics_on_any_arguments(
+        args in simulate_args().prop_filter("a legitimately large dataset", |a| !legitimately_large(a)),
+    ) {
+        let dir = common::fuzz_case_dir();
+        simulate_case(dir.path(), &args, run_in_process)?;
     }
 
     #[test]
@@ -541,13 +738,8 @@ proptest! {
         args in locate_args(),
         (extension, bytes) in frame_file(),
     ) {
-        let dir = tempfile::tempdir().unwrap();
-        let input = format!("in.{extension}");
-        write(dir.path(), &input, &bytes);
-        let mut args = args;
-        args.extend(["--input".to_string(), input]);
-        let ended = run_limited(dir.path(), &args);
-        check_contract(&args, &ended)?;
+        let dir = common::fuzz_case_dir();
+        locate_case(dir.path(), &args, extension, &bytes, run_in_process)?;
     }
 
     #[test]
@@ -558,23 +750,35 @@ proptest! {
         json in any::<bool>(),
         curve in proptest::option::of(output_name(&["csv"])),
     ) {
-        let dir = tempfile::tempdir().unwrap();
-        write(dir.path(), "truth.csv", &truth);
-        write(dir.path(), "locs.csv", &locs);
-        let mut args: Vec<String> = ["score", "--truth", "truth.csv", "--locs", "locs.csv"]
-            .iter()
-            .map(|a| a.to_string())
-            .collect();
-        if let Some(eps) = eps {
-            args.push(format!("--eps={eps}"));
-        }
-        if json {
-            args.push("--json".into());
-        }
-        if let Some(curve) = curve {
-            args.extend(["--curve".to_string(), curve]);
-        }
-        let ended = run_limited(dir.path(), &args);
-        check_contract(&args, &ended)?;
+        let dir = common::fuzz_case_dir();
+        score_case(dir.path(), &truth, &locs, eps, json, curve, run_in_process)?;
+    }
+}
+
+proptest! {
+    // The real binary, a few cases per command: its exit status, and a
+    // panic's abort, are what only a process shows.
+    #![proptest_config(ProptestConfig {
+        cases: 8,
+        max_shrink_iters: 16,
+        max_shrink_time: 60_000,
+        ..ProptestConfig::default()
+    })]
+
+    #[test]
+    fn the_binary_keeps_the_contract(
+        simulate in simulate_args().prop_filter("a legitimately large dataset", |a| !legitimately_large(a)),
+        locate in locate_args(),
+        (extension, bytes) in frame_file(),
+        truth in csv_file(|| &inputs().truth),
+        locs in csv_file(|| &inputs().locs),
+        eps in proptest::option::of(eps_list()),
+    ) {
+        let dir = common::fuzz_case_dir();
+        simulate_case(dir.path(), &simulate, run_limited)?;
+        let dir = common::fuzz_case_dir();
+        locate_case(dir.path(), &locate, extension, &bytes, run_limited)?;
+        let dir = common::fuzz_case_dir();
+        score_case(dir.path(), &truth, &locs, eps, false, None, run_limited)?;
     }
 }

@@ -79,7 +79,7 @@ fn partial_files(dir: &Path) -> Vec<String> {
 }
 
 /// A tiny CNN model folder, trained once for the whole file.
-fn model_dir() -> &'static Path {
+pub(crate) fn model_dir() -> &'static Path {
     static MODEL: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
     let (_, path) = MODEL.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();

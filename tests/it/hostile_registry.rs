@@ -533,3 +533,91 @@ fn a_claim_left_by_a_killed_run_is_taken_over() {
     let run: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
     assert_eq!(run["status"], "done");
 }
+
+/// Starts `scanloc run` of [`TINY`] on `registry` and returns it with a
+/// channel of its stderr lines as they come.
+fn spawn_run_reading_stderr(
+    manifest: &Path,
+    registry: &Path,
+) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    let mut child = spawn_run(manifest, registry);
+    let stderr = child.stderr.take().unwrap();
+    let (lines, received) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        use std::io::BufRead;
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if lines.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (child, received)
+}
+
+/// The stderr lines of a run until one contains `wanted` (all of them, or
+/// a failure after a minute).
+fn lines_until(received: &std::sync::mpsc::Receiver<String>, wanted: &str) -> Vec<String> {
+    let mut seen = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !seen.iter().any(|l: &String| l.contains(wanted)) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match received.recv_timeout(left) {
+            Ok(line) => seen.push(line),
+            Err(_) => panic!("no line with {wanted:?} within a minute; stderr so far: {seen:?}"),
+        }
+    }
+    seen
+}
+
+#[test]
+fn a_run_waiting_for_the_write_lock_says_whose_lock_it_is() {
+    use scanloc::registry::write_lock::{Holder, WriteTransaction};
+
+    let dir = tempfile::tempdir().unwrap();
+    registry_with_a_run(dir.path());
+    let registry = dir.path().join("registry");
+    let manifest = dir.path().join("tiny.yaml");
+    let database = registry.join("registry.sqlite");
+
+    // This test process holds the lock as a scanloc writer recording run
+    // "holding-run" would: the waiting run names it, once.
+    let conn = rusqlite::Connection::open(&database).unwrap();
+    let holder = Holder::this_process(Some("holding-run"));
+    let tx = WriteTransaction::begin(&conn, &registry, &holder, Duration::from_secs(5)).unwrap();
+    let (child, received) = spawn_run_reading_stderr(&manifest, &registry);
+    let expected = format!(
+        "waiting for the registry's write lock held by run holding-run (pid {} on {})",
+        holder.pid, holder.host
+    );
+    let seen = lines_until(&received, &expected);
+    // Still waiting a while later, without saying it again.
+    std::thread::sleep(Duration::from_millis(500));
+    drop(tx);
+    let output = child.wait_with_output().unwrap();
+    assert!(output.status.success(), "{seen:?}");
+    let rest: Vec<String> = received.iter().collect();
+    let said = seen
+        .iter()
+        .chain(&rest)
+        .filter(|l| l.contains("waiting for the registry's write lock"))
+        .count();
+    assert_eq!(said, 1, "said once: {seen:?} {rest:?}");
+    assert!(
+        !registry.join("registry.sqlite-writer").exists(),
+        "the holder file goes with the transaction"
+    );
+
+    // A lock taken by something that records no holder (the sqlite3 shell).
+    conn.execute_batch("BEGIN IMMEDIATE").unwrap();
+    let (child, received) = spawn_run_reading_stderr(&manifest, &registry);
+    lines_until(
+        &received,
+        "waiting for the registry's write lock held by another program",
+    );
+    conn.execute_batch("ROLLBACK").unwrap();
+    let output = child.wait_with_output().unwrap();
+    assert!(output.status.success());
+}

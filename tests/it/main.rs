@@ -5,6 +5,17 @@
 
 mod common;
 
+/// The command line itself, compiled into the tests so the CLI fuzz
+/// properties call it in-process (`cli::main_with`) instead of spawning
+/// the binary per case.
+#[path = "../../src/cli/mod.rs"]
+mod cli;
+
+/// Counts live heap bytes, so the in-process CLI fuzz cases can be refused
+/// allocations no small case needs (`hostile_fuzz_guard`).
+#[global_allocator]
+static ALLOCATOR: hostile_fuzz_guard::CountingAllocator = hostile_fuzz_guard::CountingAllocator;
+
 mod bench_tradeoffs;
 mod calibrate_cv;
 mod cli_locate;
@@ -14,7 +25,9 @@ mod crocker_grier;
 mod figures;
 mod hostile_cli_fuzz;
 mod hostile_files;
+mod hostile_fuzz_guard;
 mod hostile_manifest;
+mod hostile_real_frames;
 mod hostile_registry;
 mod layers;
 mod likelihood;

@@ -150,7 +150,7 @@ proptest! {
         truncate in proptest::option::of(any::<prop::sample::Index>()),
         append in proptest::collection::vec(any::<u8>(), 0..16),
     ) {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = common::fuzz_case_dir();
         let mut bytes = valid_file(dir.path(), &format!("valid.{extension}"));
         for (index, value) in &edits {
             let at = index.index(bytes.len());
@@ -169,6 +169,21 @@ proptest! {
                 prop_assert!(error.to_string().contains("damaged."), "{}", error);
             }
         }
+        // The reader of counts or real values (float pages) alike.
+        match io::read_recording_of_channel(&path, None) {
+            Ok(recording) => {
+                let (n, height, width) = recording.shape();
+                let len = match &recording {
+                    scanloc::types::Recording::Counts(frames) => frames.data.len(),
+                    scanloc::types::Recording::Real(frames) => frames.data.len(),
+                };
+                prop_assert_eq!(len, n * height * width);
+            }
+            Err(error) => {
+                prop_assert_eq!(exit_code(&error), 2, "{:#}", error);
+                prop_assert!(error.to_string().contains("damaged."), "{}", error);
+            }
+        }
     }
 
     #[test]
@@ -176,10 +191,13 @@ proptest! {
         extension in prop_oneof![Just("npy"), Just("tif")],
         bytes in proptest::collection::vec(any::<u8>(), 0..512),
     ) {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = common::fuzz_case_dir();
         let path = dir.path().join(format!("random.{extension}"));
         std::fs::write(&path, &bytes).unwrap();
         if let Err(error) = io::read_frames(&path) {
+            prop_assert_eq!(exit_code(&error), 2, "{:#}", error);
+        }
+        if let Err(error) = io::read_recording_of_channel(&path, None) {
             prop_assert_eq!(exit_code(&error), 2, "{:#}", error);
         }
     }

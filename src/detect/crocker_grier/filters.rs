@@ -14,18 +14,19 @@ pub struct Buffers {
     background_values: Vec<f64>,
 }
 
-/// TrackPy's `bandpass(image, noise_size, smoothing_size, threshold)` of an
-/// integer image: a Gaussian low pass (σ = `noise_size`, kernel truncated at
-/// 4σ, zero outside the frame) minus a boxcar average over
-/// `smoothing_size` (edge pixels repeated outside the frame, each axis pass
-/// truncated to integers as scipy does for integer arrays), with values
-/// below `threshold` set to 0. Returns the row-major result.
+/// TrackPy's `bandpass(image, noise_size, smoothing_size, threshold)`: a
+/// Gaussian low pass (σ = `noise_size`, kernel truncated at 4σ, zero
+/// outside the frame) minus a boxcar average over `smoothing_size` (edge
+/// pixels repeated outside the frame; for an integer image each axis pass
+/// truncated to integers as scipy does for integer arrays, for real values
+/// none), with values below `threshold` set to 0. Returns the row-major
+/// result.
 ///
 /// Every pixel sees the same floating-point operations in the same order as
 /// in scipy; the column passes are written as operations on whole rows so
 /// they vectorise.
-pub fn bandpass<'a>(
-    raw: &[u32],
+pub fn bandpass<'a, P: super::Pixel>(
+    raw: &[P],
     height: usize,
     width: usize,
     noise_size: f64,
@@ -41,17 +42,21 @@ pub fn bandpass<'a>(
         ..
     } = buffers;
     background.clear();
-    background.extend(raw.iter().map(|&v| f64::from(v)));
+    background.extend(raw.iter().map(|&v| v.value()));
     if smoothing_size > 1 {
         boxcar_columns(background, height, width, smoothing_size, scratch);
-        truncate_to_integers(background);
+        if P::INTEGER {
+            truncate_to_integers(background);
+        }
         for row in background.chunks_exact_mut(width) {
             boxcar_line(row, smoothing_size, padded);
         }
-        truncate_to_integers(background);
+        if P::INTEGER {
+            truncate_to_integers(background);
+        }
     }
     lowpass.clear();
-    lowpass.extend(raw.iter().map(|&v| f64::from(v)));
+    lowpass.extend(raw.iter().map(|&v| v.value()));
     if noise_size > 0.0 {
         let kernel = gaussian_kernel(noise_size);
         correlate_columns(lowpass, height, width, &kernel, scratch);
@@ -307,9 +312,9 @@ pub fn local_maxima(
 /// TrackPy's `measure_noise`: the mean and (population) standard deviation
 /// of the raw pixels farther than the mask radius from every non-zero pixel
 /// of the band-passed image. NaN where too few such pixels exist.
-pub fn measure_noise(
+pub fn measure_noise<P: super::Pixel>(
     image: &[u64],
-    raw: &[u32],
+    raw: &[P],
     height: usize,
     width: usize,
     mask: &super::Mask,
@@ -345,7 +350,7 @@ pub fn measure_noise(
                     continue 'pixel;
                 }
             }
-            values.push(f64::from(raw[r as usize * width + c as usize]));
+            values.push(raw[r as usize * width + c as usize].value());
         }
     }
     match values.len() {

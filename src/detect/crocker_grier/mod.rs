@@ -20,8 +20,16 @@
 //! 6. Of features closer than `separation`, the dimmer is dropped; then
 //!    `minmass`, `maxsize` and `topn` filter.
 //!
-//! Input frames are integer counts: like TrackPy on a `uint16` array (or
-//! `uint32` when a count exceeds 65,535), which sets the rescaling range.
+//! Input frames are integer counts ([`crate::types::FrameStack`]): like TrackPy on a
+//! `uint16` array (or `uint32` when a count exceeds 65,535), which sets the
+//! rescaling range; or real values ([`crate::types::RealFrameStack`]: fractional,
+//! negative), like TrackPy on a `float64` array, which differs in three
+//! places: the default `threshold` is 1/255 instead of 1, the boxcar
+//! background is not truncated to integers, and the image the peaks are
+//! found in is rescaled to `0..=255` (TrackPy assumes 8 bits for float
+//! images), with or without preprocessing. `raw_mass` and `ep` are
+//! measured in the real values. The element type decides, as in TrackPy:
+//! whole numbers in a float array take the float path.
 //! Coordinates: `x` column, `y` row, pixel centres at integers.
 
 mod filters;
@@ -32,7 +40,36 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{FieldError, input_error, require_finite};
 use crate::limits::check_feature_px;
-use crate::types::{FrameStack, Prediction};
+use crate::types::{Frames, Prediction, Recording};
+
+/// A raw pixel value the locator takes: a photon count (`u32`, TrackPy's
+/// integer-image path) or a real value (`f64`, its float-image path).
+pub trait Pixel: Copy + Send + Sync + 'static {
+    /// Whether this is an integer image to TrackPy.
+    const INTEGER: bool;
+    /// The value as a float.
+    fn value(self) -> f64;
+}
+
+impl Pixel for u32 {
+    const INTEGER: bool = true;
+    fn value(self) -> f64 {
+        f64::from(self)
+    }
+}
+
+impl Pixel for f64 {
+    const INTEGER: bool = false;
+    fn value(self) -> f64 {
+        self
+    }
+}
+
+/// TrackPy's default `threshold`: 1 for integer images, 1/255 for float
+/// images.
+fn default_threshold<P: Pixel>() -> f64 {
+    if P::INTEGER { 1.0 } else { 1.0 / 255.0 }
+}
 
 /// Most centroid refinement steps: each moves the mask by at most a pixel,
 /// so more than a feature's width of steps only repeats an oscillation.
@@ -61,7 +98,8 @@ pub struct CrockerGrierParams {
     pub noise_size: f64,
     /// Side of the boxcar background, pixels (odd); default `diameter`.
     pub smoothing_size: Option<usize>,
-    /// Band-pass values below this are set to 0; default 1 (integer images).
+    /// Band-pass values below this are set to 0; default 1 for counts,
+    /// 1/255 for real-valued frames (TrackPy's defaults).
     pub threshold: Option<f64>,
     /// Peaks must be brighter than this percentile of non-zero pixels.
     pub percentile: f64,
@@ -307,10 +345,11 @@ struct Buffers {
     peaks: Vec<(usize, usize)>,
 }
 
-/// Locates features in one frame (row-major `height × width` counts).
-/// Features come in TrackPy's order: by peak position, row-major.
-pub fn locate_frame(
-    frame: &[u32],
+/// Locates features in one frame (row-major `height × width` counts or
+/// real values, see [`Pixel`]). Features come in TrackPy's order: by peak
+/// position, row-major.
+pub fn locate_frame<P: Pixel>(
+    frame: &[P],
     height: usize,
     width: usize,
     params: &CrockerGrierParams,
@@ -323,7 +362,7 @@ pub fn locate_frame(
             frame.len()
         )));
     }
-    let integer_max = integer_range(frame.iter().copied().max().unwrap_or(0));
+    let integer_max = integer_range(frame);
     let mask = Mask::new(params.radius());
     Ok(locate_with(
         frame,
@@ -336,18 +375,43 @@ pub fn locate_frame(
     ))
 }
 
-/// The largest value of the integer type TrackPy would see: scanloc writes
-/// `uint16` unless a count needs `uint32`.
-fn integer_range(max_count: u32) -> u64 {
-    if max_count <= u16::MAX as u32 {
+/// The largest value of the integer type TrackPy would rescale `values`
+/// to: for counts, `uint16` unless a count needs `uint32` (what scanloc
+/// writes); for real values `uint8` (TrackPy assumes 8 bits for float
+/// images).
+fn integer_range<P: Pixel>(values: &[P]) -> u64 {
+    if !P::INTEGER {
+        return u8::MAX as u64;
+    }
+    let max_count = values.iter().map(|v| v.value()).fold(0.0, f64::max);
+    if max_count <= u16::MAX as f64 {
         u16::MAX as u64
     } else {
         u32::MAX as u64
     }
 }
 
-fn locate_with(
-    raw: &[u32],
+/// TrackPy's `convert_to_int`: `values` (negatives as 0) scaled so their
+/// maximum is `integer_max` and truncated to integers, into `scaled`;
+/// returns the scale factor (1 when the maximum is not positive).
+fn rescale_to_integers(
+    values: impl Iterator<Item = f64> + Clone,
+    integer_max: u64,
+    scaled: &mut Vec<u64>,
+) -> f64 {
+    let max = values.clone().fold(0.0f64, f64::max);
+    let scale = if max == 0.0 {
+        1.0
+    } else {
+        integer_max as f64 / max
+    };
+    scaled.clear();
+    scaled.extend(values.map(|v| (scale * v.max(0.0)) as u64));
+    scale
+}
+
+fn locate_with<P: Pixel>(
+    raw: &[P],
     height: usize,
     width: usize,
     params: &CrockerGrierParams,
@@ -357,7 +421,7 @@ fn locate_with(
 ) -> Vec<Feature> {
     // Steps 1–2: the integer image the peaks are found in.
     let scale = if params.preprocess {
-        let threshold = params.threshold.unwrap_or(1.0);
+        let threshold = params.threshold.unwrap_or_else(default_threshold::<P>);
         let band = filters::bandpass(
             raw,
             height,
@@ -367,21 +431,18 @@ fn locate_with(
             threshold,
             &mut buffers.filters,
         );
-        let max = band.iter().copied().fold(0.0f64, f64::max);
-        let scale = if max == 0.0 {
-            1.0
-        } else {
-            integer_max as f64 / max
-        };
+        rescale_to_integers(band.iter().copied(), integer_max, &mut buffers.scaled)
+    } else if P::INTEGER {
+        // An integer image is used as it is.
         buffers.scaled.clear();
-        buffers
-            .scaled
-            .extend(band.iter().map(|&v| (scale * v.max(0.0)) as u64));
-        scale
-    } else {
-        buffers.scaled.clear();
-        buffers.scaled.extend(raw.iter().map(|&v| u64::from(v)));
+        buffers.scaled.extend(raw.iter().map(|&v| v.value() as u64));
         1.0
+    } else {
+        rescale_to_integers(
+            raw.iter().map(|v| v.value()),
+            integer_max,
+            &mut buffers.scaled,
+        )
     };
     let image = &buffers.scaled;
     let peaks = &mut buffers.peaks;
@@ -467,8 +528,8 @@ fn locate_with(
 /// Centroid refinement and characterisation of one peak (TrackPy's
 /// `_refine`, Python engine).
 #[allow(clippy::too_many_arguments)]
-fn refine(
-    raw: &[u32],
+fn refine<P: Pixel>(
+    raw: &[P],
     image: &[u64],
     height: usize,
     width: usize,
@@ -520,17 +581,15 @@ fn refine(
         column = step(column, offset.1, width - 1 - r);
     }
     // Characterise the last neighbourhood evaluated.
-    let (mut r2_sum, mut cos_sum, mut sin_sum, mut signal, mut raw_mass) =
-        (0.0, 0.0, 0.0, 0u64, 0u64);
+    let (mut r2_sum, mut cos_sum, mut sin_sum, mut signal) = (0.0, 0.0, 0.0, 0u64);
     for p in &mask.points {
-        let index = (top.0 + p.row) * width + top.1 + p.column;
-        let value = image[index];
+        let value = image[(top.0 + p.row) * width + top.1 + p.column];
         r2_sum += p.r2 * value as f64;
         cos_sum += p.cos2 * value as f64;
         sin_sum += p.sin2 * value as f64;
         signal = signal.max(value);
-        raw_mass += u64::from(raw[index]);
     }
+    let raw_mass = raw_mass(raw, width, mask, top);
     let mass = mass as f64;
     let centre = image[(top.0 + r) * width + top.1 + r] as f64;
     Feature {
@@ -540,9 +599,27 @@ fn refine(
         size: (r2_sum / mass).sqrt(),
         ecc: (cos_sum * cos_sum + sin_sum * sin_sum).sqrt() / (mass - centre + 1e-6),
         signal: signal as f64,
-        raw_mass: raw_mass as f64,
+        raw_mass,
         ep: f64::NAN,
     }
+}
+
+/// The sum of the raw values in the mask whose square starts at `top`:
+/// exact for counts; for real values numpy's pairwise sum over the square
+/// with the corners outside the mask as 0 (TrackPy's
+/// `(mask * raw_image[rect]).sum()`), so it agrees to the last bit.
+fn raw_mass<P: Pixel>(raw: &[P], width: usize, mask: &Mask, top: (usize, usize)) -> f64 {
+    let at = |row: usize, column: usize| raw[(top.0 + row) * width + top.1 + column].value();
+    if P::INTEGER {
+        // Counts: the sum of integers below 2⁵³ is exact in any order.
+        return mask.points.iter().map(|p| at(p.row, p.column)).sum();
+    }
+    let side = 2 * mask.radius + 1;
+    let mut square = vec![0.0; side * side];
+    for p in &mask.points {
+        square[p.row * side + p.column] = at(p.row, p.column);
+    }
+    filters::numpy_sum(&square)
 }
 
 /// Indices of features to drop: for every pair closer than `separation`
@@ -577,25 +654,60 @@ fn close_pairs_to_drop(features: &[Feature], separation: f64) -> Vec<usize> {
     dropped
 }
 
-/// Locates features in every frame, in parallel. Results are ordered by
-/// frame, then by descending mass (ties by x, then y), whatever the thread
-/// count.
-pub fn locate_stack(
-    frames: &FrameStack,
+/// Locates features in every frame of a stack of counts or real values
+/// (see [`Pixel`]), in parallel. Results are ordered by frame, then by
+/// descending mass (ties by x, then y), whatever the thread count.
+pub fn locate_stack<P: Pixel>(
+    frames: &Frames<P>,
+    params: &CrockerGrierParams,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<(usize, Feature)>> {
+    locate_frames(
+        &frames.data,
+        frames.n,
+        frames.height,
+        frames.width,
+        params,
+        progress,
+    )
+}
+
+/// [`locate_stack`] of counts or real values, as read from a file.
+pub fn locate_recording(
+    recording: &Recording,
+    params: &CrockerGrierParams,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<(usize, Feature)>> {
+    match recording {
+        Recording::Counts(frames) => locate_stack(frames, params, progress),
+        Recording::Real(frames) => locate_stack(frames, params, progress),
+    }
+}
+
+/// Locates features in the `n` row-major `height × width` frames of
+/// `data`, in parallel.
+fn locate_frames<P: Pixel>(
+    data: &[P],
+    n: usize,
+    height: usize,
+    width: usize,
     params: &CrockerGrierParams,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
     params.validate()?;
-    crate::limits::check_frame_not_empty(frames.height, frames.width)?;
-    let integer_max = integer_range(frames.max_count());
+    crate::limits::check_frame_not_empty(height, width)?;
+    let frame_len = height * width;
+    let frame = |index: usize| &data[index * frame_len..(index + 1) * frame_len];
+    // One rescaling range for the whole stack, as TrackPy's for one array.
+    let integer_max = integer_range(&data[..n * frame_len]);
     let mask = Mask::new(params.radius());
-    let per_frame: Vec<Vec<(usize, Feature)>> = (0..frames.n)
+    let per_frame: Vec<Vec<(usize, Feature)>> = (0..n)
         .into_par_iter()
         .map_init(Buffers::default, |buffers, index| {
             let mut features = locate_with(
-                frames.frame(index),
-                frames.height,
-                frames.width,
+                frame(index),
+                height,
+                width,
                 params,
                 &mask,
                 integer_max,
