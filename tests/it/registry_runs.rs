@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "d703b579a4eaf091fb3e0bfcd8604dd416abb42f9ebc6f469066634e703b4b9a",
+            "f7d56c70259b7a3bf9514c24e7588ce21641c5fde5f41a798aeb9d5b9d7a9082",
         ),
         (
             "predictions/cnn@test-0.75",
-            "36e5624f3eab4558854f62c6c43778c8fe5894d11d2b64e2cb69b204a31f1479",
+            "b6ad46369fea5f1af5c723ff1ff8bcecf2a92c2b7938d3a0d98cff4fe2a5f233",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "36e4cba866d7040176f3619fd549c703cb80d57f240ee75b00d1ebdacdf263aa",
+            "a3e2933ead160c8bc3e2cc5d9c4712cf0a77f1f72c3358495e795748b1a4281e",
         ),
         (
             "predictions/cnn@test-1.00",
-            "6e1177667223e108862ed44fa247231a01cde441e032799165eb499e17dc281f",
+            "64976b07a243139e4810a13d380cf0bb00e0b48843ceefa7e79f485077ebd565",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "d6e3594facd7eab1d2378cd8e6f79e8dc87729af0b6737d6982123a592709aa7",
+            "30b8251acb57debc0a866b8ed2661c7c95965e903bafc995681a939d55982b78",
         ),
         (
             "predictions/cnn@test-1.75",
-            "46150b04a50ee12c4a15fab61e3f0ca40d90129d0e567c145b9dedfb22f29adc",
+            "833cd92d5cbe5af3692204a8c5247b1ed807720b4f8f0c6cd529c0caf8eaeb77",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "5ffe16d44f310a88d9b526b6722acc885d78d4e1a8b560f634861983975e09a7",
+            "4d9960f5cfb5149c757594d1bde811a85beedeba94129cb82811c9e0403d3d6f",
         ),
     ];
     assert_eq!(planned, recorded);
