@@ -14,7 +14,9 @@ use scanloc::io::{self, csv_tables};
 /// defaults) the columns are frame,x,y,mass,size,ecc,signal,raw_mass,ep,score
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model DIR` (a model saved by `scanloc train`) the columns are
-/// frame,x,y,score.
+/// frame,x,y,sigma_x,sigma_y,score: sigma_x, sigma_y are the network's
+/// estimate of each localisation's error in pixels (filter on them as on an
+/// SMLM localisation precision), score as the model's `architecture.score`.
 ///
 /// Frames are photon counts: integers, or floats whose values are whole
 /// and ≥ 0, for both methods. A multi-channel ImageJ hyperstack needs

@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "f7d56c70259b7a3bf9514c24e7588ce21641c5fde5f41a798aeb9d5b9d7a9082",
+            "d447da25a9e300964ae3d0393e95fcb6d6521e563a1653a74f01efa7832319ca",
         ),
         (
             "predictions/cnn@test-0.75",
-            "b6ad46369fea5f1af5c723ff1ff8bcecf2a92c2b7938d3a0d98cff4fe2a5f233",
+            "98726a66e901f57c13e5a93f245a09cd67ba1a901499eb40336099d7d9072417",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "a3e2933ead160c8bc3e2cc5d9c4712cf0a77f1f72c3358495e795748b1a4281e",
+            "e74f6aeb3600b7582c3d2f95a7716d5bc6d0b0eeb490b8e7520ddb985aea1c87",
         ),
         (
             "predictions/cnn@test-1.00",
-            "64976b07a243139e4810a13d380cf0bb00e0b48843ceefa7e79f485077ebd565",
+            "e7d2d318b33a61e9d6edcea2181fe974aa6077d92836cbf6296a8c54535d784d",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "30b8251acb57debc0a866b8ed2661c7c95965e903bafc995681a939d55982b78",
+            "3fe7d6ba31fcf87163899667b5ee0c0397cc96daecf14ca1ae2c937eee7463b1",
         ),
         (
             "predictions/cnn@test-1.75",
-            "833cd92d5cbe5af3692204a8c5247b1ed807720b4f8f0c6cd529c0caf8eaeb77",
+            "6132684561cc97151db3a839a29d0fbb9ea2b1e172d5a675705bd47f228d9ea1",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "4d9960f5cfb5149c757594d1bde811a85beedeba94129cb82811c9e0403d3d6f",
+            "b9bce50203ed7fa7529f8819368e65f735f0074270666fc662681872f45a6518",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -188,7 +188,8 @@ pub struct TrainingSettings {
     /// Weight of the L1 offset loss against the focal score loss.
     pub offset_loss_weight: f64,
     /// Weight of the Gaussian negative log-likelihood that trains the σ
-    /// maps on the offsets' realised error (offsets not moved by it).
+    /// maps on the offsets' realised error at each target centre's pixel
+    /// (offsets not moved by it).
     pub sigma_loss_weight: f64,
     /// Weight of the binary cross-entropy that trains the within-1-px head
     /// on whether each pixel's localisation lands within 1 px of a centroid
@@ -209,7 +210,7 @@ impl Default for TrainingSettings {
             heatmap_sigma_px: 1.0,
             offset_radius_px: 1,
             offset_loss_weight: 1.0,
-            sigma_loss_weight: 0.1,
+            sigma_loss_weight: 1.0,
             within_loss_weight: 1.0,
         }
     }
@@ -306,8 +307,8 @@ pub struct EpochRecord {
     pub score_loss: f64,
     /// Mean L1 offset loss (pixels).
     pub offset_loss: f64,
-    /// Mean Gaussian negative log-likelihood of the σ maps (per supervised
-    /// pixel and axis, without the constant ½ ln 2π).
+    /// Mean Gaussian negative log-likelihood of the σ maps (per target
+    /// centre and axis, without the constant ½ ln 2π).
     pub sigma_loss: f64,
     /// Mean within-1-px cross-entropy (per target centre).
     pub within_loss: f64,

@@ -175,6 +175,7 @@ fn batch_loss(
     };
     let input = map(input, arch.input_channels());
     let positive = map(target.positive, 1);
+    let centre = positive.clone();
     let negative_weight = map(target.negative_weight, 1);
     let offset_target = map(target.offset, 2);
     let offset_mask = map(target.offset_mask, 1);
@@ -199,17 +200,19 @@ fn batch_loss(
     // loss's gradient alone.
     let realised_offset = offset.clone().detach();
     // L1 offset loss per supervised pixel (|dx| + |dy|).
-    let offset_loss = ((offset - offset_target.clone()).abs() * offset_mask.clone())
+    let offset_loss = ((offset - offset_target.clone()).abs() * offset_mask)
         .sum()
         .div_scalar(masked.max(1) as f64);
-    // Gaussian NLL of the offsets' error per supervised pixel and axis:
-    // ln σ + e² / 2σ² (DECODE's σ maps).
+    // Gaussian NLL of the offsets' error at each target centre's pixel, per
+    // axis: ln σ + e² / 2σ² (DECODE's σ maps). Only there: over the whole
+    // offset window the error mostly says how far a pixel is from the
+    // centre, which is not what the σ of a peak should tell.
     let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
     let squared_error = (realised_offset.clone() - offset_target).powi_scalar(2);
     let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
-    let sigma_loss = ((log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * offset_mask)
+    let sigma_loss = ((log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre)
         .sum()
-        .div_scalar((2 * masked).max(1) as f64);
+        .div_scalar((2 * positives).max(1) as f64);
     // Cross-entropy of the within-1-px head against whether each pixel's
     // localisation did land within 1 px, per target centre (as the focal
     // loss).
