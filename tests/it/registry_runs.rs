@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "d447da25a9e300964ae3d0393e95fcb6d6521e563a1653a74f01efa7832319ca",
+            "436e4b2bc612fccbee59e2ec1dc0a8c4234f4a7c57b15acd65862e653bbba4f4",
         ),
         (
             "predictions/cnn@test-0.75",
-            "98726a66e901f57c13e5a93f245a09cd67ba1a901499eb40336099d7d9072417",
+            "9f4b0eaf3cfd7b4f8f5bffceb7e15b3e9cd4e4c787ea9cf828a414517ecdd867",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "e74f6aeb3600b7582c3d2f95a7716d5bc6d0b0eeb490b8e7520ddb985aea1c87",
+            "dcb007d65af1793cbe6dc9c57f712d689b29680559339bf439afaee95f121bdd",
         ),
         (
             "predictions/cnn@test-1.00",
-            "e7d2d318b33a61e9d6edcea2181fe974aa6077d92836cbf6296a8c54535d784d",
+            "e866fe8460b8faa68fa01506fc5fac627a90501add72ae367d95f21768883724",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "3fe7d6ba31fcf87163899667b5ee0c0397cc96daecf14ca1ae2c937eee7463b1",
+            "9bb7c301dbcb67ab72395885945f31e1d9862e30f1d61035d6d697c85384beee",
         ),
         (
             "predictions/cnn@test-1.75",
-            "6132684561cc97151db3a839a29d0fbb9ea2b1e172d5a675705bd47f228d9ea1",
+            "5aa5b9abae603263b4f23e685b001e1c26820f1fb821ef911f9645058d447fce",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "b9bce50203ed7fa7529f8819368e65f735f0074270666fc662681872f45a6518",
+            "2e19be368ebdacf7ff5fc07917a4ac00e2a59862436f8262037cbd71f726b929",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -90,7 +90,7 @@ impl Default for CnnArchitecture {
             edge_channel: true,
             peak_radius_px: 2,
             refine_radius_px: 0,
-            score: CnnScore::Within1px,
+            score: CnnScore::Heatmap,
         }
     }
 }
