@@ -19,14 +19,17 @@ use scanloc::sim::{Distribution, SimParams};
 /// (score = mass), ordered by frame then descending mass. With `--method cnn
 /// --model MODEL` (a model folder saved by `scanloc train`, or a model of
 /// the registry: RUN:DETECTOR or a content key) the columns are
-/// frame,x,y,score, and a line on standard output names the model (its
-/// registry key, run and detector, or folder) and the sha256 of its bytes,
-/// the same for a registry model and its exported folder. With `--method
-/// likelihood` (a particle filter under the simulator's model of the
-/// paper's microscope, with the flags below for D, brightness, background
-/// and margin) the columns are frame,x,y,score: one row per frame, the
-/// posterior mean of the QD's trajectory centroid and the posterior mass
-/// within --score-radius-px of it.
+/// frame,x,y,sigma_x,sigma_y,score: sigma_x, sigma_y are the network's
+/// estimate of each localisation's error in pixels (filter on them as on an
+/// SMLM localisation precision), score as the model's `architecture.score`;
+/// a line on standard output names the model (its registry key, run and
+/// detector, or folder) and the sha256 of its bytes, the same for a
+/// registry model and its exported folder. With `--method likelihood` (a
+/// particle filter under the simulator's model of the paper's microscope,
+/// with the flags below for D, brightness, background and margin) the
+/// columns are frame,x,y,score: one row per frame, the posterior mean of
+/// the QD's trajectory centroid and the posterior mass within
+/// --score-radius-px of it.
 ///
 /// Integer frames are photon counts. Float frames (float32/float64 .npy or
 /// TIFF pages; fractional or negative values, e.g. background-subtracted)

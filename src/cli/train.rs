@@ -137,6 +137,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         offset_loss_weight: args
             .offset_loss_weight
             .unwrap_or(defaults.offset_loss_weight),
+        ..defaults
     };
     architecture.validate()?;
     settings.validate()?;

@@ -4,7 +4,10 @@
 //!   per emitter per frame (TrackPy pixel coordinates; `z_mean` in µm;
 //!   `diffusion` in µm²/s).
 //! - Localisations: at least `frame,x,y,score`; detectors add their own
-//!   columns (Crocker–Grier writes TrackPy's `mass,size,ecc,signal,raw_mass,ep`).
+//!   columns (Crocker–Grier writes TrackPy's `mass,size,ecc,signal,raw_mass,ep`),
+//!   and predictions that carry an uncertainty add `sigma_x,sigma_y` (pixels)
+//!   before `score`. Tables without those columns read as predictions
+//!   without an uncertainty.
 //!
 //! Floats are written in Rust's shortest round-trip form, so reading gives
 //! back the same bits. Each table has one writer and one reader over any
@@ -18,7 +21,7 @@ use serde::Deserialize;
 
 use super::{PendingFile, open_input, write_atomically};
 use crate::error::input_error;
-use crate::types::{Prediction, TruthRow};
+use crate::types::{LocalisationSigma, Prediction, TruthRow};
 
 /// Column names of a truth file, in order.
 pub const TRUTH_COLUMNS: [&str; 9] = [
@@ -113,8 +116,14 @@ pub fn read_truth_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<T
 /// Column names of a predictions table written by scanloc, in order.
 pub const PREDICTION_COLUMNS: [&str; 4] = ["frame", "x", "y", "score"];
 
-/// Reads the `frame,x,y,score` columns of a localisation file (other
-/// columns are ignored). Non-finite coordinates or scores are refused.
+/// The optional columns of a localisation's uncertainty
+/// ([`LocalisationSigma`]), written before `score` when any prediction of
+/// the table has one.
+pub const SIGMA_COLUMNS: [&str; 2] = ["sigma_x", "sigma_y"];
+
+/// Reads the `frame,x,y,score` columns of a localisation file, and
+/// `sigma_x,sigma_y` when present (other columns are ignored). Non-finite
+/// coordinates or scores are refused.
 pub fn read_predictions(path: &Path) -> anyhow::Result<Vec<Prediction>> {
     read_predictions_from(open_input(path)?, &path.display().to_string())
 }
@@ -127,7 +136,9 @@ pub fn read_predictions_from<R: Read>(reader: R, source: &str) -> anyhow::Result
 
 /// Reads a localisation file whose score is column `score_column` (e.g.
 /// `mass` in TrackPy's own output): columns `frame`, `x`, `y` and
-/// `score_column`, others ignored. Frame numbers may be written as whole
+/// `score_column`, and the uncertainty `sigma_x,sigma_y` if the table has
+/// both (a row with both cells empty has none; otherwise each must be a
+/// finite number > 0); others ignored. Frame numbers may be written as whole
 /// floats (`3.0`, as pandas writes them); non-finite coordinates or scores
 /// are refused, naming the row.
 pub fn read_predictions_scored_by(
@@ -148,6 +159,12 @@ pub fn read_predictions_scored_by_from<R: Read>(
     let (mut reader, headers) = open_table(reader, name, &required)?;
     let column = |wanted: &str| headers.iter().position(|h| h.trim() == wanted);
     let [frame_at, x_at, y_at, score_at] = required.map(|c| column(c).unwrap_or_default());
+    let sigma_at = match SIGMA_COLUMNS.map(column) {
+        [Some(x), Some(y)] => Some((x, y)),
+        [None, None] => None,
+        [Some(_), None] => crate::bail_input!("{name}: column sigma_x needs a sigma_y column"),
+        [None, Some(_)] => crate::bail_input!("{name}: column sigma_y needs a sigma_x column"),
+    };
     let mut predictions = Vec::new();
     for (index, record) in reader.records().enumerate() {
         let row = index + 1;
@@ -164,11 +181,29 @@ pub fn read_predictions_scored_by_from<R: Read>(
         };
         let frame = parse_frame_number(cell(frame_at))
             .map_err(|e| input_error(format!("{name}: row {row}: frame: {e}")))?;
+        let sigma = match sigma_at {
+            Some((sx_at, sy_at)) if !(cell(sx_at).is_empty() && cell(sy_at).is_empty()) => {
+                let positive = |at: usize, column: &str| -> anyhow::Result<f64> {
+                    match number(at, column)? {
+                        value if value > 0.0 => Ok(value),
+                        value => Err(input_error(format!(
+                            "{name}: row {row}: {column}: expected a number > 0, got {value}"
+                        ))),
+                    }
+                };
+                Some(LocalisationSigma {
+                    x: positive(sx_at, "sigma_x")?,
+                    y: positive(sy_at, "sigma_y")?,
+                })
+            }
+            _ => None,
+        };
         predictions.push(Prediction {
             frame,
             x: number(x_at, "x")?,
             y: number(y_at, "y")?,
             score: number(score_at, score_column)?,
+            sigma,
         });
     }
     Ok(predictions)
@@ -214,22 +249,26 @@ fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<
         .map_err(|_| serde::de::Error::custom(format!("expected a number, got {text:?}")))
 }
 
-/// Writes predictions as `frame,x,y,score` to `path` atomically.
+/// Writes predictions as `frame,x,y,score` (with `sigma_x,sigma_y` before
+/// `score` if any has an uncertainty) to `path` atomically.
 pub fn write_predictions(path: &Path, predictions: &[Prediction]) -> anyhow::Result<()> {
     write_atomically(path, |writer| write_predictions_to(writer, predictions))
 }
 
 /// Writes predictions as `frame,x,y,score` CSV (header first, `\n` line
-/// ends) to any writer. The registry's `predictions.csv` blobs are these
-/// bytes: change them only with the blob format's version.
+/// ends) to any writer; if any prediction has an uncertainty, the columns
+/// are `frame,x,y,sigma_x,sigma_y,score` (empty cells for predictions
+/// without one). The registry's `predictions.csv` blobs are these bytes:
+/// change them only with the blob format's version.
 pub fn write_predictions_to<W: Write>(writer: W, predictions: &[Prediction]) -> anyhow::Result<()> {
     write_localisations_to(writer, [], predictions.iter().map(|&p| (p, [])))
 }
 
 /// Writes a detector's localisations to `path` atomically, with its own
-/// columns: `frame,x,y`, then `extra_columns`, then `score` (Crocker–Grier
-/// passes TrackPy's `mass,size,ecc,signal,raw_mass,ep`). Each row is a
-/// prediction and its values of the extra columns, in order.
+/// columns: `frame,x,y`, then `extra_columns`, then `sigma_x,sigma_y` if
+/// any prediction has an uncertainty, then `score` (Crocker–Grier passes
+/// TrackPy's `mass,size,ecc,signal,raw_mass,ep`). Each row is a prediction
+/// and its values of the extra columns, in order.
 pub fn write_localisations<const N: usize>(
     path: &Path,
     extra_columns: [&str; N],
@@ -247,16 +286,28 @@ fn write_localisations_to<W: Write, const N: usize>(
     extra_columns: [&str; N],
     rows: impl IntoIterator<Item = (Prediction, [f64; N])>,
 ) -> anyhow::Result<()> {
+    let rows: Vec<(Prediction, [f64; N])> = rows.into_iter().collect();
+    // The columns only when there is something to put in them, so tables
+    // of detectors without an uncertainty keep their bytes.
+    let with_sigma = rows.iter().any(|(p, _)| p.sigma.is_some());
+    let sigma_columns: &[&str] = if with_sigma { &SIGMA_COLUMNS } else { &[] };
     let mut csv = csv::Writer::from_writer(writer);
     let header = ["frame", "x", "y"]
         .into_iter()
         .chain(extra_columns)
+        .chain(sigma_columns.iter().copied())
         .chain(["score"]);
     csv.write_record(header)?;
     for (p, extra) in rows {
+        let sigma_fields = match (with_sigma, p.sigma) {
+            (false, _) => Vec::new(),
+            (true, Some(sigma)) => vec![sigma.x.to_string(), sigma.y.to_string()],
+            (true, None) => vec![String::new(), String::new()],
+        };
         let fields = [p.frame.to_string(), p.x.to_string(), p.y.to_string()]
             .into_iter()
             .chain(extra.iter().map(f64::to_string))
+            .chain(sigma_fields)
             .chain([p.score.to_string()]);
         csv.write_record(fields)?;
     }
@@ -311,4 +362,91 @@ fn open_table<R: Read>(
         )));
     }
     Ok((reader, headers))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(predictions: &[Prediction]) -> String {
+        let mut bytes = Vec::new();
+        write_predictions_to(&mut bytes, predictions).unwrap();
+        String::from_utf8(bytes).unwrap()
+    }
+
+    #[test]
+    fn uncertainties_round_trip_bit_for_bit_in_their_own_columns() {
+        let predictions = [
+            Prediction {
+                sigma: Some(LocalisationSigma {
+                    x: 0.1 + 0.2,
+                    y: 1e-7,
+                }),
+                ..Prediction::new(0, 1.5, -1.0 / 3.0, 0.25)
+            },
+            // A row without an uncertainty in a table that has them.
+            Prediction::new(2, 3.0, 4.0, 0.5),
+        ];
+        let text = write(&predictions);
+        assert_eq!(
+            text,
+            "frame,x,y,sigma_x,sigma_y,score\n\
+             0,1.5,-0.3333333333333333,0.30000000000000004,0.0000001,0.25\n\
+             2,3,4,,,0.5\n"
+        );
+        let back = read_predictions_from(text.as_bytes(), "t.csv").unwrap();
+        assert_eq!(back, predictions);
+        let sigma = back[0].sigma.unwrap();
+        assert_eq!(sigma.x.to_bits(), (0.1f64 + 0.2).to_bits());
+    }
+
+    #[test]
+    fn tables_without_uncertainties_keep_their_bytes_and_still_read() {
+        let predictions = [Prediction::new(1, 2.5, 3.5, 0.75)];
+        assert_eq!(write(&predictions), "frame,x,y,score\n1,2.5,3.5,0.75\n");
+        // Column order is free and extra columns are ignored, as before.
+        let old = "x,y,frame,mass,score\n2.5,3.5,1,10,0.75\n";
+        assert_eq!(
+            read_predictions_from(old.as_bytes(), "old.csv").unwrap(),
+            predictions
+        );
+    }
+
+    #[test]
+    fn bad_uncertainties_are_refused_naming_row_and_column() {
+        let cases = [
+            (
+                "frame,x,y,sigma_x,score\n0,1,1,0.5,0.9\n",
+                "sigma_x needs a sigma_y",
+            ),
+            (
+                "frame,x,y,sigma_y,score\n0,1,1,0.5,0.9\n",
+                "sigma_y needs a sigma_x",
+            ),
+            (
+                "frame,x,y,sigma_x,sigma_y,score\n0,1,1,0,0.5,0.9\n",
+                "row 1: sigma_x: expected a number > 0",
+            ),
+            (
+                "frame,x,y,sigma_x,sigma_y,score\n0,1,1,0.5,,0.9\n",
+                "row 1: sigma_y: expected a finite number",
+            ),
+            (
+                "frame,x,y,sigma_x,sigma_y,score\n0,1,1,0.5,inf,0.9\n",
+                "row 1: sigma_y: expected a finite number",
+            ),
+        ];
+        for (text, expected) in cases {
+            let error = read_predictions_from(text.as_bytes(), "bad.csv").unwrap_err();
+            let message = format!("{error:#}");
+            assert!(
+                message.starts_with("bad.csv: ") && message.contains(expected),
+                "{text:?}: {message}"
+            );
+            assert!(
+                error.chain().any(|c| c.is::<crate::error::InputError>()),
+                "{message}"
+            );
+        }
+    }
 }

@@ -4,8 +4,9 @@
 //!   `(n, H, W)`, the same `.npy` as `scanloc simulate` writes, so numpy can
 //!   open a blob directly) and `truth.csv` (the truth CSV of `simulate`).
 //! - model: `model.bin`, the detector's own serialisation.
-//! - predictions: `predictions.csv`, `frame,x,y,score` (the predictions CSV
-//!   of `locate`; floats in Rust's shortest round-trip form, so reading
+//! - predictions: `predictions.csv`, `frame,x,y,score`, with
+//!   `sigma_x,sigma_y` before `score` when the detector estimates its
+//!   error (the predictions CSV of `locate`; floats in Rust's shortest round-trip form, so reading
 //!   gives back the same bits).
 //! - evaluation: `score.json`, the metric's [`Score`] (with curves if the
 //!   manifest keeps them).
@@ -139,23 +140,28 @@ mod tests {
             assert_eq!(a.x.to_bits(), b.x.to_bits());
         }
         let predictions = vec![
-            Prediction {
-                frame: 0,
-                x: 0.1 + 0.2,
-                y: -1.0 / 3.0,
-                score: 1e-300,
-            },
-            Prediction {
-                frame: 3,
-                x: 12.0,
-                y: 7.5,
-                score: 123456.789,
-            },
+            Prediction::new(0, 0.1 + 0.2, -1.0 / 3.0, 1e-300),
+            Prediction::new(3, 12.0, 7.5, 123456.789),
         ];
         let blobs = Artefact::Predictions(Arc::new(predictions.clone()))
             .encode()
             .unwrap();
         assert_eq!(decode_predictions(&blobs).unwrap(), predictions);
+        // A detector's uncertainty is stored and read back too.
+        let with_sigma: Vec<Prediction> = predictions
+            .iter()
+            .map(|&p| Prediction {
+                sigma: Some(crate::types::LocalisationSigma {
+                    x: 0.1 + 0.2,
+                    y: 7.0,
+                }),
+                ..p
+            })
+            .collect();
+        let blobs = Artefact::Predictions(Arc::new(with_sigma.clone()))
+            .encode()
+            .unwrap();
+        assert_eq!(decode_predictions(&blobs).unwrap(), with_sigma);
     }
 
     /// The SHA-256 of each blob of `dataset`'s artefact, by role.
@@ -246,20 +252,10 @@ mod tests {
             (usize::MAX, f64::MAX, -f64::MAX, f64::EPSILON),
             (1, f64::NAN, f64::INFINITY, f64::NEG_INFINITY),
         ]
-        .map(|(frame, x, y, score)| Prediction { frame, x, y, score });
+        .map(|(frame, x, y, score)| Prediction::new(frame, x, y, score));
         let two = [
-            Prediction {
-                frame: 0,
-                x: 0.1 + 0.2,
-                y: -1.0 / 3.0,
-                score: 0.5,
-            },
-            Prediction {
-                frame: 3,
-                x: 12.0,
-                y: 7.5,
-                score: 123456.789,
-            },
+            Prediction::new(0, 0.1 + 0.2, -1.0 / 3.0, 0.5),
+            Prediction::new(3, 12.0, 7.5, 123456.789),
         ];
         assert_eq!(
             String::from_utf8(encode(&two)).unwrap(),
@@ -270,11 +266,13 @@ mod tests {
         // Detector-like values: pixel coordinates and scores of all sizes.
         let mut rng = ChaCha8Rng::seed_from_u64(17);
         let many: Vec<Prediction> = (0..2000)
-            .map(|i| Prediction {
-                frame: i / 3,
-                x: rng.random::<f64>() * 25.0 - 0.5,
-                y: rng.random::<f64>() * 24.0 - 0.5,
-                score: rng.random::<f64>() * 10f64.powi(rng.random_range(-12..12)),
+            .map(|i| {
+                Prediction::new(
+                    i / 3,
+                    rng.random::<f64>() * 25.0 - 0.5,
+                    rng.random::<f64>() * 24.0 - 0.5,
+                    rng.random::<f64>() * 10f64.powi(rng.random_range(-12..12)),
+                )
             })
             .collect();
         assert_eq!(encode(&many), encoding_before_sharing(&many));

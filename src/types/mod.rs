@@ -10,5 +10,5 @@ pub mod prediction;
 pub mod truth;
 
 pub use frames::{FrameStack, Frames, RealFrameStack, Recording};
-pub use prediction::Prediction;
+pub use prediction::{LocalisationSigma, Prediction};
 pub use truth::{Dataset, TruthRow};

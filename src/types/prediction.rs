@@ -12,4 +12,29 @@ pub struct Prediction {
     pub y: f64,
     /// Confidence used to rank predictions in the metric: higher is surer.
     pub score: f64,
+    /// The detector's own estimate of this localisation's error, when it
+    /// makes one (the CNN does; Crocker–Grier does not).
+    pub sigma: Option<LocalisationSigma>,
+}
+
+/// A localisation's expected error: the standard deviations, in pixels, of
+/// the true position about the reported one along `x` (columns) and `y`
+/// (rows). Both are finite and > 0.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalisationSigma {
+    pub x: f64,
+    pub y: f64,
+}
+
+impl Prediction {
+    /// A localisation without an uncertainty estimate.
+    pub fn new(frame: usize, x: f64, y: f64, score: f64) -> Self {
+        Self {
+            frame,
+            x,
+            y,
+            score,
+            sigma: None,
+        }
+    }
 }

@@ -4,7 +4,10 @@
 //! Everything here uses a tiny network (8 channels) and a few hundred
 //! 24×25 frames so the whole file runs in seconds.
 
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings, ValidationSet};
+use scanloc::detect::cnn::model::OUTPUT_CHANNELS;
+use scanloc::detect::cnn::{
+    self, CnnArchitecture, CnnScore, TrainedCnn, TrainingSettings, ValidationSet,
+};
 use scanloc::error::InputError;
 use scanloc::metrics;
 use scanloc::progress::hidden;
@@ -385,7 +388,7 @@ fn all_zero_and_huge_count_frames_give_finite_scores() {
         let n = counts.len() / (24 * 25);
         let frames = FrameStack::from_vec(n, 24, 25, counts).unwrap();
         let raw = model.raw_output(&frames).unwrap();
-        assert_eq!(raw.len(), n * 3 * 24 * 25, "{what}");
+        assert_eq!(raw.len(), n * OUTPUT_CHANNELS * 24 * 25, "{what}");
         assert!(raw.iter().all(|v| v.is_finite()), "{what}: raw output");
         let predictions = model.locate(&frames, &hidden()).unwrap();
         for frame in 0..n {
@@ -470,4 +473,119 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
     )
     .unwrap_err();
     assert!(is_input_error(&error), "{error:#}");
+}
+
+/// Mean over frames of `what` of each frame's top prediction (frames
+/// without a prediction skipped), and how many frames had one.
+fn mean_of_top(
+    predictions: &[Prediction],
+    frames: usize,
+    what: impl Fn(&Prediction) -> f64,
+) -> (f64, usize) {
+    let values: Vec<f64> = top_per_frame(predictions, frames)
+        .iter()
+        .flatten()
+        .map(&what)
+        .collect();
+    (
+        values.iter().sum::<f64>() / values.len().max(1) as f64,
+        values.len(),
+    )
+}
+
+#[test]
+fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
+    // Trained on static to fast QDs, so the network sees both and can learn
+    // that a fast QD's centroid is harder to place (the beam sees the path
+    // only where it passes).
+    let training_params = SimParams {
+        diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.0, 2.5])),
+        ..params(40.0)
+    };
+    let data = sim::simulate(&training_params, 91, 0..400, &hidden()).unwrap();
+    let mut model = train_tiny(&data, 4, 9);
+    // Scored by the within-1-px head, whatever the default.
+    model.architecture.score = CnnScore::Within1px;
+    let frames = 40;
+    let set = |diffusion: f64, seed: u64| {
+        let params = SimParams {
+            diffusion_um2_s: Distribution::Fixed(diffusion),
+            ..params(40.0)
+        };
+        sim::simulate(&params, seed, 0..frames, &hidden()).unwrap()
+    };
+    // In focus (z starts at 0) and static, against D = 2.5 µm²/s.
+    let (easy, hard) = (set(0.0, 92), set(2.5, 93));
+    let mut report = Vec::new();
+    let mut figures = |data: &Dataset| {
+        let predictions = model.locate(&data.frames, &hidden()).unwrap();
+        assert!(
+            predictions.iter().all(|p| p
+                .sigma
+                .is_some_and(|s| { s.x.is_finite() && s.y.is_finite() && s.x > 0.0 && s.y > 0.0 }))
+        );
+        let truth = &data.truth;
+        let (error, found) = mean_of_top(&predictions, frames, |p| {
+            let t = &truth[p.frame];
+            (p.x - t.x).hypot(p.y - t.y)
+        });
+        let (sigma, _) = mean_of_top(&predictions, frames, |p| {
+            let s = p.sigma.unwrap();
+            (s.x * s.y).sqrt()
+        });
+        let (score, _) = mean_of_top(&predictions, frames, |p| p.score);
+        report.push(format!(
+            "{found} frames found, mean error {error:.3} px, mean σ {sigma:.3} px, mean score {score:.3}"
+        ));
+        (found, error, sigma, score)
+    };
+    let (easy_found, easy_error, easy_sigma, easy_score) = figures(&easy);
+    let (hard_found, hard_error, hard_sigma, hard_score) = figures(&hard);
+    eprintln!("easy: {}\nhard: {}", report[0], report[1]);
+    // The network learnt something: it finds the static QD and places it
+    // well within a pixel, and really does worse on the fast one.
+    assert!(
+        easy_found >= frames * 3 / 4 && easy_error < 0.7,
+        "{report:?}"
+    );
+    assert!(hard_found > 0 && hard_error > easy_error, "{report:?}");
+    // And it knows: a larger σ and a lower probability of being within
+    // 1 px for the hard frames.
+    assert!(hard_sigma > easy_sigma, "{report:?}");
+    assert!(hard_score < easy_score, "{report:?}");
+
+    // `scanloc locate --method cnn` writes the uncertainty columns, and
+    // `scanloc score` reads the table back.
+    let dir = tempfile::tempdir().unwrap();
+    let path = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
+    model.save(&dir.path().join("model")).unwrap();
+    scanloc::io::write_frames(&dir.path().join("easy.npy"), &easy.frames).unwrap();
+    scanloc::io::csv_tables::write_truth(&dir.path().join("truth.csv"), &easy.truth).unwrap();
+    let out = crate::common::scanloc(&[
+        "locate",
+        "--method",
+        "cnn",
+        "--model",
+        &path("model"),
+        "--input",
+        &path("easy.npy"),
+        "--out",
+        &path("locs.csv"),
+    ]);
+    assert!(out.status.success(), "{}", crate::common::stderr(&out));
+    let table = std::fs::read_to_string(path("locs.csv")).unwrap();
+    assert!(
+        table.starts_with("frame,x,y,sigma_x,sigma_y,score\n"),
+        "{table}"
+    );
+    let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();
+    assert_eq!(read, model.locate(&easy.frames, &hidden()).unwrap());
+    let out = crate::common::scanloc(&[
+        "score",
+        "--truth",
+        &path("truth.csv"),
+        "--locs",
+        &path("locs.csv"),
+    ]);
+    assert!(out.status.success(), "{}", crate::common::stderr(&out));
 }

@@ -18,7 +18,7 @@ fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
 }
 
 fn prediction(frame: usize, x: f64, y: f64, score: f64) -> Prediction {
-    Prediction { frame, x, y, score }
+    Prediction::new(frame, x, y, score)
 }
 
 fn close(a: f64, b: f64) -> bool {

@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "0eb00e20c62a8550291627375f763ef636b467a87d98996645aa7cf186280593",
+            "436e4b2bc612fccbee59e2ec1dc0a8c4234f4a7c57b15acd65862e653bbba4f4",
         ),
         (
             "predictions/cnn@test-0.75",
-            "a403658a4b3ca59ea538d450d27c914ac63c840c105a442ea2c785c428b61f23",
+            "9f4b0eaf3cfd7b4f8f5bffceb7e15b3e9cd4e4c787ea9cf828a414517ecdd867",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "b58e954987ef11d8e880c327e9dbeaab8a4aa0026f7411ecd29cae9abf986f22",
+            "fe1801d317ca53381508dcecfac30b1d2826dc29cc812cc55bb9f8ac590aa96e",
         ),
         (
             "predictions/cnn@test-1.00",
-            "21e186aa02b274d49ae8c252a15d103adb4145db35fb921b27f8ee506c2b1fdf",
+            "e866fe8460b8faa68fa01506fc5fac627a90501add72ae367d95f21768883724",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "e3a94e1e8f0d221c3e4505befb8ec32e1f2f6044f6345b9b9e008889a235013d",
+            "4d22f9cfc4c1866d374b3db2567688cdb34835ecea58ef2f6d7aa88ea5db2158",
         ),
         (
             "predictions/cnn@test-1.75",
-            "9609b15f51c4491c7c31811d01a57e4cf77b89cc6f30696b2e75d6b41e9ab6ed",
+            "5aa5b9abae603263b4f23e685b001e1c26820f1fb821ef911f9645058d447fce",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "11d006d99e383d7bc5d23fab67a890b74fe3eceac76e5b78178c9111f8f24cbf",
+            "5751e51d60e2c08111f5bb9aefc7d0f9fc33585509221bea2e1f54fff504191f",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -3,9 +3,12 @@
 use indicatif::ProgressBar;
 
 use super::data::normalised_input;
-use super::model::{Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL};
-use super::{CnnArchitecture, TrainedCnn, inference_device};
-use crate::types::{FrameStack, Prediction};
+use super::model::{
+    LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
+    OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+};
+use super::{CnnArchitecture, CnnScore, TrainedCnn, inference_device};
+use crate::types::{FrameStack, LocalisationSigma, Prediction};
 
 /// Most frames per forward pass (small frames; the paper's 24 × 25 pixel
 /// frames go 256 at a time).
@@ -61,10 +64,11 @@ impl TrainedCnn {
         )
     }
 
-    /// The architecture's receptive field etc. are public; the raw score
-    /// and offset maps of `frames` are exposed for diagnostics: row-major
-    /// `[n, 3, H, W]` with channel 0 the score logit, 1 the x offset, 2 the
-    /// y offset.
+    /// The architecture's receptive field etc. are public; the raw output
+    /// maps of `frames` are exposed for diagnostics: row-major
+    /// `[n, OUTPUT_CHANNELS, H, W]`, channels as the `*_CHANNEL` constants
+    /// of [`super::model`] (score logit, x offset, y offset, ln σx, ln σy,
+    /// within-1-px logit).
     pub fn raw_output(&self, frames: &FrameStack) -> anyhow::Result<Vec<f32>> {
         let device = inference_device();
         let mut out = Vec::with_capacity(frames.n * OUTPUT_CHANNELS * frames.frame_len());
@@ -155,6 +159,9 @@ pub(crate) fn locate_with(
             let logits = &maps[SCORE_CHANNEL * len..(SCORE_CHANNEL + 1) * len];
             let dx = &maps[OFFSET_X_CHANNEL * len..(OFFSET_X_CHANNEL + 1) * len];
             let dy = &maps[OFFSET_Y_CHANNEL * len..(OFFSET_Y_CHANNEL + 1) * len];
+            let log_sigma_x = &maps[LOG_SIGMA_X_CHANNEL * len..(LOG_SIGMA_X_CHANNEL + 1) * len];
+            let log_sigma_y = &maps[LOG_SIGMA_Y_CHANNEL * len..(LOG_SIGMA_Y_CHANNEL + 1) * len];
+            let within = &maps[WITHIN_1PX_CHANNEL * len..(WITHIN_1PX_CHANNEL + 1) * len];
             for (row, col) in local_maxima(logits, height, width, arch.peak_radius_px) {
                 let p = row * width + col;
                 let logit = logits[p] as f64;
@@ -174,11 +181,21 @@ pub(crate) fn locate_with(
                         arch.refine_radius_px,
                     )
                 };
+                let sigma = LocalisationSigma {
+                    x: (log_sigma_x[p] as f64).exp(),
+                    y: (log_sigma_y[p] as f64).exp(),
+                };
+                let score = match arch.score {
+                    CnnScore::Heatmap => sigmoid(logit),
+                    CnnScore::Within1px => sigmoid(within[p] as f64),
+                    CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(sigma),
+                };
                 predictions.push(Prediction {
                     frame,
                     x,
                     y,
-                    score: sigmoid(logit),
+                    score,
+                    sigma: Some(sigma),
                 });
             }
             progress.inc(1);
@@ -189,6 +206,14 @@ pub(crate) fn locate_with(
 
 fn sigmoid(logit: f64) -> f64 {
     1.0 / (1.0 + (-logit).exp())
+}
+
+/// The probability that a 2-D Gaussian error of standard deviations
+/// `sigma` lies within 1 px: `1 − exp(−1 / (2 σx σy))`, exact when σx = σy
+/// (the Rayleigh distribution) and the isotropic approximation with the
+/// same area otherwise.
+fn gaussian_within_1px(sigma: LocalisationSigma) -> f64 {
+    1.0 - (-1.0 / (2.0 * sigma.x * sigma.y)).exp()
 }
 
 /// The score-weighted mean of pixel + offset over the window of `radius`

@@ -16,7 +16,8 @@
 //! at integers) are the local maxima of the score map (within
 //! `peak_radius_px`, ties broken by raster order) whose score (a sigmoid,
 //! in (0, 1)) is at least `score_floor`; position = pixel centre + predicted
-//! offset, score = the map's value.
+//! offset; score as [`CnnArchitecture::score`] says; uncertainty
+//! (`sigma_x`, `sigma_y`) = the σ maps at the peak pixel.
 
 pub mod data;
 pub mod inference;
@@ -56,6 +57,29 @@ pub struct CnnArchitecture {
     /// r > 0 = the mean of pixel + offset over the (2r + 1)² window around
     /// the peak, weighted by the score map (sigmoid).
     pub refine_radius_px: usize,
+    /// What a prediction's score is (the metric ranks by it).
+    pub score: CnnScore,
+}
+
+/// The score a CNN prediction is ranked by, read at its peak pixel; each is
+/// in [0, 1]. Which peaks become predictions does not depend on it (that is
+/// the centre score against `score_floor`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CnnScore {
+    /// The centre score map (sigmoid): how sure the network is that a QD's
+    /// centroid is nearest this pixel.
+    Heatmap,
+    /// The within-1-px head (sigmoid): the network's probability that this
+    /// localisation lies within 1 px of a centroid, trained against the
+    /// realised error of its own offsets.
+    #[serde(rename = "within_1px")]
+    Within1px,
+    /// The centre score times the probability, under the σ maps, that the
+    /// error is within 1 px: `1 − exp(−1 / (2 σx σy))` (exact for σx = σy,
+    /// the isotropic approximation otherwise).
+    #[serde(rename = "gaussian_within_1px")]
+    GaussianWithin1px,
 }
 
 impl Default for CnnArchitecture {
@@ -67,6 +91,7 @@ impl Default for CnnArchitecture {
             edge_channel: true,
             peak_radius_px: 2,
             refine_radius_px: 0,
+            score: CnnScore::Heatmap,
         }
     }
 }
@@ -163,6 +188,14 @@ pub struct TrainingSettings {
     pub offset_radius_px: usize,
     /// Weight of the L1 offset loss against the focal score loss.
     pub offset_loss_weight: f64,
+    /// Weight of the Gaussian negative log-likelihood that trains the σ
+    /// maps on the offsets' realised error at each target centre's pixel
+    /// (offsets not moved by it).
+    pub sigma_loss_weight: f64,
+    /// Weight of the binary cross-entropy that trains the within-1-px head
+    /// on whether each pixel's localisation lands within 1 px of a centroid
+    /// (offsets not moved by it).
+    pub within_loss_weight: f64,
 }
 
 impl Default for TrainingSettings {
@@ -178,6 +211,8 @@ impl Default for TrainingSettings {
             heatmap_sigma_px: 1.0,
             offset_radius_px: 1,
             offset_loss_weight: 1.0,
+            sigma_loss_weight: 1.0,
+            within_loss_weight: 1.0,
         }
     }
 }
@@ -242,14 +277,17 @@ impl TrainingSettings {
                 format!("must be in 0..=16, got {}", self.offset_radius_px),
             ));
         }
-        if !(self.offset_loss_weight.is_finite() && self.offset_loss_weight >= 0.0) {
-            return Err(FieldError::new(
-                "training.offset_loss_weight",
-                format!(
-                    "must be a finite number ≥ 0, got {}",
-                    self.offset_loss_weight
-                ),
-            ));
+        for (field, weight) in [
+            ("training.offset_loss_weight", self.offset_loss_weight),
+            ("training.sigma_loss_weight", self.sigma_loss_weight),
+            ("training.within_loss_weight", self.within_loss_weight),
+        ] {
+            if !(weight.is_finite() && weight >= 0.0) {
+                return Err(FieldError::new(
+                    field,
+                    format!("must be a finite number ≥ 0, got {weight}"),
+                ));
+            }
         }
         Ok(())
     }
@@ -270,6 +308,11 @@ pub struct EpochRecord {
     pub score_loss: f64,
     /// Mean L1 offset loss (pixels).
     pub offset_loss: f64,
+    /// Mean Gaussian negative log-likelihood of the σ maps (per target
+    /// centre and axis, without the constant ½ ln 2π).
+    pub sigma_loss: f64,
+    /// Mean within-1-px cross-entropy (per target centre).
+    pub within_loss: f64,
     /// Validation AUC at ε = 1, 2, 3 px (empty without validation).
     pub validation_auc: Vec<f64>,
     /// Mean of `validation_auc`, the selection criterion (None without validation).
@@ -323,7 +366,7 @@ struct SavedConfig {
 }
 
 /// Names the serialisation format; bump on any incompatible change.
-pub const FORMAT: &str = "scanloc-cnn/1";
+pub const FORMAT: &str = "scanloc-cnn/2";
 /// Version of the training and inference code, part of the content key of
 /// every model and prediction in the registry: bump it whenever a change
 /// would alter trained weights (initialisation, batching, loss, optimiser,

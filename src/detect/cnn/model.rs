@@ -1,7 +1,10 @@
 //! The network: a stack of dilated 3×3 convolutions (each followed by batch
-//! norm and ReLU) that keeps the frame size, and a 1×1 head giving three maps
-//! per pixel: the centre score logit and the sub-pixel offsets (dx, dy) from
-//! the pixel centre to the QD's trajectory centroid.
+//! norm and ReLU) that keeps the frame size, and a 1×1 head giving six maps
+//! per pixel: the centre score logit, the sub-pixel offsets (dx, dy) from
+//! the pixel centre to the QD's trajectory centroid, and the localisation's
+//! uncertainty read two ways: ln σx, ln σy of the offsets' error, and the
+//! logit of the probability that pixel + offset lies within 1 px of a
+//! centroid.
 //!
 //! Every conv pads by its dilation, so the output has exactly the input's
 //! height and width whatever the frame size: the model trained on 24×25
@@ -30,13 +33,26 @@ pub const SCORE_CHANNEL: usize = 0;
 pub const OFFSET_X_CHANNEL: usize = 1;
 /// Output channel holding the row offset (y) in pixels.
 pub const OFFSET_Y_CHANNEL: usize = 2;
+/// Output channel holding ln σx, the natural log of the standard deviation
+/// (pixels) of the true centroid's column about pixel + offset.
+pub const LOG_SIGMA_X_CHANNEL: usize = 3;
+/// Output channel holding ln σy (rows), as [`LOG_SIGMA_X_CHANNEL`].
+pub const LOG_SIGMA_Y_CHANNEL: usize = 4;
+/// Output channel holding the logit of the probability that this pixel's
+/// localisation (pixel + offset) lies within 1 px of a trajectory centroid.
+pub const WITHIN_1PX_CHANNEL: usize = 5;
 /// Number of output maps.
-pub const OUTPUT_CHANNELS: usize = 3;
+pub const OUTPUT_CHANNELS: usize = 6;
 
 /// Prior probability that a pixel is a QD centre, used to set the initial
 /// score bias (as CenterNet does) so that early training is not swamped by
-/// the loss of the many background pixels.
+/// the loss of the many background pixels; also the initial probability of
+/// a pixel's localisation being within 1 px of a centroid, for the same
+/// reason.
 const INITIAL_CENTRE_PRIOR: f64 = 0.01;
+/// Initial σ (pixels) of the uncertainty maps: about the offsets' error
+/// early in training, so the first likelihood gradients are moderate.
+const INITIAL_SIGMA_PX: f64 = 0.5;
 
 /// One dilated 3×3 convolution, optionally batch-normalised, then ReLU.
 #[derive(Module, Debug)]
@@ -115,16 +131,22 @@ impl Net {
         head.weight = normal_param(&mut rng, [OUTPUT_CHANNELS, in_channels, 1, 1], 0.01, device)
             .with_id(id());
         let mut bias = vec![0.0f32; OUTPUT_CHANNELS];
-        bias[SCORE_CHANNEL] = (INITIAL_CENTRE_PRIOR / (1.0 - INITIAL_CENTRE_PRIOR)).ln() as f32;
+        let prior_logit = (INITIAL_CENTRE_PRIOR / (1.0 - INITIAL_CENTRE_PRIOR)).ln() as f32;
+        bias[SCORE_CHANNEL] = prior_logit;
+        bias[WITHIN_1PX_CHANNEL] = prior_logit;
+        bias[LOG_SIGMA_X_CHANNEL] = INITIAL_SIGMA_PX.ln() as f32;
+        bias[LOG_SIGMA_Y_CHANNEL] = INITIAL_SIGMA_PX.ln() as f32;
         head.bias =
             Some(Param::from_data(TensorData::new(bias, [OUTPUT_CHANNELS]), device).with_id(id()));
         Self { blocks, head }
     }
 
     /// Maps normalised input `[batch, input_channels, H, W]` to the raw
-    /// output `[batch, OUTPUT_CHANNELS, H, W]` with burn's own operations
-    /// (the reference the kernels of [`forward_inference`](Self::forward_inference)
-    /// and [`forward_training`](Self::forward_training) are tested against).
+    /// output `[batch, OUTPUT_CHANNELS, H, W]`, channels as the `*_CHANNEL`
+    /// constants (score logit, offset x, offset y, ln σx, ln σy, within-1-px
+    /// logit), with burn's own operations: the reference the kernels of
+    /// [`forward_inference`](Self::forward_inference) and
+    /// [`forward_training`](Self::forward_training) are tested against.
     pub fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let mut x = input;
         for block in &self.blocks {

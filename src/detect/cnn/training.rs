@@ -1,7 +1,9 @@
 //! The training loop: Adam on a CenterNet-style focal loss (score map) plus
-//! an L1 loss on the sub-pixel offsets, with seeded shuffling, optional
-//! freshly simulated frames every epoch, and selection of the epoch with the
-//! best validation AUC.
+//! an L1 loss on the sub-pixel offsets, a Gaussian negative log-likelihood
+//! for the σ maps and a cross-entropy for the within-1-px head (both
+//! against the realised error of the offsets, which they do not move), with
+//! seeded shuffling, optional freshly simulated frames every epoch, and
+//! selection of the epoch with the best validation AUC.
 
 use burn::optim::AdamConfig;
 use burn::prelude::*;
@@ -12,7 +14,9 @@ use rand_chacha::ChaCha8Rng;
 
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{NonFiniteOutput, inference_batch, locate_with};
-use super::model::{BodyStep, Net};
+use super::model::{
+    BodyStep, LOG_SIGMA_X_CHANNEL, Net, OFFSET_X_CHANNEL, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+};
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
 use crate::sim::{self, SimParams};
 use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
@@ -88,15 +92,60 @@ fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
     })
 }
 
-/// The loss of one batch: `(total, focal score loss, offset loss)`, and
-/// the network body's step that completes the backward pass.
+/// The loss of one batch, in total and by part (each part before its
+/// weight), and the network body's step that completes the backward pass.
+struct BatchLoss {
+    total: Tensor<1>,
+    score: Tensor<1>,
+    offset: Tensor<1>,
+    sigma: Tensor<1>,
+    within: Tensor<1>,
+    body: BodyStep,
+}
+
+/// Bounds of the ln σ maps in the likelihood: σ from 0.007 to 20 px. Keeps
+/// a pixel whose offset happens to be exact from driving its σ (and the
+/// loss) towards −∞.
+const LOG_SIGMA_RANGE: (f64, f64) = (-5.0, 3.0);
+
+/// Largest distance (pixels) between a localisation and a centroid for the
+/// within-1-px head's target to be 1.
+const WITHIN_RADIUS_PX: f64 = 1.0;
+
+/// The within-1-px target of every pixel of a batch, row-major `[n, 1, H,
+/// W]`: 1 where the pixel's localisation (pixel centre + its predicted
+/// offset, `offsets` row-major `[n, 2, H, W]`) lies within
+/// [`WITHIN_RADIUS_PX`] of any of its frame's `emitters`, else 0.
+fn within_targets(
+    offsets: &[f32],
+    emitters: &[&[(f64, f64)]],
+    height: usize,
+    width: usize,
+) -> Vec<f32> {
+    let len = height * width;
+    let mut out = vec![0.0f32; emitters.len() * len];
+    for (b, frame_emitters) in emitters.iter().enumerate() {
+        let (dx, dy) = offsets[2 * b * len..2 * (b + 1) * len].split_at(len);
+        for (p, target) in out[b * len..(b + 1) * len].iter_mut().enumerate() {
+            let x = (p % width) as f64 + dx[p] as f64;
+            let y = (p / width) as f64 + dy[p] as f64;
+            let hit = frame_emitters.iter().any(|&(ex, ey)| {
+                (x - ex).powi(2) + (y - ey).powi(2) <= WITHIN_RADIUS_PX * WITHIN_RADIUS_PX
+            });
+            *target = if hit { 1.0 } else { 0.0 };
+        }
+    }
+    out
+}
+
+/// The loss of one batch.
 fn batch_loss(
     net: &Net,
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
     items: &[(&Source, usize)],
     device: &Device,
-) -> (Tensor<1>, Tensor<1>, Tensor<1>, BodyStep) {
+) -> anyhow::Result<BatchLoss> {
     let frames0 = items[0].0.frames;
     let (height, width) = (frames0.height, frames0.width);
     let len = height * width;
@@ -128,13 +177,16 @@ fn batch_loss(
         )
     };
     let positive = map(target.positive, 1);
+    let centre = positive.clone();
     let negative_weight = map(target.negative_weight, 1);
     let offset_target = map(target.offset, 2);
     let offset_mask = map(target.offset_mask, 1);
 
     let (output, body) = net.forward_training(&input, [n, height, width], device);
-    let logit = output.clone().narrow(1, 0, 1);
-    let offset = output.narrow(1, 1, 2);
+    let logit = output.clone().narrow(1, SCORE_CHANNEL, 1);
+    let offset = output.clone().narrow(1, OFFSET_X_CHANNEL, 2);
+    let log_sigma = output.clone().narrow(1, LOG_SIGMA_X_CHANNEL, 2);
+    let within_logit = output.narrow(1, WITHIN_1PX_CHANNEL, 1);
     // Focal loss (CenterNet, α = 2, β = 4), from log-sigmoids for stability.
     let probability = sigmoid(logit.clone());
     let log_p = log_sigmoid(logit.clone());
@@ -145,12 +197,49 @@ fn batch_loss(
         .sum()
         .neg()
         .div_scalar(positives.max(1) as f64);
+    // The uncertainty heads learn the error the offsets make, not the
+    // other way round: through detached offsets, the offsets keep the L1
+    // loss's gradient alone.
+    let realised_offset = offset.clone().detach();
     // L1 offset loss per supervised pixel (|dx| + |dy|).
-    let offset_loss = ((offset - offset_target).abs() * offset_mask)
+    let offset_loss = ((offset - offset_target.clone()).abs() * offset_mask)
         .sum()
         .div_scalar(masked.max(1) as f64);
-    let total = score_loss.clone() + offset_loss.clone().mul_scalar(settings.offset_loss_weight);
-    (total, score_loss, offset_loss, body)
+    // Gaussian NLL of the offsets' error at each target centre's pixel, per
+    // axis: ln σ + e² / 2σ² (DECODE's σ maps). Only there: over the whole
+    // offset window the error mostly says how far a pixel is from the
+    // centre, which is not what the σ of a peak should tell.
+    let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
+    let squared_error = (realised_offset.clone() - offset_target).powi_scalar(2);
+    let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
+    let sigma_loss = ((log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre)
+        .sum()
+        .div_scalar((2 * positives).max(1) as f64);
+    // Cross-entropy of the within-1-px head against whether each pixel's
+    // localisation did land within 1 px, per target centre (as the focal
+    // loss).
+    let realised = realised_offset
+        .into_data()
+        .try_to_vec::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
+    let within = map(within_targets(&realised, &emitters, height, width), 1);
+    let within_loss = (log_sigmoid(within_logit.clone()) * within.clone()
+        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0))
+    .sum()
+    .neg()
+    .div_scalar(positives.max(1) as f64);
+    let total = score_loss.clone()
+        + offset_loss.clone().mul_scalar(settings.offset_loss_weight)
+        + sigma_loss.clone().mul_scalar(settings.sigma_loss_weight)
+        + within_loss.clone().mul_scalar(settings.within_loss_weight);
+    Ok(BatchLoss {
+        total,
+        score: score_loss,
+        offset: offset_loss,
+        sigma: sigma_loss,
+        within: within_loss,
+        body,
+    })
 }
 
 /// The validation score of `net` on `validation`, one value per matching
@@ -380,9 +469,16 @@ fn train_and_select(
 
         let epoch_learning_rate = learning_rate(settings, step, total_steps);
         let (mut sum_loss, mut sum_score, mut sum_offset) = (0.0, 0.0, 0.0);
+        let (mut sum_sigma, mut sum_within) = (0.0, 0.0);
         for (batch_index, batch) in items.chunks(settings.batch_size).enumerate() {
-            let (loss, score_loss, offset_loss, body) =
-                batch_loss(&net, arch, settings, batch, &device);
+            let BatchLoss {
+                total: loss,
+                score: score_loss,
+                offset: offset_loss,
+                sigma: sigma_loss,
+                within: within_loss,
+                body,
+            } = batch_loss(&net, arch, settings, batch, &device)?;
             let loss_value = loss.clone().into_scalar::<f32>() as f64;
             if !loss_value.is_finite() {
                 // The settings (usually the learning rate) are at fault: bad input.
@@ -394,6 +490,8 @@ fn train_and_select(
             sum_loss += loss_value;
             sum_score += score_loss.into_scalar::<f32>() as f64;
             sum_offset += offset_loss.into_scalar::<f32>() as f64;
+            sum_sigma += sigma_loss.into_scalar::<f32>() as f64;
+            sum_within += within_loss.into_scalar::<f32>() as f64;
             let gradients = body.gradients(loss.backward(), &net);
             net = optimiser.step(learning_rate(settings, step, total_steps), net, gradients);
             step += 1;
@@ -422,15 +520,19 @@ fn train_and_select(
             loss: sum_loss / batches,
             score_loss: sum_score / batches,
             offset_loss: sum_offset / batches,
+            sigma_loss: sum_sigma / batches,
+            within_loss: sum_within / batches,
             validation_auc: validation_auc.clone(),
             validation_mean_auc,
         };
         let message = format!(
-            "epoch {epoch}/{}: loss {:.4} (score {:.4}, offset {:.4}){}",
+            "epoch {epoch}/{}: loss {:.4} (score {:.4}, offset {:.4}, sigma {:.4}, within {:.4}){}",
             settings.epochs,
             record.loss,
             record.score_loss,
             record.offset_loss,
+            record.sigma_loss,
+            record.within_loss,
             match validation_mean_auc {
                 Some(mean) => format!(
                     ", validation AUC {} (mean {mean:.4})",

@@ -256,12 +256,7 @@ impl Feature {
     /// The prediction this feature makes on `frame`: its centroid, scored
     /// by its mass.
     pub fn prediction(&self, frame: usize) -> Prediction {
-        Prediction {
-            frame,
-            x: self.x,
-            y: self.y,
-            score: self.mass,
-        }
+        Prediction::new(frame, self.x, self.y, self.mass)
     }
 
     /// The feature's values of [`FEATURE_COLUMNS`], in order.

@@ -354,12 +354,7 @@ impl Filter<'_> {
             .filter(|((cx, cy), _)| (cx - x).powi(2) + (cy - y).powi(2) <= radius2)
             .map(|(_, w)| w)
             .sum();
-        Prediction {
-            frame,
-            x,
-            y,
-            score: within / total,
-        }
+        Prediction::new(frame, x, y, within / total)
     }
 }
 
