@@ -5,7 +5,9 @@ use crate::manifest::raw::RawEvaluation;
 use crate::manifest::{DatasetSpec, DetectorEntry, DetectorSpec, EvaluationSpec};
 
 /// Every (detector, dataset) pair to score, in manifest order; each named
-/// detector and dataset must exist, and no pair may come twice.
+/// detector and dataset must exist, and no pair may come twice with the
+/// same frames (a detector may be scored on a whole set and, beside that,
+/// on its first N frames: the two are different sets of frames).
 pub(super) fn resolve_evaluations(
     section: &[RawEvaluation],
     datasets: &[DatasetSpec],
@@ -62,16 +64,16 @@ pub(super) fn resolve_evaluations(
                 dataset: dataset.clone(),
                 frames,
             };
-            if evaluations
-                .iter()
-                .any(|e| e.detector == pair.detector && e.dataset == pair.dataset)
-            {
+            if evaluations.iter().any(|e| {
+                e.detector == pair.detector && e.dataset == pair.dataset && e.frames == pair.frames
+            }) {
+                let which = match frames {
+                    Some(frames) => format!("the first {frames} frames of `{dataset}`"),
+                    None => format!("`{dataset}`"),
+                };
                 return Err(FieldError::at(
                     &dataset_path,
-                    format!(
-                        "`{}` is already evaluated on `{dataset}`",
-                        evaluation.detector
-                    ),
+                    format!("`{}` is already evaluated on {which}", evaluation.detector),
                 ));
             }
             evaluations.push(pair);
