@@ -234,7 +234,9 @@ fn write_auc_table(
     let mut datasets: Vec<(&str, Option<f64>)> = Vec::new();
     let mut detectors: Vec<&str> = Vec::new();
     let mut eps: Vec<f64> = Vec::new();
-    for e in evaluations {
+    // A set of empty frames has no AUC: it has no column here, and its
+    // false localisations are in the scene table.
+    for e in evaluations.iter().filter(|e| !e.score.per_eps.is_empty()) {
         if !datasets.iter().any(|(d, _)| *d == e.dataset) {
             datasets.push((&e.dataset, e.diffusion));
         }
