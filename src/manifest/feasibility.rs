@@ -80,9 +80,9 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
         let Some(dataset) = manifest.dataset(name) else {
             continue;
         };
-        if dataset.params.emitters.max() == 0 {
+        if dataset.params.emitters.always_empty() {
             // Inherited from the microscope unless the microscope has some.
-            let path: &[&str] = if manifest.microscope.emitters.max() == 0 {
+            let path: &[&str] = if manifest.microscope.emitters.always_empty() {
                 &["microscope", "emitters"]
             } else {
                 &["datasets", name, "emitters"]
