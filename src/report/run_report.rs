@@ -249,6 +249,13 @@ fn write_auc_table(
             }
         }
     }
+    if datasets.is_empty() {
+        writeln!(
+            markdown,
+            "No test set with ground truth was scored, so there is no AUC (sets of empty frames: see the table at the score threshold)."
+        )?;
+        return Ok(());
+    }
     let mut header = String::from("| detector |");
     let mut rule = String::from("|---|");
     for (dataset, diffusion) in &datasets {
@@ -743,6 +750,10 @@ fn error_histograms(
     }
     for (dataset, key) in datasets {
         let data = load_artefact(registry, key)?.dataset()?.as_ref().clone();
+        if data.truth.is_empty() {
+            // A set of empty frames: no distance to a QD to draw.
+            continue;
+        }
         let mut series = Vec::new();
         for e in evaluations.iter().filter(|e| e.dataset == dataset) {
             let predictions = load_artefact(registry, &e.predictions_key)?

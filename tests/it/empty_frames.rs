@@ -214,6 +214,10 @@ fn sets_of_empty_frames_are_scored_by_their_false_localisations() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let markdown = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
+    // Error histograms of the sets with QDs only.
+    assert!(report_dir.join("errors_test.png").exists());
+    assert!(!report_dir.join("errors_empty.png").exists(), "{markdown}");
+    assert!(!markdown.contains("errors_empty"), "{markdown}");
     let auc_header = markdown
         .lines()
         .find(|l| l.starts_with("| detector | D=0.75 ε=1 |"))
