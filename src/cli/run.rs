@@ -10,7 +10,9 @@ use scanloc::run::{self, RunOptions, table};
 use serde_json::json;
 
 /// Run an experiment manifest: simulate its datasets, run its detectors,
-/// score its evaluations, print the AUC table and record the run.
+/// score its evaluations, print the AUC table (and, for test sets with
+/// empty frames, the false localisations per empty frame) and record the
+/// run.
 ///
 /// Every artefact is content-addressed: a step whose artefact is already in
 /// the registry (and whose blobs re-hash correctly) is skipped and counted
@@ -24,6 +26,8 @@ pub struct RunArgs {
     manifest: PathBuf,
     /// Print one JSON object on stdout instead of the table:
     /// {"run", "auc": [{"detector", "dataset", "diffusion", "eps_px", "auc", …}],
+    /// "empty_frames": [{"detector", "dataset", "threshold", "frames",
+    /// "localisations", "false_localisations_per_frame"}],
     /// "cached_steps", "computed_steps", …}.
     #[arg(long)]
     json: bool,
@@ -55,6 +59,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             "registry": args.registry.display().to_string(),
             "status": outcome.status,
             "auc": outcome.auc,
+            "empty_frames": outcome.empty_frames,
             "cached_steps": outcome.counts.cached,
             "computed_steps": outcome.counts.computed,
             "rebuilt_steps": outcome.counts.rebuilt,
@@ -64,10 +69,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         });
         println!("{value}");
     } else {
-        print!(
-            "{}",
-            table::render(&outcome.auc, manifest.reference.as_ref())
-        );
+        // A run that scores only sets of empty frames has no AUC to show.
+        if !outcome.auc.is_empty() || outcome.empty_frames.is_empty() {
+            print!(
+                "{}",
+                table::render(&outcome.auc, manifest.reference.as_ref())
+            );
+        }
+        print!("{}", table::render_empty_frames(&outcome.empty_frames));
         println!(
             "run {}: {} steps cached, {} computed, {} rebuilt in {:.2} s (registry {})",
             outcome.run,

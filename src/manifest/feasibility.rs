@@ -3,8 +3,9 @@
 //! would stop on as bad input, and a run never simulates for minutes to fail
 //! at its first evaluation.
 //!
-//! These checks cross fields (a dataset's emitters and the evaluations that
-//! score it, a training split and its dataset's frame count); the checks of
+//! These checks cross fields (a dataset's emitters and the validation or
+//! cross-validation that scores it, a training split and its dataset's frame
+//! count); the checks of
 //! one parameter block stay with its type (`SimParams::validate`,
 //! `CrockerGrierParams::validate`, …).
 
@@ -18,17 +19,12 @@ fn problem(path: &[&str], message: String) -> FieldError {
 
 /// The first problem of `manifest` that its run would only find by running.
 pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
-    // Every dataset that gets scored, and by what (for the message).
-    let mut scored: Vec<(&str, String)> = manifest
-        .evaluations
-        .iter()
-        .map(|e| {
-            (
-                e.dataset.as_str(),
-                format!("evaluation of `{}`", e.detector),
-            )
-        })
-        .collect();
+    // Every dataset that gets scored by its AUC, and by what (for the
+    // message). An evaluation is not among them: it scores a set of empty
+    // frames by its false localisations (docs/metric.md, "Scenes"), while a
+    // CNN's validation and a cross-validation need the AUC, which a set
+    // without ground truth does not have.
+    let mut scored: Vec<(&str, String)> = Vec::new();
     for detector in &manifest.detectors {
         let DetectorSpec::Cnn(spec) = &detector.spec else {
             continue;
@@ -84,9 +80,9 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
         let Some(dataset) = manifest.dataset(name) else {
             continue;
         };
-        if dataset.params.emitters.max() == 0 {
+        if dataset.params.emitters.always_empty() {
             // Inherited from the microscope unless the microscope has some.
-            let path: &[&str] = if manifest.microscope.emitters.max() == 0 {
+            let path: &[&str] = if manifest.microscope.emitters.always_empty() {
                 &["microscope", "emitters"]
             } else {
                 &["datasets", name, "emitters"]
@@ -94,7 +90,7 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
             return Err(problem(
                 path,
                 format!(
-                    "0 emitters in `{name}` leave no ground truth for the {by} to be scored against"
+                    "0 emitters in `{name}` leave no ground truth for the {by} to be scored against (its AUC needs some)"
                 ),
             ));
         }

@@ -234,7 +234,9 @@ fn write_auc_table(
     let mut datasets: Vec<(&str, Option<f64>)> = Vec::new();
     let mut detectors: Vec<&str> = Vec::new();
     let mut eps: Vec<f64> = Vec::new();
-    for e in evaluations {
+    // A set of empty frames has no AUC: it has no column here, and its
+    // false localisations are in the scene table.
+    for e in evaluations.iter().filter(|e| !e.score.per_eps.is_empty()) {
         if !datasets.iter().any(|(d, _)| *d == e.dataset) {
             datasets.push((&e.dataset, e.diffusion));
         }
@@ -246,6 +248,13 @@ fn write_auc_table(
                 eps.push(s.eps_px);
             }
         }
+    }
+    if datasets.is_empty() {
+        writeln!(
+            markdown,
+            "No test set with ground truth was scored, so there is no AUC (sets of empty frames: see the table at the score threshold)."
+        )?;
+        return Ok(());
     }
     let mut header = String::from("| detector |");
     let mut rule = String::from("|---|");
@@ -741,6 +750,10 @@ fn error_histograms(
     }
     for (dataset, key) in datasets {
         let data = load_artefact(registry, key)?.dataset()?.as_ref().clone();
+        if data.truth.is_empty() {
+            // A set of empty frames: no distance to a QD to draw.
+            continue;
+        }
         let mut series = Vec::new();
         for e in evaluations.iter().filter(|e| e.dataset == dataset) {
             let predictions = load_artefact(registry, &e.predictions_key)?

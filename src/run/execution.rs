@@ -1,6 +1,7 @@
 //! The step loop of a run: each step's artefact reused if stored intact,
 //! otherwise computed and stored (or, with `--force`, compared with the
-//! stored one); the AUC rows of evaluations collected; every step recorded.
+//! stored one); the AUC rows and empty-frame figures of evaluations
+//! collected; every step recorded.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -12,6 +13,7 @@ use super::log;
 use super::plan::{Action, Plan, Step};
 use super::stored::{Stored, check_stored_artefact, check_stored_artefacts, read_blobs};
 use crate::metrics::Score;
+use crate::metrics::scenes::EmptyFrames;
 use crate::registry::hashing::sha256_hex;
 use crate::registry::{
     AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
@@ -30,6 +32,24 @@ pub(super) struct Execution {
     /// the stored one.
     pub mismatches: Vec<String>,
     pub counts: StepCounts,
+    /// The empty-frame figures of the evaluations so far, in plan order.
+    pub empty_frames: Vec<EmptyFramesRow>,
+}
+
+/// The localisations of one evaluation on the empty frames (frames
+/// without ground truth) of its test set, counted at the detector's score
+/// threshold (docs/metric.md, "Scenes"): on a set of empty frames the only
+/// figure there is, as it has no AUC.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct EmptyFramesRow {
+    pub detector: String,
+    pub dataset: String,
+    /// A localisation counts if its score is at least this; `None`: every
+    /// localisation counts.
+    pub threshold: Option<f64>,
+    /// The set's empty frames and the localisations on them.
+    #[serde(flatten)]
+    pub empty_frames: EmptyFrames,
 }
 
 /// One step done: how, with which blobs, and its artefact if it was made
@@ -69,6 +89,7 @@ impl Execution {
             damaged: Vec::new(),
             mismatches: Vec::new(),
             counts: StepCounts::default(),
+            empty_frames: Vec::new(),
         }
     }
 
@@ -102,7 +123,10 @@ impl Execution {
                 }
                 (stored, _) => self.make(registry, plan, index, stored, &mut loaded, clock)?,
             };
-            auc.extend(auc_rows(registry, step, &done)?);
+            if let Some(score) = evaluation(registry, step, &done)? {
+                auc.extend(score_rows(step, &score));
+                self.empty_frames.extend(empty_frames_row(step, &score));
+            }
             if let Some(artefact) = &done.artefact {
                 loaded.keep_if_read_later(index, artefact.clone());
             }
@@ -280,11 +304,15 @@ fn blob_refs(encoded: &[(String, Vec<u8>)]) -> Vec<BlobRef> {
         .collect()
 }
 
-/// The AUC table rows of a scoring step (one per ε), none for other steps.
-/// A cached evaluation is read from its `score.json` blob.
-fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result<Vec<AucRow>> {
+/// The evaluation of a scoring step, `None` for other steps. A cached
+/// evaluation is read from its `score.json` blob.
+fn evaluation(
+    registry: &Registry,
+    step: &Step,
+    done: &StepDone,
+) -> anyhow::Result<Option<Arc<Score>>> {
     if !matches!(step.action, Action::Score { .. }) {
-        return Ok(Vec::new());
+        return Ok(None);
     }
     let score = match &done.artefact {
         Some(artefact) => artefact.evaluation()?.clone(),
@@ -293,7 +321,29 @@ fn auc_rows(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result
             &done.blobs,
         )?)?),
     };
-    Ok(score_rows(step, &score))
+    Ok(Some(score))
+}
+
+/// The empty-frame figures of scoring step `step` whose evaluation is
+/// `score`; none for a step that does not score, a set without empty
+/// frames, or an evaluation stored before the figures existed.
+fn empty_frames_row(step: &Step, score: &Score) -> Option<EmptyFramesRow> {
+    let Action::Score {
+        detector,
+        dataset_name,
+        reading,
+        ..
+    } = &step.action
+    else {
+        return None;
+    };
+    let empty_frames = score.empty_frames.filter(|e| e.frames > 0)?;
+    Some(EmptyFramesRow {
+        detector: detector.clone(),
+        dataset: dataset_name.clone(),
+        threshold: reading.threshold,
+        empty_frames,
+    })
 }
 
 /// The AUC table rows (one per ε) of scoring step `step` whose evaluation

@@ -32,7 +32,7 @@ use serde::Serialize;
 
 pub use artefacts::Artefact;
 pub use compute::subset;
-pub use execution::score_rows;
+pub use execution::{EmptyFramesRow, score_rows};
 pub use plan::{Action, Plan, Step};
 pub use stored::{load_artefact, read_blobs};
 
@@ -66,6 +66,10 @@ pub struct RunOutcome {
     pub status: RunStatus,
     /// The AUC table, one row per (detector, dataset, ε), in plan order.
     pub auc: Vec<AucRow>,
+    /// The localisations on empty frames (frames without ground truth),
+    /// one row per evaluation of a set that has some, in plan order: a set
+    /// of empty frames has no AUC row, only this.
+    pub empty_frames: Vec<EmptyFramesRow>,
     /// Steps cached, computed, and rebuilt (made again because a stored
     /// blob was missing or damaged).
     #[serde(flatten)]
@@ -154,6 +158,7 @@ pub fn execute(
         manifest: manifest.source.clone(),
         status,
         auc,
+        empty_frames: execution.empty_frames,
         counts: execution.counts,
         steps: execution.steps,
         damaged_blobs: execution.damaged,

@@ -1,8 +1,10 @@
 //! The AUC table in the paper's layout: one row per detector, columns
 //! grouped by test set (labelled by its D when fixed) and, within each, one
 //! column per ε. Reference rows (e.g. the paper's) follow the detector they
-//! compare with.
+//! compare with. Sets with empty frames get a second table, of the false
+//! localisations per empty frame.
 
+use super::EmptyFramesRow;
 use crate::manifest::Reference;
 use crate::registry::AucRow;
 
@@ -10,7 +12,8 @@ use crate::registry::AucRow;
 /// detector when given.
 pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     if rows.is_empty() {
-        return "no evaluations: the manifest scores no detector on any dataset\n".to_string();
+        return "no AUC: the manifest scores no detector on a dataset with ground truth\n"
+            .to_string();
     }
     let mut detectors: Vec<&str> = Vec::new();
     let mut datasets: Vec<(&str, Option<f64>)> = Vec::new();
@@ -90,9 +93,113 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     out
 }
 
+/// Renders the false localisations per empty frame of `rows` (one line
+/// per evaluation, in their order), under a heading; nothing without rows.
+pub fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
+    if rows.is_empty() {
+        return String::new();
+    }
+    let headers = [
+        "detector",
+        "dataset",
+        "threshold",
+        "empty frames",
+        "localisations",
+        "per frame",
+    ];
+    let cells: Vec<[String; 6]> = rows
+        .iter()
+        .map(|row| {
+            let empty = &row.empty_frames;
+            [
+                row.detector.clone(),
+                row.dataset.clone(),
+                // Without a threshold every localisation counts.
+                row.threshold.map_or("none".to_string(), |t| format!("{t}")),
+                empty.frames.to_string(),
+                empty.localisations.to_string(),
+                empty
+                    .false_localisations_per_frame
+                    .map_or("-".to_string(), |v| format!("{v:.3}")),
+            ]
+        })
+        .collect();
+    let widths: Vec<usize> = (0..headers.len())
+        .map(|i| {
+            cells
+                .iter()
+                .map(|c| c[i].chars().count())
+                .chain([headers[i].chars().count()])
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let line = |values: &[&str]| -> String {
+        let text: Vec<String> = values
+            .iter()
+            .zip(&widths)
+            .map(|(v, &w)| format!("{v:<w$}"))
+            .collect();
+        text.join("  ").trim_end().to_string() + "\n"
+    };
+    let mut out =
+        String::from("false localisations per empty frame (score at or above the threshold)\n");
+    out.push_str(&line(&headers));
+    for row in &cells {
+        let values: Vec<&str> = row.iter().map(String::as_str).collect();
+        out.push_str(&line(&values));
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::metrics::scenes::EmptyFrames;
+
+    #[test]
+    fn lists_empty_frames_per_evaluation() {
+        assert_eq!(render_empty_frames(&[]), "");
+        let rows = [
+            EmptyFramesRow {
+                detector: "trackpy".into(),
+                dataset: "empty".into(),
+                threshold: None,
+                empty_frames: EmptyFrames {
+                    frames: 40,
+                    localisations: 6,
+                    false_localisations_per_frame: Some(0.15),
+                },
+            },
+            EmptyFramesRow {
+                detector: "cnn".into(),
+                dataset: "empty".into(),
+                threshold: Some(0.5),
+                empty_frames: EmptyFrames {
+                    frames: 40,
+                    localisations: 0,
+                    false_localisations_per_frame: Some(0.0),
+                },
+            },
+        ];
+        let text = render_empty_frames(&rows);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 4, "{text}");
+        assert!(
+            lines[1].starts_with("detector  dataset  threshold"),
+            "{text}"
+        );
+        assert_eq!(
+            lines[2].split_whitespace().collect::<Vec<_>>(),
+            ["trackpy", "empty", "none", "40", "6", "0.150"],
+            "{text}"
+        );
+        assert_eq!(
+            lines[3].split_whitespace().collect::<Vec<_>>(),
+            ["cnn", "empty", "0.5", "40", "0", "0.000"],
+            "{text}"
+        );
+    }
 
     #[test]
     fn lays_out_detectors_by_dataset_and_eps() {

@@ -187,6 +187,23 @@ impl EmitterCount {
         }
     }
 
+    /// Whether every frame is empty: a fixed 0, or a choice whose counts
+    /// of positive weight are all 0.
+    pub fn always_empty(&self) -> bool {
+        match self {
+            EmitterCount::Fixed(count) => *count == 0,
+            EmitterCount::Random(CountChoice { choice, weights }) => {
+                choice.iter().enumerate().all(|(i, &count)| {
+                    count == 0
+                        || weights
+                            .as_ref()
+                            .and_then(|w| w.get(i))
+                            .is_some_and(|&w| w <= 0.0)
+                })
+            }
+        }
+    }
+
     /// The count of every frame, if it is fixed.
     pub fn fixed(&self) -> Option<u32> {
         match self {

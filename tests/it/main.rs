@@ -22,6 +22,7 @@ mod cli_locate;
 mod cli_simulate;
 mod cnn;
 mod crocker_grier;
+mod empty_frames;
 mod figures;
 mod hostile_cli_fuzz;
 mod hostile_files;
