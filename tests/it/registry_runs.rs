@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "436e4b2bc612fccbee59e2ec1dc0a8c4234f4a7c57b15acd65862e653bbba4f4",
+            "4f1b855c286a6b91b3d32c9566747312912e2b2ceeaf07f2b3e913ba89f32552",
         ),
         (
             "predictions/cnn@test-0.75",
-            "9f4b0eaf3cfd7b4f8f5bffceb7e15b3e9cd4e4c787ea9cf828a414517ecdd867",
+            "352507304689aade23436932077b121fcb7b60145c72c13e51581cc651530d15",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "fe1801d317ca53381508dcecfac30b1d2826dc29cc812cc55bb9f8ac590aa96e",
+            "813e6923a3231fe9b6b880991ca6b1050e41d52675c24527a276375971662161",
         ),
         (
             "predictions/cnn@test-1.00",
-            "e866fe8460b8faa68fa01506fc5fac627a90501add72ae367d95f21768883724",
+            "0e93bccf870b662a3e4d0f9eb667ca2910ce1f51284f57d55e688d64e8c5ded0",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "4d22f9cfc4c1866d374b3db2567688cdb34835ecea58ef2f6d7aa88ea5db2158",
+            "aa0810708054ef2ba01cb5b31cd4da694ff7ce4823c250eaa05512e9ff1ff8a3",
         ),
         (
             "predictions/cnn@test-1.75",
-            "5aa5b9abae603263b4f23e685b001e1c26820f1fb821ef911f9645058d447fce",
+            "ed0bd5ccbf3e34d187d35045c5191dbd5cbe229bec3190717f54fb6666a86c3a",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "5751e51d60e2c08111f5bb9aefc7d0f9fc33585509221bea2e1f54fff504191f",
+            "8f02606efca764f310c626968cf69667fb81ffdae98a748d7ae46bbfc7e2cbd7",
         ),
         (
             "dataset/test-0.75+first300",
@@ -788,27 +788,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "bca76bcdae1ce62faa68755e610304344ad09e63ed429a32ae43fd743621a8d4",
+            "b0d00a893e0ca40aa7d9d4a293dd56d111be7025ccf79f5bf82d24418764e555",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "6a97f0d72672af2a537806460af5b367e8af5ae78f57f83321a3e94385eb59a1",
+            "ba6731a3667fb7520c9012b106dd494e91141d79defc87248fa2c0cf2fc3faa9",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "f619f9457dbad5b580603b7a98de632ed204645f920047f3674694e21adab00d",
+            "5e07d69db9689119bf3bbbb4fbd6352b6123bc3b8ab492fa6f405165051e20af",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "e2fef92ba5d0d75a45221ba6f796e7b97e51dd02a89d351d0b8cecb4caa37e98",
+            "eefe97934e71de46f2cd8b308aa4e60d4bbcb19af50082e5875eae19b2c585bd",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "166852a30025e12697e25a265c77f67118bdf703a8de25207caac0fa5159bc97",
+            "3310fefee05b9ed569308fe3d7e11fce90c91f6f78aaf3abba65b14fa64f2a09",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "2e08ce20b62c2da4c2a557e950211f2d20ea64d5656ef4a66b94b48e9dfdf692",
+            "cf12f1aad8a8c29be9a8a57f0a2d6e2342e1874f35cd4816607b0e03b5f17b42",
         ),
     ];
     assert_eq!(planned, recorded);
