@@ -16,6 +16,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::body::{oihw_from_weights, weights_from_oihw};
 use super::*;
+use crate::detect::cnn::model::OUTPUT_CHANNELS;
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -273,8 +274,11 @@ fn a_training_step_on_the_kernels_matches_burns() {
         let device = Device::flex().autodiff();
         let (net, input, [n, height, width]) = net_and_input(vec![1, 3, 2], batch_norm, &device);
         let target = tensor(
-            &random(&mut ChaCha8Rng::seed_from_u64(19), n * 3 * height * width),
-            [n, 3, height, width],
+            &random(
+                &mut ChaCha8Rng::seed_from_u64(19),
+                n * OUTPUT_CHANNELS * height * width,
+            ),
+            [n, OUTPUT_CHANNELS, height, width],
             &device,
         );
         let loss_of = |output: Tensor<4>| (output * target.clone()).sum();
