@@ -166,9 +166,10 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
     assert!(by_folder.contains("folder "), "{by_folder}");
 
     let predictions = std::fs::read(path("by-run.csv")).unwrap();
-    assert!(predictions.starts_with(b"frame,x,y,score\n"));
+    let header = "frame,x,y,sigma_x,sigma_y,score\n";
+    assert!(predictions.starts_with(header.as_bytes()));
     assert!(
-        predictions.len() > "frame,x,y,score\n".len(),
+        predictions.len() > header.len(),
         "some predictions"
     );
     for other in ["by-prefix.csv", "by-key.csv", "by-folder.csv"] {
