@@ -168,10 +168,7 @@ fn a_registry_model_locates_as_its_exported_folder_does() {
     let predictions = std::fs::read(path("by-run.csv")).unwrap();
     let header = "frame,x,y,sigma_x,sigma_y,score\n";
     assert!(predictions.starts_with(header.as_bytes()));
-    assert!(
-        predictions.len() > header.len(),
-        "some predictions"
-    );
+    assert!(predictions.len() > header.len(), "some predictions");
     for other in ["by-prefix.csv", "by-key.csv", "by-folder.csv"] {
         assert_eq!(std::fs::read(path(other)).unwrap(), predictions, "{other}");
     }
