@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use npyz::WriterBuilder;
 use sha2::{Digest, Sha256};
 
 /// The repository root (manifests are given relative to it).
@@ -133,4 +134,20 @@ pub fn fuzz_case_dir() -> tempfile::TempDir {
         return dir;
     }
     tempfile::tempdir().unwrap()
+}
+
+/// Writes `values` as a C-order .npy array of `shape` in `T`'s dtype.
+pub fn write_npy<T: npyz::AutoSerialize + Copy>(path: &Path, shape: &[u64], values: &[T]) {
+    let mut bytes = Vec::new();
+    {
+        let mut writer = npyz::WriteOptions::new()
+            .default_dtype()
+            .shape(shape)
+            .writer(&mut bytes)
+            .begin_nd()
+            .unwrap();
+        writer.extend(values.iter().copied()).unwrap();
+        writer.finish().unwrap();
+    }
+    std::fs::write(path, bytes).unwrap();
 }

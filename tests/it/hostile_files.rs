@@ -8,7 +8,6 @@ use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 
 use crate::common::{self, scanloc, stderr};
-use npyz::WriterBuilder;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 use scanloc::progress::hidden;
 use scanloc::sim::{self, SimParams};
@@ -38,22 +37,9 @@ fn text(path: &Path) -> &str {
 }
 
 /// Writes a `uint16` .npy array of `shape` (all values `fill`).
-fn write_npy(path: &Path, shape: &[u64], fill: u16) {
+fn write_filled_npy(path: &Path, shape: &[u64], fill: u16) {
     let count: u64 = shape.iter().product();
-    let mut bytes = Vec::new();
-    {
-        let mut writer = npyz::WriteOptions::new()
-            .default_dtype()
-            .shape(shape)
-            .writer(&mut bytes)
-            .begin_nd()
-            .unwrap();
-        writer
-            .extend(std::iter::repeat_n(fill, count as usize))
-            .unwrap();
-        writer.finish().unwrap();
-    }
-    std::fs::write(path, bytes).unwrap();
+    common::write_npy(path, shape, &vec![fill; count as usize]);
 }
 
 /// Simulates 3 frames into `frames` with their truth in `truth`.
@@ -131,7 +117,7 @@ fn zero_width_or_height_frames_are_refused_by_every_detector() {
         let input = dir
             .path()
             .join(format!("f{}x{}x{}.npy", shape[0], shape[1], shape[2]));
-        write_npy(&input, &shape, 0);
+        write_filled_npy(&input, &shape, 0);
         let output = scanloc(&["locate", "--input", text(&input), "--out", text(&out)]);
         assert_refused(&output, text(&input));
         let output = scanloc(&[
@@ -177,7 +163,7 @@ fn zero_width_or_height_frames_are_refused_by_every_detector() {
 fn huge_sizes_are_refused_on_the_command_line_and_in_manifests_alike() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("f.npy");
-    write_npy(&input, &[1, 24, 25], 3);
+    write_filled_npy(&input, &[1, 24, 25], 3);
     let out = dir.path().join("l.csv");
     let beyond = (scanloc::limits::MAX_FEATURE_PX + 2).to_string();
     for (flag, value) in [

@@ -7,8 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::common::{scanloc, stderr};
-use npyz::WriterBuilder;
+use crate::common::{scanloc, stderr, write_npy};
 
 /// The TrackPy fixture of background-subtracted float64 frames.
 fn fixture(name: &str) -> PathBuf {
@@ -29,22 +28,6 @@ fn assert_refused(output: &Output, needles: &[&str]) {
     for needle in needles {
         assert!(text.contains(needle), "{needle:?} not in {text:?}");
     }
-}
-
-/// Writes `values` as a C-order .npy array of `shape` in `T`'s dtype.
-fn write_npy<T: npyz::AutoSerialize + Copy>(path: &Path, shape: &[u64], values: &[T]) {
-    let mut bytes = Vec::new();
-    {
-        let mut writer = npyz::WriteOptions::new()
-            .default_dtype()
-            .shape(shape)
-            .writer(&mut bytes)
-            .begin_nd()
-            .unwrap();
-        writer.extend(values.iter().copied()).unwrap();
-        writer.finish().unwrap();
-    }
-    std::fs::write(path, bytes).unwrap();
 }
 
 /// Writes `frames` frames of `height × width` float32 values as TIFF pages.
