@@ -21,9 +21,10 @@ pub fn bar(len: u64, message: &str) -> ProgressBar {
     if std::io::stderr().is_terminal() {
         let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
         bar.set_style(
-            ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
+            ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({rate}, eta {eta})")
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .with_key("eta", eta)
+                .with_key("rate", rate)
                 .progress_chars("=> "),
         );
         bar.set_message(message.to_string());
@@ -55,9 +56,10 @@ pub fn logged(
         ProgressDrawTarget::term_like_with_hz(Box::new(lines), 1),
     );
     bar.set_style(
-        ProgressStyle::with_template("{msg}: {pos}/{len} ({percent}%, {per_sec}, eta {eta})")
+        ProgressStyle::with_template("{msg}: {pos}/{len} ({percent}%, {rate}, eta {eta})")
             .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .with_key("eta", eta),
+            .with_key("eta", eta)
+            .with_key("rate", rate),
     );
     bar.set_message(message.to_string());
     bar
@@ -65,14 +67,51 @@ pub fn logged(
 
 /// The estimated time left, or `unknown` before the first step is done
 /// (indicatif's own estimate says `0s` then, which reads as "finished").
+///
+/// The estimate is the mean time per step so far times the steps left.
+/// indicatif's own follows the recent rate, which suits many fast steps
+/// but not a sweep whose tasks end minutes apart: between two of them the
+/// recent rate decays to zero and its estimate grows to years.
 fn eta(state: &ProgressState, out: &mut dyn std::fmt::Write) {
-    let left = if state.pos() == 0 {
-        "unknown".to_string()
-    } else {
-        format!("{:#}", HumanDuration(state.eta()))
+    let left = match time_left(state.pos(), state.len(), state.elapsed()) {
+        Some(left) => format!("{:#}", HumanDuration(left)),
+        None => "unknown".to_string(),
     };
     // A failed write only loses a cosmetic field.
     let _ = out.write_str(&left);
+}
+
+/// `elapsed × (len − pos) / pos`: the time left at the mean pace so far;
+/// `None` before the first step (or without a length).
+fn time_left(pos: u64, len: Option<u64>, elapsed: Duration) -> Option<Duration> {
+    let len = len?;
+    if pos == 0 {
+        return None;
+    }
+    let left = len.saturating_sub(pos) as f64;
+    Some(elapsed.mul_f64(left / pos as f64))
+}
+
+/// Steps per second over the whole work so far, or per minute or hour when
+/// steps are slower (a sweep's tasks), so a slow but moving sweep does not
+/// read `0/s`.
+fn rate(state: &ProgressState, out: &mut dyn std::fmt::Write) {
+    let _ = out.write_str(&pace(state.pos(), state.elapsed()));
+}
+
+fn pace(pos: u64, elapsed: Duration) -> String {
+    let seconds = elapsed.as_secs_f64();
+    if seconds <= 0.0 {
+        return "-".to_string();
+    }
+    let per_second = pos as f64 / seconds;
+    if per_second >= 1.0 || pos == 0 {
+        format!("{per_second:.1}/s")
+    } else if per_second * 60.0 >= 1.0 {
+        format!("{:.1}/min", per_second * 60.0)
+    } else {
+        format!("{:.1}/h", per_second * 3600.0)
+    }
 }
 
 /// A progress bar that never draws, for library callers and tests.
@@ -226,5 +265,39 @@ mod tests {
             first.contains("0/5") && first.ends_with("eta unknown)"),
             "{first:?}"
         );
+    }
+
+    #[test]
+    fn the_time_left_follows_the_mean_pace_of_slow_steps() {
+        // One task of five done after ten minutes: forty minutes left,
+        // whatever the rate of the last seconds.
+        let left = time_left(1, Some(5), Duration::from_secs(600)).unwrap();
+        assert_eq!(left, Duration::from_secs(2400));
+        assert_eq!(time_left(0, Some(5), Duration::from_secs(600)), None);
+        assert_eq!(
+            time_left(5, Some(5), Duration::from_secs(600)),
+            Some(Duration::ZERO)
+        );
+        assert_eq!(pace(1, Duration::from_secs(600)), "6.0/h");
+        assert_eq!(pace(3, Duration::from_secs(60)), "3.0/min");
+        assert_eq!(pace(250, Duration::from_secs(10)), "25.0/s");
+    }
+
+    #[test]
+    fn a_slow_sweep_logs_a_finite_time_left() {
+        let sink = Shared::default();
+        let bar = logged(5, "tasks done", Duration::ZERO, Box::new(sink.clone()));
+        bar.tick();
+        std::thread::sleep(Duration::from_millis(1100));
+        bar.inc(1);
+        std::thread::sleep(Duration::from_millis(1100));
+        bar.tick();
+        let text = String::from_utf8(sink.0.lock().unwrap().clone()).unwrap();
+        let last = text.lines().last().expect("a progress line");
+        // About 2.2 s for one step: about 9 s left, never years.
+        assert!(last.contains("1/5") && last.contains("/min"), "{last:?}");
+        let eta = last.rsplit("eta ").next().unwrap().trim_end_matches(')');
+        let seconds: u64 = eta.trim_end_matches('s').parse().unwrap_or(u64::MAX);
+        assert!((5..=20).contains(&seconds), "{last:?}");
     }
 }

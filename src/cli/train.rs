@@ -96,6 +96,14 @@ pub struct TrainArgs {
     /// Weight of the offset loss.
     #[arg(long)]
     offset_loss_weight: Option<f64>,
+    /// Weight of the Gaussian likelihood that trains the σ maps (0 = the σ
+    /// maps stay untrained).
+    #[arg(long)]
+    sigma_loss_weight: Option<f64>,
+    /// Weight of the cross-entropy that trains the within-1-px head (0 = the
+    /// head stays untrained).
+    #[arg(long)]
+    within_loss_weight: Option<f64>,
     /// Test frames per test diffusion coefficient (0 = no test).
     #[arg(long, default_value_t = 0)]
     test_frames: usize,
@@ -137,6 +145,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         offset_loss_weight: args
             .offset_loss_weight
             .unwrap_or(defaults.offset_loss_weight),
+        sigma_loss_weight: args.sigma_loss_weight.unwrap_or(defaults.sigma_loss_weight),
+        within_loss_weight: args
+            .within_loss_weight
+            .unwrap_or(defaults.within_loss_weight),
         ..defaults
     };
     architecture.validate()?;
