@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "4f1b855c286a6b91b3d32c9566747312912e2b2ceeaf07f2b3e913ba89f32552",
+            "1b383f3981126c8320914021627ad7c8666c3ff1e19c027a3e73339ba8d9e392",
         ),
         (
             "predictions/cnn@test-0.75",
-            "352507304689aade23436932077b121fcb7b60145c72c13e51581cc651530d15",
+            "6a08da9971f3671213255702cfbbc8fca196a0b51d45dee09a51487156756b81",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "813e6923a3231fe9b6b880991ca6b1050e41d52675c24527a276375971662161",
+            "9ece8234e80437a718d52d1a2c374989dc7161a4dfd320a4ed23341cd73ddf73",
         ),
         (
             "predictions/cnn@test-1.00",
-            "0e93bccf870b662a3e4d0f9eb667ca2910ce1f51284f57d55e688d64e8c5ded0",
+            "de7d862ed2311c02e9a323aad50b638e49e8c49d23d270a0e449cd60662845b5",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "aa0810708054ef2ba01cb5b31cd4da694ff7ce4823c250eaa05512e9ff1ff8a3",
+            "608869f6a89eb0c0666df338753f676607c7dfd83d1884c251404d6c7cd41f6c",
         ),
         (
             "predictions/cnn@test-1.75",
-            "ed0bd5ccbf3e34d187d35045c5191dbd5cbe229bec3190717f54fb6666a86c3a",
+            "6416339312623b58cbecda7d204ac0a5b291e1a6ceb3292275a2724b4e09f4a7",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "8f02606efca764f310c626968cf69667fb81ffdae98a748d7ae46bbfc7e2cbd7",
+            "ec984804d8983c333e2bae3500639db348dab75cc82e55e442528c9af8d440c2",
         ),
         (
             "dataset/test-0.75+first300",
@@ -788,27 +788,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "b0d00a893e0ca40aa7d9d4a293dd56d111be7025ccf79f5bf82d24418764e555",
+            "a7b4da92fe9edb89d91fadc72bc8fc32423e67fa17d493e4091bbefd7963e869",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "ba6731a3667fb7520c9012b106dd494e91141d79defc87248fa2c0cf2fc3faa9",
+            "ec987045b9552331c3ff0b37040e1012ee5daae4dfbddd173286394f578a733a",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "5e07d69db9689119bf3bbbb4fbd6352b6123bc3b8ab492fa6f405165051e20af",
+            "9a013d22e479e55db2cb2c0ffc165dab943b266e0729220f4bf5e25f1c987414",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "eefe97934e71de46f2cd8b308aa4e60d4bbcb19af50082e5875eae19b2c585bd",
+            "837c8a79778783c8282bbeea19b48d4c9bd75c8f3792b5d65a137781e60a6a2a",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "3310fefee05b9ed569308fe3d7e11fce90c91f6f78aaf3abba65b14fa64f2a09",
+            "e21866412ddc27feedbecc3588977f3676c68736fa414c75c718fb856b834a39",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "cf12f1aad8a8c29be9a8a57f0a2d6e2342e1874f35cd4816607b0e03b5f17b42",
+            "afa7b6d24b11e0c8e4b29b7f7b98771421b25faf67cbae532c3a8798d014da2c",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -36,7 +36,8 @@ use crate::error::{FieldError, input_error};
 pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
 /// The network's shape. Serialised with the model; every field has a
-/// default (the best setting measured on the paper task).
+/// default: the network `bench train` compares with PyTorch. The paper
+/// manifest trains two more layers (docs/detectors.md, "Architecture").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CnnArchitecture {
