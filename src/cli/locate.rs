@@ -112,7 +112,10 @@ pub struct LocateArgs {
     /// With `--method likelihood`: the microscope the filter assumes (a
     /// distribution is a prior, marginalised; the margin bounds the prior
     /// over the QD's start).
-    #[command(flatten)]
+    #[command(
+        flatten,
+        next_help_heading = "With --method likelihood (the microscope the filter models; a distribution is a prior)"
+    )]
     microscope: super::MicroscopeArgs,
     /// With `--method likelihood`: the score is the posterior mass within
     /// this many pixels of the estimate.

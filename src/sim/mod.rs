@@ -774,15 +774,38 @@ mod tests {
         }
     }
 
-    /// Mean and sample variance of each frame's total count.
-    fn total_photon_stats(params: &SimParams, frames: usize) -> (f64, f64) {
-        let dataset = simulate(params, 17, 0..frames, &ProgressBar::hidden()).unwrap();
-        let totals: Vec<f64> = (0..frames)
-            .map(|i| dataset.frames.frame(i).iter().map(|&c| f64::from(c)).sum())
-            .collect();
-        let mean = totals.iter().sum::<f64>() / frames as f64;
-        let variance = totals.iter().map(|t| (t - mean).powi(2)).sum::<f64>() / (frames - 1) as f64;
-        (mean, variance)
+    /// Asserts that the frames' total counts vary more than `min_ratio`
+    /// times as much (sample variance over `frames` frames) with `drawn`'s
+    /// parameters as with `fixed`'s, around the same mean (within 5
+    /// standard errors).
+    fn assert_totals_spread_wider(
+        what: &str,
+        fixed: &SimParams,
+        drawn: &SimParams,
+        min_ratio: f64,
+        frames: usize,
+    ) {
+        let stats = |params: &SimParams| {
+            let dataset = simulate(params, 17, 0..frames, &ProgressBar::hidden()).unwrap();
+            let totals: Vec<f64> = (0..frames)
+                .map(|i| dataset.frames.frame(i).iter().map(|&c| f64::from(c)).sum())
+                .collect();
+            let mean = totals.iter().sum::<f64>() / frames as f64;
+            let variance =
+                totals.iter().map(|t| (t - mean).powi(2)).sum::<f64>() / (frames - 1) as f64;
+            (mean, variance)
+        };
+        let (fixed_mean, fixed_variance) = stats(fixed);
+        let (drawn_mean, drawn_variance) = stats(drawn);
+        assert!(
+            drawn_variance > min_ratio * fixed_variance,
+            "{what}: variance {drawn_variance} drawn vs {fixed_variance} fixed"
+        );
+        let standard_error = ((drawn_variance + fixed_variance) / frames as f64).sqrt();
+        assert!(
+            (drawn_mean - fixed_mean).abs() < 5.0 * standard_error,
+            "{what}: mean {drawn_mean} drawn vs {fixed_mean} fixed"
+        );
     }
 
     #[test]
@@ -794,7 +817,6 @@ mod tests {
         // With 400 frames the sample variances are within ±7 % (one
         // standard error): a ratio above 4 fails only if the draw is
         // ignored. The means agree within 5 standard errors (≈ 80 photons).
-        let frames = 400;
         let fixed = SimParams {
             margin_px: 4.0,
             brightness: 11.0.into(),
@@ -804,34 +826,14 @@ mod tests {
             brightness: "uniform:2,20".parse().unwrap(),
             ..fixed.clone()
         };
-        let (fixed_mean, fixed_variance) = total_photon_stats(&fixed, frames);
-        let (drawn_mean, drawn_variance) = total_photon_stats(&drawn, frames);
-        assert!(
-            drawn_variance > 4.0 * fixed_variance,
-            "N_qd: variance {drawn_variance} drawn vs {fixed_variance} fixed"
-        );
-        let standard_error = ((drawn_variance + fixed_variance) / frames as f64).sqrt();
-        assert!(
-            (drawn_mean - fixed_mean).abs() < 5.0 * standard_error,
-            "N_qd: mean {drawn_mean} drawn vs {fixed_mean} fixed"
-        );
+        assert_totals_spread_wider("N_qd", &fixed, &drawn, 4.0, 400);
         // N_bkg uniform on [2, 14.8] (mean 8.4): 600 · 12.8/√12 ≈ 2200
         // photons of standard deviation against ≈ 74.
-        let background = SimParams {
+        let drawn = SimParams {
             background: "uniform:2,14.8".parse().unwrap(),
             ..SimParams::default()
         };
-        let (paper_mean, paper_variance) = total_photon_stats(&SimParams::default(), frames);
-        let (drawn_mean, drawn_variance) = total_photon_stats(&background, frames);
-        assert!(
-            drawn_variance > 100.0 * paper_variance,
-            "N_bkg: variance {drawn_variance} drawn vs {paper_variance} fixed"
-        );
-        let standard_error = ((drawn_variance + paper_variance) / frames as f64).sqrt();
-        assert!(
-            (drawn_mean - paper_mean).abs() < 5.0 * standard_error,
-            "N_bkg: mean {drawn_mean} drawn vs {paper_mean} fixed"
-        );
+        assert_totals_spread_wider("N_bkg", &SimParams::default(), &drawn, 100.0, 400);
     }
 
     #[test]

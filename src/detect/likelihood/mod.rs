@@ -531,6 +531,26 @@ mod tests {
         }
     }
 
+    /// `frames` frames of `microscope` (seed 7) and the filter's predictions
+    /// for them with `particles` particles (seed 3) under the same model.
+    fn simulate_and_locate(
+        microscope: &SimParams,
+        frames: usize,
+        particles: usize,
+    ) -> (crate::types::Dataset, Vec<Prediction>) {
+        let hidden = crate::progress::hidden();
+        let dataset = crate::sim::simulate(microscope, 7, 0..frames, &hidden).unwrap();
+        let predictions = locate_stack(
+            &dataset.frames,
+            microscope,
+            &settings(particles),
+            3,
+            &hidden,
+        )
+        .unwrap();
+        (dataset, predictions)
+    }
+
     fn settings(particles: usize) -> LikelihoodParams {
         LikelihoodParams {
             particles,
@@ -620,16 +640,7 @@ mod tests {
             background: "uniform:4,12".parse().unwrap(),
             ..small(14, 0.0, 7.0)
         };
-        let dataset =
-            crate::sim::simulate(&microscope, 3, 0..8, &crate::progress::hidden()).unwrap();
-        let predictions = locate_stack(
-            &dataset.frames,
-            &microscope,
-            &settings(2000),
-            4,
-            &crate::progress::hidden(),
-        )
-        .unwrap();
+        let (dataset, predictions) = simulate_and_locate(&microscope, 8, 2000);
         // End to end (the test above checks the per-particle weights
         // exactly): at N_qd ≥ 10 the Cramér–Rao floor here is below 0.3 px
         // per axis, so an RMSE of 1 px over 8 frames is a wide margin for a
@@ -689,17 +700,7 @@ mod tests {
         // static QD's centroid is pinned down by the frame, a fast one's
         // path between the rows that see it is not.
         let mean_score = |diffusion: f64| {
-            let microscope = small(14, diffusion, 20.0);
-            let dataset =
-                crate::sim::simulate(&microscope, 7, 0..6, &crate::progress::hidden()).unwrap();
-            let predictions = locate_stack(
-                &dataset.frames,
-                &microscope,
-                &settings(1000),
-                3,
-                &crate::progress::hidden(),
-            )
-            .unwrap();
+            let (_, predictions) = simulate_and_locate(&small(14, diffusion, 20.0), 6, 1000);
             predictions.iter().map(|p| p.score).sum::<f64>() / predictions.len() as f64
         };
         let (still, fast) = (mean_score(0.0), mean_score(8.0));
