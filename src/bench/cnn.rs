@@ -157,7 +157,7 @@ pub fn throughput(
     seed: u64,
 ) -> anyhow::Result<Throughput> {
     let params = SimParams {
-        brightness: 7.0,
+        brightness: 7.0.into(),
         margin_px: 4.0,
         diffusion_um2_s: Distribution::Random(sim::RandomDistribution::Uniform([0.75, 1.75])),
         ..SimParams::default()

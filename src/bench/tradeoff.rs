@@ -138,7 +138,7 @@ fn test_params(brightness: f64, diffusion: f64) -> SimParams {
     SimParams {
         diffusion_um2_s: Distribution::Fixed(diffusion),
         margin_px: 4.0,
-        brightness,
+        brightness: brightness.into(),
         ..SimParams::default()
     }
 }
@@ -404,7 +404,7 @@ pub fn cnn_sweep(
     let training_params = SimParams {
         diffusion_um2_s: Distribution::Random(sim::RandomDistribution::Uniform([0.75, 1.75])),
         margin_px: 4.0,
-        brightness: sweep.brightness,
+        brightness: sweep.brightness.into(),
         ..SimParams::default()
     };
     let training = sim::simulate(
@@ -496,7 +496,13 @@ pub fn cnn_sweep(
 /// ([`sim::static_emitter_image`]: the scanned PSF plus background).
 /// Averaged (as variance) over `positions × positions` sub-pixel QD
 /// positions near the frame centre.
-pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
+///
+/// The bound is of one microscope: a brightness or background given as a
+/// distribution is refused (the error names the field).
+pub fn cramer_rao_rmse_px(
+    params: &SimParams,
+    positions: usize,
+) -> Result<f64, crate::error::FieldError> {
     let mut total_variance = 0.0;
     let mut count = 0usize;
     for iy in 0..positions {
@@ -504,7 +510,7 @@ pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
             // TrackPy pixel coordinates, a pixel centre plus a fraction.
             let x = params.width as f64 / 2.0 - 0.5 + ix as f64 / positions as f64;
             let y = params.height as f64 / 2.0 - 0.5 + iy as f64 / positions as f64;
-            let image = sim::static_emitter_image(params, x, y, 0.0);
+            let image = sim::static_emitter_image(params, x, y, 0.0)?;
             let (mut ixx, mut ixy, mut iyy) = (0.0, 0.0, 0.0);
             for ((&expected, &dx), &dy) in image.expected.iter().zip(&image.d_dx).zip(&image.d_dy) {
                 if expected > 0.0 {
@@ -520,11 +526,11 @@ pub fn cramer_rao_rmse_px(params: &SimParams, positions: usize) -> f64 {
             }
         }
     }
-    if count == 0 {
+    Ok(if count == 0 {
         f64::INFINITY
     } else {
         (total_variance / count as f64).sqrt()
-    }
+    })
 }
 
 /// Writes a sweep as `NAME.csv` (every point with its extras) and a
@@ -712,26 +718,33 @@ mod tests {
     fn cramer_rao_bound_shrinks_with_brightness_like_one_over_root_n() {
         // Without background the bound scales as 1/√N_qd exactly.
         let dim = SimParams {
-            brightness: 100.0,
-            background: 0.0,
+            brightness: 100.0.into(),
+            background: 0.0.into(),
             height: 32,
             width: 32,
             ..SimParams::default()
         };
         let bright = SimParams {
-            brightness: 400.0,
+            brightness: 400.0.into(),
             ..dim.clone()
         };
-        let ratio = cramer_rao_rmse_px(&dim, 3) / cramer_rao_rmse_px(&bright, 3);
+        let ratio = cramer_rao_rmse_px(&dim, 3).unwrap() / cramer_rao_rmse_px(&bright, 3).unwrap();
         assert!((ratio - 2.0).abs() < 1e-6, "ratio {ratio}");
         // For a Gaussian spot without background, each axis has variance
         // σ²/N_signal (photons); σ = 3 px, N_signal = Σ μ.
         let sigma_px = dim.sigma_xy_um / dim.pixel_size_um;
-        let photons = dim.brightness
+        let photons = 100.0
             / (dim.pixel_size_um * dim.pixel_size_um)
             / (2.0 * std::f64::consts::PI * dim.sigma_z_um * dim.sigma_z_um).sqrt();
         let expected = (2.0 * sigma_px * sigma_px / photons).sqrt();
-        let got = cramer_rao_rmse_px(&dim, 3);
+        let got = cramer_rao_rmse_px(&dim, 3).unwrap();
+        // A distribution is not one microscope: refused, naming the field.
+        let spread = SimParams {
+            background: "uniform:0,1".parse().unwrap(),
+            ..dim.clone()
+        };
+        let error = cramer_rao_rmse_px(&spread, 3).unwrap_err();
+        assert_eq!(error.field(), "background");
         assert!((got / expected - 1.0).abs() < 1e-3, "{got} vs {expected}");
     }
 }

@@ -279,10 +279,10 @@ fn tradeoffs(args: TradeoffArgs) -> anyhow::Result<ExitCode> {
     use bench::tradeoff::{self, extra};
     args.validate()?;
     let floor_params = SimParams {
-        brightness: args.brightness,
+        brightness: args.brightness.into(),
         ..SimParams::default()
     };
-    let floor = tradeoff::cramer_rao_rmse_px(&floor_params, 5);
+    let floor = tradeoff::cramer_rao_rmse_px(&floor_params, 5)?;
     println!(
         "Cramér–Rao floor (static QD, N_qd {}, Poisson): RMSE {floor:.4} px",
         args.brightness

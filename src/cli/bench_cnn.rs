@@ -221,7 +221,7 @@ pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
     model.architecture.validate()?;
     model.settings.validate()?;
     let params = SimParams {
-        brightness: args.brightness,
+        brightness: args.brightness.into(),
         margin_px: args.margin_px,
         diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.75, 1.75])),
         ..SimParams::default()

@@ -10,7 +10,7 @@ use scanloc::detect::likelihood::{self, LikelihoodParams};
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::registry::{ModelOrigin, Registry};
-use scanloc::sim::{Distribution, SimParams};
+use scanloc::sim::SimParams;
 
 /// Localise QDs in every frame of a .npy or .tif stack and write a CSV.
 ///
@@ -26,7 +26,8 @@ use scanloc::sim::{Distribution, SimParams};
 /// detector, or folder) and the sha256 of its bytes, the same for a
 /// registry model and its exported folder. With `--method likelihood` (a
 /// particle filter under the simulator's model of the paper's microscope,
-/// with the flags below for D, brightness, background and margin) the
+/// with the microscope flags for D, brightness, background, start depth
+/// and margin) the
 /// columns are frame,x,y,score: one row per frame, the posterior mean of
 /// the QD's trajectory centroid and the posterior mass within
 /// --score-radius-px of it.
@@ -108,20 +109,14 @@ pub struct LocateArgs {
     /// With `--method likelihood`: particles per frame.
     #[arg(long, default_value_t = 20_000)]
     particles: usize,
-    /// With `--method likelihood`: the QD's diffusion coefficient in µm²/s,
-    /// a number (known) or uniform:LOW,HIGH (a prior: D marginalised).
-    #[arg(long, default_value = "1.0")]
-    diffusion: Distribution,
-    /// With `--method likelihood`: N_qd, photons of an in-focus QD.
-    #[arg(long, default_value_t = 7.0)]
-    brightness: f64,
-    /// With `--method likelihood`: expected background photons per pixel.
-    #[arg(long, default_value_t = 8.4)]
-    background: f64,
-    /// With `--method likelihood`: the QD starts at least this many pixels
-    /// from the border (the prior over its start).
-    #[arg(long, default_value_t = 0.0)]
-    margin_px: f64,
+    /// With `--method likelihood`: the microscope the filter assumes (a
+    /// distribution is a prior, marginalised; the margin bounds the prior
+    /// over the QD's start).
+    #[command(
+        flatten,
+        next_help_heading = "With --method likelihood (the microscope the filter models; a distribution is a prior)"
+    )]
+    microscope: super::MicroscopeArgs,
     /// With `--method likelihood`: the score is the posterior mass within
     /// this many pixels of the estimate.
     #[arg(long, default_value_t = 1.0)]
@@ -249,15 +244,11 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
                 .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
             let frames = io::read_frames_of_channel(&args.input, args.channel)?;
             // The paper's microscope at the frames' size.
-            let microscope = SimParams {
+            let microscope = args.microscope.apply(SimParams {
                 height: frames.height,
                 width: frames.width,
-                diffusion_um2_s: args.diffusion,
-                brightness: args.brightness,
-                background: args.background,
-                margin_px: args.margin_px,
                 ..SimParams::default()
-            };
+            });
             microscope
                 .validate()
                 .map_err(|e| input_error(format!("invalid microscope parameter: {e}")))?;

@@ -153,3 +153,49 @@ impl Deref for RegistryDir {
         &self.dir
     }
 }
+
+/// The microscope flags of the commands that simulate frames or model them
+/// (`simulate`, `train`, `locate --method likelihood`), flattened into
+/// their arguments so each flag is spelt, documented and converted once.
+///
+/// Each per-frame parameter is a number or `uniform:LOW,HIGH` (drawn once
+/// per frame, docs/simulator.md); for the likelihood detector a
+/// distribution is a prior it marginalises. A command whose defaults
+/// differ (`train`: margin 4, D uniform:0.75,1.75) changes them with
+/// `mut_arg`, so `--help` shows its own.
+#[derive(Debug, Clone, Args)]
+pub struct MicroscopeArgs {
+    /// Diffusion coefficient D in µm²/s: a number or uniform:LOW,HIGH (per frame).
+    #[arg(long, default_value = "1.0")]
+    pub diffusion: scanloc::sim::Distribution,
+    /// N_qd, photons of an in-focus QD (PSF normalisation): a number or
+    /// uniform:LOW,HIGH (per frame).
+    #[arg(long, default_value = "7")]
+    pub brightness: scanloc::sim::Distribution,
+    /// N_bkg, expected background photons per pixel: a number or
+    /// uniform:LOW,HIGH (per frame).
+    #[arg(long, default_value = "8.4")]
+    pub background: scanloc::sim::Distribution,
+    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH
+    /// (per frame).
+    #[arg(long, default_value = "0")]
+    pub z_start: scanloc::sim::Distribution,
+    /// Start positions are uniform over the field shrunk by this many pixels.
+    #[arg(long, default_value_t = 0.0)]
+    pub margin_px: f64,
+}
+
+impl MicroscopeArgs {
+    /// `base` with the values of these flags (the one conversion of the
+    /// shared flags into simulator parameters; not yet validated).
+    pub fn apply(&self, base: scanloc::sim::SimParams) -> scanloc::sim::SimParams {
+        scanloc::sim::SimParams {
+            diffusion_um2_s: self.diffusion,
+            brightness: self.brightness,
+            background: self.background,
+            z_start: self.z_start,
+            margin_px: self.margin_px,
+            ..base
+        }
+    }
+}

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, PendingFile};
-use scanloc::sim::{self, DetectorNoise, Distribution, EmitterCount, SimParams};
+use scanloc::sim::{self, DetectorNoise, EmitterCount, SimParams};
 
 /// Simulate point-scanning 2PM frames of diffusing QDs (docs/simulator.md).
 ///
@@ -23,15 +23,9 @@ pub struct SimulateArgs {
     /// Master seed of the dataset.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Diffusion coefficient D in µm²/s: a number or uniform:LOW,HIGH (per frame).
-    #[arg(long, default_value = "1.0")]
-    diffusion: Distribution,
-    /// N_qd: photons of an in-focus QD (PSF normalisation).
-    #[arg(long, default_value_t = 7.0)]
-    brightness: f64,
-    /// N_bkg: expected background photons per pixel.
-    #[arg(long, default_value_t = 8.4)]
-    background: f64,
+    /// D, N_qd, N_bkg, start depth and margin.
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
     /// Frame height in pixels (rows).
     #[arg(long, default_value_t = 24)]
     height: usize,
@@ -53,12 +47,6 @@ pub struct SimulateArgs {
     /// Axial PSF standard deviation in µm.
     #[arg(long, default_value_t = 1.36)]
     sigma_z_um: f64,
-    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH.
-    #[arg(long, default_value = "0")]
-    z_start: Distribution,
-    /// Start positions are uniform over the field shrunk by this many pixels.
-    #[arg(long, default_value_t = 0.0)]
-    margin_px: f64,
     /// PSF samples per pixel dwell (1 = the paper).
     #[arg(long, default_value_t = 1)]
     substeps: u32,
@@ -111,7 +99,7 @@ fn parse_cutoff(text: &str) -> Result<Cutoff, String> {
 }
 
 pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
-    let params = SimParams {
+    let params = args.microscope.apply(SimParams {
         height: args.height,
         width: args.width,
         pixel_size_um: args.pixel_size_um,
@@ -119,16 +107,12 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
         retrace_ms: args.retrace_ms,
         sigma_xy_um: args.sigma_xy_um,
         sigma_z_um: args.sigma_z_um,
-        background: args.background,
-        brightness: args.brightness,
-        diffusion_um2_s: args.diffusion,
-        z_start: args.z_start,
-        margin_px: args.margin_px,
         substeps: args.substeps,
         emitters: args.emitters,
         detector_noise: args.detector_noise,
         psf_cutoff_sigma: args.psf_cutoff_sigma,
-    };
+        ..SimParams::default()
+    });
     params
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;

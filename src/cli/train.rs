@@ -10,12 +10,14 @@ use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
 use scanloc::manifest::derive_seed;
 use scanloc::metrics;
-use scanloc::sim::{self, Distribution, EmitterCount, SimParams};
+use scanloc::sim::{self, EmitterCount, SimParams};
 
 /// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
 /// Simulates `--frames` frames of the paper's microscope (with the given
-/// brightness, margin, diffusion, QDs per frame and start depth) as the
+/// brightness, background, margin, diffusion, QDs per frame and start
+/// depth, each but the margin a number or drawn per frame from
+/// uniform:LOW,HIGH) as the
 /// fixed dataset, of which
 /// `--validation-fraction` selects the best epoch, optionally adds
 /// `--fresh-frames-per-epoch` newly simulated frames every epoch, trains, and
@@ -31,28 +33,23 @@ use scanloc::sim::{self, Distribution, EmitterCount, SimParams};
 /// from too high a learning rate) stops with exit code 2, naming the epoch
 /// and batch: the settings are at fault, not the program.
 #[derive(Debug, Args)]
+#[command(
+    mut_arg("margin_px", |arg| arg.default_value("4")),
+    mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
+)]
 pub struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
-    /// N_qd: photons of an in-focus QD.
-    #[arg(long, default_value_t = 7.0)]
-    brightness: f64,
-    /// Start positions are uniform over the field shrunk by this many pixels.
-    #[arg(long, default_value_t = 4.0)]
-    margin_px: f64,
-    /// Diffusion coefficient in µm²/s: a number or uniform:LOW,HIGH (per frame).
-    #[arg(long, default_value = "uniform:0.75,1.75")]
-    diffusion: Distribution,
+    /// D, N_qd, N_bkg, start depth and margin of the training frames (and
+    /// of the test sets, but for D).
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
     /// QDs per training frame: N, or drawn per frame with choice:N,N,...
     /// (optionally /weights:W,W,...), e.g. choice:0,1,2,3 for scenes of no,
     /// one or several QDs (docs/detectors.md).
     #[arg(long, default_value = "1")]
     emitters: EmitterCount,
-    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH
-    /// (per frame).
-    #[arg(long, default_value = "0")]
-    z_start: Distribution,
     /// Master seed: derives the dataset's seed, the fresh frames', the
     /// weight initialisation, the split and the batch order.
     #[arg(long, default_value_t = 0)]
@@ -153,14 +150,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     };
     architecture.validate()?;
     settings.validate()?;
-    let params = SimParams {
-        brightness: args.brightness,
-        margin_px: args.margin_px,
-        diffusion_um2_s: args.diffusion,
+    let params = args.microscope.apply(SimParams {
         emitters: args.emitters.clone(),
-        z_start: args.z_start,
         ..SimParams::default()
-    };
+    });
     let test_params = SimParams {
         emitters: args.test_emitters.clone(),
         ..params.clone()

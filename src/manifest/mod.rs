@@ -440,9 +440,15 @@ mod tests {
     fn datasets_inherit_the_microscope_and_override_it() {
         let text = "name: t\nseed: 3\nmicroscope:\n  brightness: 9\n  margin_px: 4\ndatasets:\n  a:\n    frames: 5\n  b:\n    frames: 6\n    brightness: 11\n    diffusion_um2_s: {uniform: [0.75, 1.75]}\n";
         let manifest = parse(text, "t.yaml").unwrap();
-        assert_eq!(manifest.datasets[0].params.brightness, 9.0);
+        assert_eq!(
+            manifest.datasets[0].params.brightness,
+            crate::sim::Distribution::Fixed(9.0)
+        );
         assert_eq!(manifest.datasets[0].params.margin_px, 4.0);
-        assert_eq!(manifest.datasets[1].params.brightness, 11.0);
+        assert_eq!(
+            manifest.datasets[1].params.brightness,
+            crate::sim::Distribution::Fixed(11.0)
+        );
         assert_eq!(manifest.datasets[1].frames, 6);
         assert_eq!(manifest.datasets[1].fixed_diffusion(), None);
         assert_eq!(manifest.datasets[0].seed, derive_seed(3, "dataset", "a"));
@@ -526,5 +532,57 @@ mod tests {
             error.starts_with("x.yaml:6: datasets.a.brightnes: unknown field"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn brightness_and_background_can_be_drawn_per_frame() {
+        use crate::sim::{Distribution, RandomDistribution};
+        let text = "name: t\nseed: 3\nmicroscope:\n  brightness: {uniform: [5, 10]}\ndatasets:\n  a: {frames: 5}\n  b: {frames: 6, brightness: 7.5, background: {uniform: [2, 12]}}\n";
+        let manifest = parse(text, "t.yaml").unwrap();
+        let uniform = |low, high| Distribution::Random(RandomDistribution::Uniform([low, high]));
+        assert_eq!(manifest.datasets[0].params.brightness, uniform(5.0, 10.0));
+        assert_eq!(
+            manifest.datasets[0].params.background,
+            Distribution::Fixed(8.4)
+        );
+        assert_eq!(
+            manifest.datasets[1].params.brightness,
+            Distribution::Fixed(7.5)
+        );
+        assert_eq!(manifest.datasets[1].params.background, uniform(2.0, 12.0));
+        let yaml = manifest.to_resolved_yaml().unwrap();
+        assert!(yaml.contains("uniform"), "{yaml}");
+        for (field, value, message) in [
+            ("brightness", "{uniform: [-1, 10]}", "must be ≥ 0, got -1"),
+            (
+                "background",
+                "{uniform: [3, .inf]}",
+                "must be a finite number",
+            ),
+            (
+                "brightness",
+                "{uniform: [9, 2]}",
+                "uniform bounds must be ordered",
+            ),
+            (
+                "background",
+                "{normal: [1, 2]}",
+                "must be a number or {uniform: [LOW, HIGH]}",
+            ),
+            (
+                "brightness",
+                "{uniform: [1]}",
+                "must be a number or {uniform: [LOW, HIGH]}",
+            ),
+        ] {
+            let text =
+                format!("name: t\nseed: 3\ndatasets:\n  a:\n    frames: 2\n    {field}: {value}\n");
+            let error = parse(&text, "x.yaml").unwrap_err().to_string();
+            assert!(
+                error.starts_with(&format!("x.yaml:6: datasets.a.{field}: {message}")),
+                "{value}: {error}"
+            );
+            assert!(!error.contains('\n'), "{error}");
+        }
     }
 }

@@ -118,7 +118,9 @@ pub enum ArtefactDetails {
         width: usize,
         seed: u64,
         diffusion: Option<f64>,
-        brightness: f64,
+        /// N_qd: the `brightness` column holds the number when it is fixed
+        /// and the distribution's text form (`uniform:5,10`) otherwise.
+        brightness: crate::sim::Distribution,
         params_json: String,
     },
     Model {
@@ -143,6 +145,17 @@ pub enum ArtefactDetails {
         /// (ε px, AUC, true positives, false positives)
         auc: Vec<(f64, f64, usize, usize)>,
     },
+}
+
+/// A per-frame simulator parameter as a registry column holds it: a REAL
+/// when it is fixed, so existing queries and rows keep their numbers, and
+/// the distribution's text form (`uniform:5,10`, as the flags take it)
+/// when it is drawn per frame.
+fn per_frame_column(value: &crate::sim::Distribution) -> rusqlite::types::Value {
+    match value.fixed() {
+        Some(number) => rusqlite::types::Value::Real(number),
+        None => rusqlite::types::Value::Text(value.to_string()),
+    }
 }
 
 /// A new artefact to record: its blobs must already be in the blob store.
@@ -555,7 +568,7 @@ impl Registry {
                         *width as i64,
                         seed.to_string(),
                         diffusion,
-                        brightness,
+                        per_frame_column(brightness),
                         params_json
                     ],
                 )?;
@@ -1046,7 +1059,7 @@ mod tests {
                 width: 1,
                 seed: u64::MAX,
                 diffusion: None,
-                brightness: 7.0,
+                brightness: 7.0.into(),
                 params_json: "{}".into(),
             },
         }
@@ -1088,6 +1101,40 @@ mod tests {
             })
             .unwrap();
         assert_eq!(seed, u64::MAX.to_string());
+    }
+
+    #[test]
+    fn the_brightness_column_holds_a_number_or_the_distributions_form() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut registry = Registry::open(dir.path()).unwrap();
+        let sha = registry.blobs().put(b"frames").unwrap();
+        let mut drawn = dataset_artefact("drawn", &sha);
+        if let ArtefactDetails::Dataset { brightness, .. } = &mut drawn.details {
+            *brightness = "uniform:5,10".parse().unwrap();
+        }
+        for artefact in [dataset_artefact("fixed", &sha), drawn] {
+            registry.record_artefact(&artefact, false).unwrap();
+        }
+        let table = registry.list_datasets().unwrap();
+        let column = table
+            .columns
+            .iter()
+            .position(|c| c == "brightness")
+            .unwrap();
+        let key = table.columns.iter().position(|c| c == "key").unwrap();
+        let mut cells: Vec<(String, serde_json::Value)> = table
+            .rows
+            .iter()
+            .map(|row| (row[key].as_str().unwrap().to_string(), row[column].clone()))
+            .collect();
+        cells.sort_by(|a, b| a.0.cmp(&b.0));
+        assert_eq!(
+            cells,
+            [
+                ("drawn".to_string(), serde_json::json!("uniform:5,10")),
+                ("fixed".to_string(), serde_json::json!(7.0)),
+            ]
+        );
     }
 
     #[test]

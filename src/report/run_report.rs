@@ -70,7 +70,7 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
             &mut markdown,
             &evaluations,
             reference,
-            resolved.microscope.brightness,
+            &resolved.microscope.brightness,
         )?;
     }
     write_cross_validation_table(&mut markdown, &record, &resolved)?;
@@ -311,7 +311,7 @@ fn write_reference_note(
     markdown: &mut String,
     evaluations: &[Evaluation],
     reference: &Reference,
-    brightness: f64,
+    brightness: &Distribution,
 ) -> anyhow::Result<()> {
     let kind_of = |detector: &str| {
         evaluations
@@ -835,7 +835,7 @@ mod tests {
             rows: vec![row("trackpy", "TrackPy"), row("cnn", "FCNN")],
         };
         let mut markdown = String::new();
-        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        write_reference_note(&mut markdown, &evaluations, &reference, &7.5.into()).unwrap();
         assert!(markdown.contains("N_qd (here 7.5)"), "{markdown}");
         assert!(
             markdown.contains("whose TrackPy (trackpy) row comes closest"),
@@ -853,7 +853,7 @@ mod tests {
             rows: vec![row("cnn", "FCNN")],
         };
         let mut markdown = String::new();
-        write_reference_note(&mut markdown, &evaluations, &reference, 7.5).unwrap();
+        write_reference_note(&mut markdown, &evaluations, &reference, &7.5.into()).unwrap();
         assert!(markdown.is_empty(), "{markdown}");
     }
 }

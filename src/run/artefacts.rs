@@ -201,7 +201,7 @@ mod tests {
             z_start: Distribution::Random(RandomDistribution::Uniform([-0.5, 0.5])),
             psf_cutoff_sigma: Some(3.0),
             diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.5, 2.0])),
-            brightness: 300.0,
+            brightness: 300.0.into(),
             ..SimParams::default()
         };
         assert_eq!(
@@ -212,7 +212,7 @@ mod tests {
             )
         );
         let bright = SimParams {
-            brightness: 100_000.0,
+            brightness: 100_000.0.into(),
             ..SimParams::default()
         };
         assert_eq!(

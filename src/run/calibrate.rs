@@ -38,12 +38,13 @@ pub struct Calibration {
 }
 
 /// The manifest with only `detector`'s evaluations, every dataset at
-/// `brightness`.
+/// `brightness` (a brightness the manifest gives as a distribution is
+/// replaced too: a grid point is one N_qd for every frame).
 pub fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
     let mut point = manifest.clone();
-    point.microscope.brightness = brightness;
+    point.microscope.brightness = brightness.into();
     for dataset in &mut point.datasets {
-        dataset.params.brightness = brightness;
+        dataset.params.brightness = brightness.into();
     }
     point.evaluations.retain(|e| e.detector == detector);
     point.detectors.retain(|d| d.name == detector);

@@ -27,7 +27,7 @@ pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> Artefac
                 width: params.map_or(0, |p| p.width),
                 seed,
                 diffusion: None,
-                brightness: params.map_or(0.0, |p| p.brightness),
+                brightness: params.map_or(0.0.into(), |p| p.brightness),
                 params_json: step.spec.clone(),
             }
         }

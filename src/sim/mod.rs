@@ -14,9 +14,12 @@
 //!
 //! Determinism: frame `i` of a dataset with seed `s` draws only from
 //! ChaCha8 stream `i` of key `s`, in a fixed order (diffusion coefficient;
-//! the number of emitters when it is drawn; then per emitter its start x, y, z and its walk; then the detector noise
-//! pixel by pixel). Frames are therefore identical whatever the thread count
-//! and however a dataset is split into calls.
+//! the number of emitters, the brightness N_qd and the background N_bkg,
+//! each only when it is drawn from a distribution; then per emitter its
+//! start x, y, z and its walk; then the detector noise pixel by pixel). A
+//! fixed parameter draws nothing, so datasets made before a parameter could
+//! be drawn keep their frames bit for bit. Frames are therefore identical
+//! whatever the thread count and however a dataset is split into calls.
 
 pub mod gaussian;
 pub mod noise;
@@ -33,7 +36,7 @@ pub use params::{
     CountChoice, DetectorNoise, Distribution, EmitterCount, RandomDistribution, SimParams,
 };
 
-use crate::error::input_error;
+use crate::error::{FieldError, input_error};
 use crate::types::{Dataset, FrameStack, TruthRow};
 use gaussian::standard_normal_from_bits;
 use noise::Detector;
@@ -46,8 +49,6 @@ pub const GENERATOR_VERSION: &str = "scanloc-sim/1";
 struct Precomputed {
     /// Beam x in µm for every sample of a row (`width · substeps` values).
     beam_x: Vec<f64>,
-    /// PSF amplitude per sample: `N_qd / (2π σxy²) / √(2π σz²) / substeps`.
-    amplitude: f64,
     inv_two_sigma_xy2: f64,
     inv_two_sigma_z2: f64,
     /// Squared lateral cut-off radius in µm² (infinite without cut-off).
@@ -77,7 +78,6 @@ impl Precomputed {
         };
         Self {
             beam_x,
-            amplitude: params.psf_peak() / s as f64,
             inv_two_sigma_xy2: 1.0 / (2.0 * params.sigma_xy_um * params.sigma_xy_um),
             inv_two_sigma_z2: 1.0 / (2.0 * params.sigma_z_um * params.sigma_z_um),
             cutoff2,
@@ -98,12 +98,19 @@ impl Precomputed {
         (step_sd, retrace_sd)
     }
 
+    /// The PSF amplitude per sample of a frame whose N_qd is `brightness`:
+    /// `N_qd / (2π σxy²) / √(2π σz²) / substeps`.
+    fn amplitude(&self, params: &SimParams, brightness: f64) -> f64 {
+        params.psf_peak_at(brightness) / self.substeps
+    }
+
     /// Expected photons one PSF sample adds to its pixel, for an emitter at
-    /// lateral offset `(dx, dy)` µm from the beam and depth `z` µm; 0 beyond
-    /// the cut-off. The one place the scanned PSF is evaluated: the
-    /// simulator and [`static_emitter_image`] both go through it.
+    /// lateral offset `(dx, dy)` µm from the beam and depth `z` µm, with
+    /// amplitude `amplitude` ([`Precomputed::amplitude`]); 0 beyond the
+    /// cut-off. The one place the scanned PSF is evaluated: the simulator
+    /// and [`static_emitter_image`] both go through it.
     #[inline(always)]
-    fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
+    fn sample_photons(&self, amplitude: f64, dx: f64, dy: f64, z: f64) -> f64 {
         let dy2 = dy * dy;
         if dy2 > self.cutoff2 {
             return 0.0;
@@ -112,7 +119,7 @@ impl Precomputed {
         if r2 > self.cutoff2 {
             return 0.0;
         }
-        self.amplitude * (-(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2).exp()
+        amplitude * (-(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2).exp()
     }
 }
 
@@ -135,8 +142,15 @@ fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
 /// `((c + 0.5)·a, (r + 0.5)·a, 0)`); [`ScanModel::um_to_px`] converts to
 /// TrackPy pixels. Samples are counted along a row: `samples_per_row` =
 /// `width · substeps`, sample `k` belongs to column `k / substeps`.
+///
+/// The model's N_qd is the largest `params.brightness` can take (the
+/// value, when it is fixed); a model of frames of another N_qd scales
+/// [`ScanModel::sample_photons`] by the ratio (photons are proportional to
+/// N_qd).
 pub struct ScanModel {
     pre: Precomputed,
+    /// PSF amplitude per sample at the model's N_qd.
+    amplitude: f64,
     pixel_size_um: f64,
     start_ranges_px: ((f64, f64), (f64, f64)),
 }
@@ -144,8 +158,10 @@ pub struct ScanModel {
 impl ScanModel {
     /// The model of the microscope `params` (assumed valid).
     pub fn new(params: &SimParams) -> Self {
+        let pre = Precomputed::new(params, 0);
         Self {
-            pre: Precomputed::new(params, 0),
+            amplitude: pre.amplitude(params, params.brightness.bounds().1),
+            pre,
             pixel_size_um: params.pixel_size_um,
             start_ranges_px: start_ranges_px(params),
         }
@@ -163,11 +179,11 @@ impl ScanModel {
 
     /// Expected photons one PSF sample adds to its pixel (already divided
     /// by `substeps`, so a pixel's signal is the sum over its samples), for
-    /// a QD at lateral offset `(dx, dy)` µm from the beam and depth `z` µm;
-    /// exactly 0 beyond the PSF cut-off.
+    /// a QD of the model's N_qd at lateral offset `(dx, dy)` µm from the
+    /// beam and depth `z` µm; exactly 0 beyond the PSF cut-off.
     #[inline(always)]
     pub fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
-        self.pre.sample_photons(dx, dy, z)
+        self.pre.sample_photons(self.amplitude, dx, dy, z)
     }
 
     /// Standard deviations (µm per axis) of the Brownian step between two
@@ -201,10 +217,19 @@ pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
     rng
 }
 
+/// What the signal rendering of one frame hands on to its noise draws.
+struct RenderedSignal {
+    /// The frame's random stream, positioned for the detector noise.
+    rng: ChaCha8Rng,
+    /// The frame's N_bkg, expected background photons per pixel.
+    background: f64,
+}
+
 /// Adds the expected signal of every emitter of frame `index` to `expected`
 /// (row-major, `height · width`), appends their truth rows, and returns the
-/// frame's random stream positioned for the noise draws. With `paths`, also
-/// appends each emitter's position at every PSF sample, in pixels.
+/// frame's random stream positioned for the noise draws with the frame's
+/// background. With `paths`, also appends each emitter's position at every
+/// PSF sample, in pixels.
 fn render_signal(
     params: &SimParams,
     pre: &Precomputed,
@@ -213,10 +238,15 @@ fn render_signal(
     bits: &mut Vec<u32>,
     truth: &mut Vec<TruthRow>,
     mut paths: Option<&mut Vec<Vec<(f64, f64)>>>,
-) -> ChaCha8Rng {
+) -> RenderedSignal {
     let mut rng = frame_rng(pre.seed, index);
     let diffusion = params.diffusion_um2_s.sample(&mut rng);
     let emitters = params.emitters.sample(&mut rng);
+    // Drawn after the count (and only for a distribution), so fixed values
+    // leave every later draw where it was.
+    let brightness = params.brightness.sample(&mut rng);
+    let background = params.background.sample(&mut rng);
+    let amplitude = pre.amplitude(params, brightness);
     let a = params.pixel_size_um;
     let s = params.substeps as usize;
     let samples_per_row = params.width * s;
@@ -260,7 +290,7 @@ fn render_signal(
                 if let Some(path) = path.as_mut() {
                     path.push((x / a - 0.5, y / a - 0.5));
                 }
-                pixels[k / s] += pre.sample_photons(x - beam_x, y - beam_y, z);
+                pixels[k / s] += pre.sample_photons(amplitude, x - beam_x, y - beam_y, z);
             }
         }
         truth.push(TruthRow {
@@ -278,24 +308,25 @@ fn render_signal(
             paths.push(path);
         }
     }
-    rng
+    RenderedSignal { rng, background }
 }
 
 /// An emitter's position at every PSF sample, pixels.
 pub type Path = Vec<(f64, f64)>;
 
 /// Everything one frame's walk produces without detector noise: the
-/// expected signal image, the truth rows and each emitter's path.
+/// expected signal image, the frame's background, the truth rows and each
+/// emitter's path.
 fn replay_frame(
     params: &SimParams,
     seed: u64,
     index: usize,
-) -> (Vec<f64>, Vec<TruthRow>, Vec<Path>) {
+) -> (Vec<f64>, f64, Vec<TruthRow>, Vec<Path>) {
     let pre = Precomputed::new(params, seed);
     let mut expected = vec![0.0; params.height * params.width];
     let mut truth = Vec::new();
     let mut paths = Vec::new();
-    render_signal(
+    let rendered = render_signal(
         params,
         &pre,
         index,
@@ -304,16 +335,16 @@ fn replay_frame(
         &mut truth,
         Some(&mut paths),
     );
-    (expected, truth, paths)
+    (expected, rendered.background, truth, paths)
 }
 
-/// The expected photon image of frame `index` (signal plus background,
-/// before detector noise) and its truth rows. Used by tests and benchmarks
-/// to compare against the analytic model.
+/// The expected photon image of frame `index` (signal plus the frame's
+/// background, before detector noise) and its truth rows. Used by tests and
+/// benchmarks to compare against the analytic model.
 pub fn expected_frame(params: &SimParams, seed: u64, index: usize) -> (Vec<f64>, Vec<TruthRow>) {
-    let (mut expected, truth, _) = replay_frame(params, seed, index);
+    let (mut expected, background, truth, _) = replay_frame(params, seed, index);
     for value in &mut expected {
-        *value += params.background;
+        *value += background;
     }
     (expected, truth)
 }
@@ -322,7 +353,7 @@ pub fn expected_frame(params: &SimParams, seed: u64, index: usize) -> (Vec<f64>,
 /// position at each PSF sample, in scan order (the same walk that made the
 /// frame). For figures; costs one frame's simulation.
 pub fn trajectories(params: &SimParams, seed: u64, index: usize) -> Vec<Path> {
-    replay_frame(params, seed, index).2
+    replay_frame(params, seed, index).3
 }
 
 /// The expected image of one static emitter and its sensitivity to the
@@ -346,8 +377,20 @@ pub struct StaticEmitterImage {
 /// background) and its derivatives with respect to `x` and `y`. For a
 /// static emitter of a simulated frame this is the frame's
 /// [`expected_frame`].
-pub fn static_emitter_image(params: &SimParams, x: f64, y: f64, z_um: f64) -> StaticEmitterImage {
+///
+/// The image is of one microscope: `brightness` and `background` must be
+/// fixed numbers (an error names the one that is a distribution).
+pub fn static_emitter_image(
+    params: &SimParams,
+    x: f64,
+    y: f64,
+    z_um: f64,
+) -> Result<StaticEmitterImage, FieldError> {
+    const PURPOSE: &str = "the image of a static emitter (a Cramér–Rao bound)";
+    let brightness = params.brightness.require_fixed("brightness", PURPOSE)?;
+    let background = params.background.require_fixed("background", PURPOSE)?;
     let pre = Precomputed::new(params, 0);
+    let amplitude = pre.amplitude(params, brightness);
     let a = params.pixel_size_um;
     let s = params.substeps as usize;
     // The emitter in µm, as the simulator places it.
@@ -364,7 +407,7 @@ pub fn static_emitter_image(params: &SimParams, x: f64, y: f64, z_um: f64) -> St
         let beam_y = (row as f64 + 0.5) * a;
         for (k, &beam_x) in pre.beam_x.iter().enumerate() {
             let (dx, dy) = (x_um - beam_x, y_um - beam_y);
-            let photons = pre.sample_photons(dx, dy, z_um);
+            let photons = pre.sample_photons(amplitude, dx, dy, z_um);
             let pixel = row * params.width + k / s;
             image.expected[pixel] += photons;
             image.d_dx[pixel] += photons * dx * slope;
@@ -373,9 +416,9 @@ pub fn static_emitter_image(params: &SimParams, x: f64, y: f64, z_um: f64) -> St
     }
     // Added last, as `expected_frame` does, so the sums round alike.
     for value in &mut image.expected {
-        *value += params.background;
+        *value += background;
     }
-    image
+    Ok(image)
 }
 
 /// A uniform on [0, 1) from the upper 53 bits of a word, as rand's
@@ -400,7 +443,9 @@ struct Scratch {
 struct FrameMaker<'a> {
     params: &'a SimParams,
     pre: Precomputed,
-    detector: Detector,
+    /// The detector of every frame when the background is fixed; a drawn
+    /// background gets a detector per frame.
+    fixed_detector: Option<Detector>,
 }
 
 impl FrameMaker<'_> {
@@ -413,14 +458,25 @@ impl FrameMaker<'_> {
         scratch: &mut Scratch,
         truth: &mut Vec<TruthRow>,
     ) -> anyhow::Result<()> {
-        let (params, detector) = (self.params, &self.detector);
+        let params = self.params;
         let Scratch {
             expected,
             bits,
             noise_words,
         } = scratch;
         expected.fill(0.0);
-        let mut rng = render_signal(params, &self.pre, index, expected, bits, truth, None);
+        let RenderedSignal {
+            mut rng,
+            background,
+        } = render_signal(params, &self.pre, index, expected, bits, truth, None);
+        let frame_detector;
+        let detector = match &self.fixed_detector {
+            Some(detector) => detector,
+            None => {
+                frame_detector = Detector::new(params.detector_noise, background);
+                &frame_detector
+            }
+        };
         // Two uniforms per pixel (background, signal), drawn in one fill.
         noise_words.resize(2 * counts.len(), 0);
         rng.fill(&mut noise_words[..]);
@@ -463,7 +519,10 @@ pub fn simulate(
     let maker = FrameMaker {
         params,
         pre: Precomputed::new(params, seed),
-        detector: Detector::new(params.detector_noise, params.background),
+        fixed_detector: params
+            .background
+            .fixed()
+            .map(|background| Detector::new(params.detector_noise, background)),
     };
     let mut data = vec![0u32; n * frame_len];
     let truths: Vec<Vec<TruthRow>> = data
@@ -513,12 +572,13 @@ mod tests {
                 diffusion_um2_s: Distribution::Fixed(0.0),
                 substeps,
                 psf_cutoff_sigma: cutoff,
-                background: 0.3,
+                background: 0.3.into(),
                 ..SimParams::default()
             };
             for index in 0..5 {
                 let (expected, truth) = static_frame(&params, 11, index);
-                let image = static_emitter_image(&params, truth.x_start, truth.y_start, 0.0);
+                let image =
+                    static_emitter_image(&params, truth.x_start, truth.y_start, 0.0).unwrap();
                 assert_eq!(
                     image.expected, expected,
                     "substeps {substeps}, frame {index}"
@@ -536,7 +596,8 @@ mod tests {
         for index in 0..5 {
             let (expected, truth) = static_frame(&params, 12, index);
             assert!(truth.z_mean.abs() > 1e-3);
-            let image = static_emitter_image(&params, truth.x_start, truth.y_start, truth.z_mean);
+            let image =
+                static_emitter_image(&params, truth.x_start, truth.y_start, truth.z_mean).unwrap();
             for (model, simulated) in image.expected.iter().zip(&expected) {
                 assert!((model - simulated).abs() <= 1e-12 * simulated.abs().max(1.0));
             }
@@ -587,7 +648,10 @@ mod tests {
             .map(|&c| f64::from(c))
             .sum::<f64>()
             / (empty.len() * 144) as f64;
-        assert!((mean - params.background).abs() < 0.2, "{mean}");
+        assert!(
+            (mean - params.background.fixed().unwrap()).abs() < 0.2,
+            "{mean}"
+        );
     }
 
     #[test]
@@ -623,6 +687,156 @@ mod tests {
     }
 
     #[test]
+    fn a_drawn_brightness_comes_after_the_count_and_scales_the_frame() {
+        // A static, in-focus QD far from the border, no background and no
+        // cut-off: a frame's expected signal is its N_qd times the image at
+        // N_qd = 1. With D and the count fixed, the frame's first draw is
+        // its N_qd.
+        let unit = SimParams {
+            height: 30,
+            width: 30,
+            margin_px: 12.0,
+            diffusion_um2_s: Distribution::Fixed(0.0),
+            background: 0.0.into(),
+            brightness: 1.0.into(),
+            psf_cutoff_sigma: None,
+            ..SimParams::default()
+        };
+        let drawn = SimParams {
+            brightness: "uniform:2,20".parse().unwrap(),
+            ..unit.clone()
+        };
+        let mut seen = Vec::new();
+        for index in 0..20 {
+            let (expected, truth) = expected_frame(&drawn, 5, index);
+            let unit_image =
+                static_emitter_image(&unit, truth[0].x_start, truth[0].y_start, 0.0).unwrap();
+            let ratio = expected.iter().sum::<f64>() / unit_image.expected.iter().sum::<f64>();
+            let mut rng = frame_rng(5, index);
+            let brightness = drawn.brightness.sample(&mut rng);
+            assert!((2.0..=20.0).contains(&brightness));
+            assert!(
+                (ratio / brightness - 1.0).abs() < 1e-9,
+                "{ratio} vs {brightness}"
+            );
+            // The QD's start x is the draw after it.
+            let x0 = -0.5 + 12.0 + 6.0 * rng.random::<f64>();
+            assert_eq!(truth[0].x_start, x0);
+            seen.push(brightness);
+        }
+        let (low, high) = seen
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(l, h), &b| (l.min(b), h.max(b)));
+        assert!(low < 8.0 && high > 14.0, "N_qd drawn in [{low}, {high}]");
+    }
+
+    #[test]
+    fn a_drawn_background_is_one_value_per_frame_within_its_bounds() {
+        let params = SimParams {
+            height: 8,
+            width: 9,
+            brightness: 0.0.into(),
+            background: "uniform:2,20".parse().unwrap(),
+            ..SimParams::default()
+        };
+        let mut seen = Vec::new();
+        for index in 0..20 {
+            let (expected, _) = expected_frame(&params, 8, index);
+            assert!(expected.iter().all(|&e| e == expected[0]), "{expected:?}");
+            assert!((2.0..=20.0).contains(&expected[0]));
+            seen.push(expected[0]);
+        }
+        let spread = seen.iter().cloned().fold(f64::MIN, f64::max)
+            - seen.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(spread > 6.0, "backgrounds {seen:?}");
+        // The same frames from the same seed, alone or in a stack.
+        let hidden = ProgressBar::hidden();
+        let stack = simulate(&params, 8, 0..20, &hidden).unwrap();
+        assert_eq!(stack, simulate(&params, 8, 0..20, &hidden).unwrap());
+        let alone = simulate(&params, 8, 13..14, &hidden).unwrap();
+        assert_eq!(alone.frames.frame(0), stack.frames.frame(13));
+        // The recorded counts follow the frame's own background: the
+        // frames' means spread as the draws do (Poisson noise of a 72-pixel
+        // mean is ≈ 0.5 photon at most here).
+        let means: Vec<f64> = (0..20)
+            .map(|i| {
+                stack
+                    .frames
+                    .frame(i)
+                    .iter()
+                    .map(|&c| f64::from(c))
+                    .sum::<f64>()
+                    / 72.0
+            })
+            .collect();
+        for (mean, background) in means.iter().zip(&seen) {
+            assert!((mean - background).abs() < 2.5, "{mean} vs {background}");
+        }
+    }
+
+    /// Asserts that the frames' total counts vary more than `min_ratio`
+    /// times as much (sample variance over `frames` frames) with `drawn`'s
+    /// parameters as with `fixed`'s, around the same mean (within 5
+    /// standard errors).
+    fn assert_totals_spread_wider(
+        what: &str,
+        fixed: &SimParams,
+        drawn: &SimParams,
+        min_ratio: f64,
+        frames: usize,
+    ) {
+        let stats = |params: &SimParams| {
+            let dataset = simulate(params, 17, 0..frames, &ProgressBar::hidden()).unwrap();
+            let totals: Vec<f64> = (0..frames)
+                .map(|i| dataset.frames.frame(i).iter().map(|&c| f64::from(c)).sum())
+                .collect();
+            let mean = totals.iter().sum::<f64>() / frames as f64;
+            let variance =
+                totals.iter().map(|t| (t - mean).powi(2)).sum::<f64>() / (frames - 1) as f64;
+            (mean, variance)
+        };
+        let (fixed_mean, fixed_variance) = stats(fixed);
+        let (drawn_mean, drawn_variance) = stats(drawn);
+        assert!(
+            drawn_variance > min_ratio * fixed_variance,
+            "{what}: variance {drawn_variance} drawn vs {fixed_variance} fixed"
+        );
+        let standard_error = ((drawn_variance + fixed_variance) / frames as f64).sqrt();
+        assert!(
+            (drawn_mean - fixed_mean).abs() < 5.0 * standard_error,
+            "{what}: mean {drawn_mean} drawn vs {fixed_mean} fixed"
+        );
+    }
+
+    #[test]
+    fn drawn_photometry_spreads_the_frames_photon_totals() {
+        // The paper's frame holds ≈ 60·N_qd signal photons and 600·N_bkg
+        // background ones. At fixed N_qd = 11 the total's standard
+        // deviation is ≈ 76 photons (Poisson); N_qd uniform on [2, 20]
+        // (mean 11) adds 60 · 18/√12 ≈ 312, a variance ≈ 17 times larger.
+        // With 400 frames the sample variances are within ±7 % (one
+        // standard error): a ratio above 4 fails only if the draw is
+        // ignored. The means agree within 5 standard errors (≈ 80 photons).
+        let fixed = SimParams {
+            margin_px: 4.0,
+            brightness: 11.0.into(),
+            ..SimParams::default()
+        };
+        let drawn = SimParams {
+            brightness: "uniform:2,20".parse().unwrap(),
+            ..fixed.clone()
+        };
+        assert_totals_spread_wider("N_qd", &fixed, &drawn, 4.0, 400);
+        // N_bkg uniform on [2, 14.8] (mean 8.4): 600 · 12.8/√12 ≈ 2200
+        // photons of standard deviation against ≈ 74.
+        let drawn = SimParams {
+            background: "uniform:2,14.8".parse().unwrap(),
+            ..SimParams::default()
+        };
+        assert_totals_spread_wider("N_bkg", &SimParams::default(), &drawn, 100.0, 400);
+    }
+
+    #[test]
     fn counts_parse_print_and_refuse_bad_weights() {
         for text in ["3", "choice:0,1,2,3", "choice:0,2/weights:1,3.5"] {
             let count: EmitterCount = text.parse().unwrap();
@@ -653,7 +867,7 @@ mod tests {
             ..SimParams::default()
         };
         let (x, y, z) = (6.3, 5.6, 0.2);
-        let image = static_emitter_image(&params, x, y, z);
+        let image = static_emitter_image(&params, x, y, z).unwrap();
         let h = 1e-5;
         let central = |plus: &StaticEmitterImage, minus: &StaticEmitterImage| -> Vec<f64> {
             plus.expected
@@ -663,12 +877,12 @@ mod tests {
                 .collect()
         };
         let d_dx = central(
-            &static_emitter_image(&params, x + h, y, z),
-            &static_emitter_image(&params, x - h, y, z),
+            &static_emitter_image(&params, x + h, y, z).unwrap(),
+            &static_emitter_image(&params, x - h, y, z).unwrap(),
         );
         let d_dy = central(
-            &static_emitter_image(&params, x, y + h, z),
-            &static_emitter_image(&params, x, y - h, z),
+            &static_emitter_image(&params, x, y + h, z).unwrap(),
+            &static_emitter_image(&params, x, y - h, z).unwrap(),
         );
         let peak = image.d_dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         assert!(peak > 0.0);

@@ -33,6 +33,12 @@ pub enum RandomDistribution {
     Uniform([f64; 2]),
 }
 
+impl From<f64> for Distribution {
+    fn from(value: f64) -> Self {
+        Distribution::Fixed(value)
+    }
+}
+
 impl Distribution {
     /// Draws one value. A fixed value consumes no randomness, so a fixed
     /// parameter never shifts the stream of later draws.
@@ -47,6 +53,25 @@ impl Distribution {
                 }
             }
         }
+    }
+
+    /// The value of every frame, if it is fixed.
+    pub fn fixed(&self) -> Option<f64> {
+        match *self {
+            Distribution::Fixed(value) => Some(value),
+            Distribution::Random(_) => None,
+        }
+    }
+
+    /// The value of every frame, or an error naming the parameter `name`
+    /// for a distribution, which `purpose` cannot use.
+    pub fn require_fixed(&self, name: &str, purpose: &str) -> Result<f64, FieldError> {
+        self.fixed().ok_or_else(|| {
+            FieldError::new(
+                name,
+                format!("{purpose} needs one fixed number, got the distribution {self}"),
+            )
+        })
     }
 
     /// Smallest and largest value the distribution can produce.
@@ -359,10 +384,12 @@ pub struct SimParams {
     pub sigma_xy_um: f64,
     /// Axial standard deviation of the squared-intensity PSF, µm.
     pub sigma_z_um: f64,
-    /// N_bkg: expected background photons per pixel.
-    pub background: f64,
-    /// N_qd: total photons a QD in focus would give (PSF normalisation).
-    pub brightness: f64,
+    /// N_bkg: expected background photons per pixel, fixed or drawn once
+    /// per frame (the same for every pixel of the frame).
+    pub background: Distribution,
+    /// N_qd: total photons a QD in focus would give (PSF normalisation),
+    /// fixed or drawn once per frame (the same for every QD of the frame).
+    pub brightness: Distribution,
     /// D in µm²/s: fixed or per-frame distribution.
     pub diffusion_um2_s: Distribution,
     /// Start depth relative to focus in µm: fixed or per-frame distribution.
@@ -395,8 +422,8 @@ impl Default for SimParams {
             retrace_ms: 1.1,
             sigma_xy_um: 0.21,
             sigma_z_um: 1.36,
-            background: 8.4,
-            brightness: 7.0,
+            background: Distribution::Fixed(8.4),
+            brightness: Distribution::Fixed(7.0),
             diffusion_um2_s: Distribution::Fixed(1.0),
             z_start: Distribution::Fixed(0.0),
             margin_px: 0.0,
@@ -426,8 +453,8 @@ impl SimParams {
         require_non_negative("retrace_ms", self.retrace_ms)?;
         require_positive("sigma_xy_um", self.sigma_xy_um)?;
         require_positive("sigma_z_um", self.sigma_z_um)?;
-        require_non_negative("background", self.background)?;
-        require_non_negative("brightness", self.brightness)?;
+        self.background.validate("background", true)?;
+        self.brightness.validate("brightness", true)?;
         self.diffusion_um2_s.validate("diffusion_um2_s", true)?;
         self.z_start.validate("z_start", false)?;
         require_non_negative("margin_px", self.margin_px)?;
@@ -467,18 +494,19 @@ impl SimParams {
         }
         // Refused here, before any frame is simulated, rather than when the
         // first oversized count is drawn.
-        if self.background > MAX_EXPECTED_PHOTONS_PER_PIXEL {
+        let (_, background) = self.background.bounds();
+        if background > MAX_EXPECTED_PHOTONS_PER_PIXEL {
             return Err(FieldError::new(
                 "background",
                 format!(
                     "{} photons per pixel cannot be recorded in a uint32 count with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e})",
-                    readable(self.background)
+                    readable(background)
                 ),
             ));
         }
         let brightest = match self.emitters.max() {
-            0 => self.background,
-            n => f64::from(n) * self.psf_peak() + self.background,
+            0 => background,
+            n => f64::from(n) * self.psf_peak() + background,
         };
         if brightest.is_nan() || brightest > MAX_EXPECTED_PHOTONS_PER_PIXEL {
             return Err(FieldError::new(
@@ -486,7 +514,7 @@ impl SimParams {
                 format!(
                     "{} emitter(s) of brightness {} with sigma_xy_um {} and sigma_z_um {} expect up to {} photons in one pixel, more than a uint32 count holds with its noise (at most {MAX_EXPECTED_PHOTONS_PER_PIXEL:e}); lower brightness or widen the PSF",
                     self.emitters.max(),
-                    readable(self.brightness),
+                    readable(self.brightness.bounds().1),
                     readable(self.sigma_xy_um),
                     readable(self.sigma_z_um),
                     readable(brightest)
@@ -497,7 +525,8 @@ impl SimParams {
     }
 
     /// The largest expected-photon error one PSF sample can suffer from the
-    /// lateral cut-off: the in-focus peak times `exp(−c²/2)`. Zero without a
+    /// lateral cut-off: the in-focus peak (of the brightest frame) times
+    /// `exp(−c²/2)`. Zero without a
     /// cut-off. A pixel's mean over `substeps` samples, summed over emitters,
     /// is off by at most `emitters` times this.
     pub fn cutoff_error_bound(&self) -> f64 {
@@ -508,10 +537,16 @@ impl SimParams {
     }
 
     /// Expected signal photons of a pixel whose beam sits exactly on an
-    /// in-focus QD: `N_qd / (2π σxy²) / √(2π σz²)`.
+    /// in-focus QD of the brightest frame: `N_qd / (2π σxy²) / √(2π σz²)`
+    /// at the largest N_qd `brightness` can take.
     pub fn psf_peak(&self) -> f64 {
+        self.psf_peak_at(self.brightness.bounds().1)
+    }
+
+    /// [`SimParams::psf_peak`] for a frame whose N_qd is `brightness`.
+    pub fn psf_peak_at(&self, brightness: f64) -> f64 {
         let two_pi = 2.0 * std::f64::consts::PI;
-        self.brightness
+        brightness
             / (two_pi * self.sigma_xy_um * self.sigma_xy_um)
             / (two_pi * self.sigma_z_um * self.sigma_z_um).sqrt()
     }
@@ -542,3 +577,96 @@ fn readable(value: f64) -> String {
 /// it, plus the background) accepted: counts are stored as uint32
 /// (at most 4.29e9), and this leaves room for the noise of the draw.
 pub const MAX_EXPECTED_PHOTONS_PER_PIXEL: f64 = 1e9;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    proptest! {
+        #[test]
+        fn a_fixed_value_draws_nothing_and_a_uniform_stays_in_its_bounds(
+            value in 0.0..1e6f64,
+            low in 0.0..1e6f64,
+            width in 0.0..1e6f64,
+            seed in any::<u64>(),
+        ) {
+            // Fixed: the value, and the stream is where it was.
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            prop_assert_eq!(Distribution::Fixed(value).sample(&mut rng), value);
+            prop_assert_eq!(rng.random::<u64>(), ChaCha8Rng::seed_from_u64(seed).random::<u64>());
+            // Uniform: within [low, high], the same for the same seed.
+            let uniform = Distribution::Random(RandomDistribution::Uniform([low, low + width]));
+            let draw = uniform.sample(&mut ChaCha8Rng::seed_from_u64(seed));
+            prop_assert!(draw >= low && draw <= low + width, "{} not in [{}, {}]", draw, low, low + width);
+            prop_assert_eq!(draw, uniform.sample(&mut ChaCha8Rng::seed_from_u64(seed)));
+            prop_assert!(uniform.validate("brightness", true).is_ok());
+        }
+    }
+
+    #[test]
+    fn brightness_and_background_parse_print_and_refuse_bad_bounds() {
+        for text in ["7", "7.5", "uniform:5,10", "uniform:0,0.5"] {
+            let value: Distribution = text.parse().unwrap();
+            assert_eq!(value.to_string(), text);
+        }
+        // A fixed value serialises as the bare number it always was, so
+        // content keys do not move.
+        assert_eq!(
+            serde_json::to_string(&Distribution::Fixed(7.5)).unwrap(),
+            "7.5"
+        );
+        let uniform: Distribution = serde_yaml::from_str("{uniform: [5, 10]}").unwrap();
+        assert_eq!(uniform, "uniform:5,10".parse::<Distribution>().unwrap());
+        let refused = |field: &str, text: &str| {
+            let value: Distribution = text.parse().unwrap();
+            let params = match field {
+                "brightness" => SimParams {
+                    brightness: value,
+                    ..SimParams::default()
+                },
+                _ => SimParams {
+                    background: value,
+                    ..SimParams::default()
+                },
+            };
+            let error = params.validate().unwrap_err();
+            assert_eq!(error.field(), field, "{text}: {error}");
+            error.to_string()
+        };
+        for field in ["brightness", "background"] {
+            assert!(refused(field, "uniform:-1,5").contains("must be ≥ 0, got -1"));
+            assert!(refused(field, "uniform:1,inf").contains("finite"));
+            assert!(refused(field, "uniform:1,NaN").contains("finite"));
+            assert!(refused(field, "uniform:5,1").contains("ordered"));
+            assert!(refused(field, "-2").contains("must be ≥ 0"));
+        }
+        // The largest value bounds the brightest pixel.
+        assert!(refused("background", "uniform:1,2e9").contains("uint32"));
+        assert!(refused("brightness", "uniform:1,1e12").contains("uint32"));
+        for bad in ["uniform:1", "uniform:a,2", "normal:1,2", ""] {
+            assert!(bad.parse::<Distribution>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn only_fixed_photometry_makes_one_static_image() {
+        let spread = SimParams {
+            brightness: "uniform:5,10".parse().unwrap(),
+            ..SimParams::default()
+        };
+        let error = spread
+            .brightness
+            .require_fixed("brightness", "the Cramér–Rao bound")
+            .unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "brightness: the Cramér–Rao bound needs one fixed number, got the distribution uniform:5,10"
+        );
+        assert_eq!(SimParams::default().brightness.fixed(), Some(7.0));
+        // psf_peak is the brightest frame's.
+        assert_eq!(spread.psf_peak(), spread.psf_peak_at(10.0));
+    }
+}

@@ -230,3 +230,142 @@ fn help_explains_every_parameter() {
         assert!(help.contains(flag), "missing {flag} in help");
     }
 }
+
+/// The text of `--help` of `command` describing `flag`: from the flag to
+/// the next flag's line.
+fn flag_help(command: &[&str], flag: &str) -> String {
+    let mut args = command.to_vec();
+    args.push("--help");
+    let output = scanloc(&args);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let help = String::from_utf8_lossy(&output.stdout).into_owned();
+    let mut lines = help
+        .lines()
+        .skip_while(|line| !line.trim_start().starts_with(&format!("{flag} ")));
+    let first = lines
+        .next()
+        .unwrap_or_else(|| panic!("{command:?}: no {flag} in\n{help}"));
+    let rest = lines.take_while(|line| !line.trim_start().starts_with('-'));
+    std::iter::once(first)
+        .chain(rest)
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn the_shared_microscope_flags_keep_each_commands_defaults() {
+    for (command, flag, default) in [
+        (&["simulate"][..], "--diffusion", "[default: 1.0]"),
+        (&["simulate"][..], "--brightness", "[default: 7]"),
+        (&["simulate"][..], "--background", "[default: 8.4]"),
+        (&["simulate"][..], "--z-start", "[default: 0]"),
+        (&["simulate"][..], "--margin-px", "[default: 0]"),
+        (&["locate"][..], "--diffusion", "[default: 1.0]"),
+        (&["locate"][..], "--brightness", "[default: 7]"),
+        (&["locate"][..], "--background", "[default: 8.4]"),
+        (&["locate"][..], "--margin-px", "[default: 0]"),
+        (
+            &["train"][..],
+            "--diffusion",
+            "[default: uniform:0.75,1.75]",
+        ),
+        (&["train"][..], "--brightness", "[default: 7]"),
+        (&["train"][..], "--background", "[default: 8.4]"),
+        (&["train"][..], "--z-start", "[default: 0]"),
+        (&["train"][..], "--margin-px", "[default: 4]"),
+    ] {
+        let help = flag_help(command, flag);
+        assert!(help.contains(default), "{command:?} {flag}: {help}");
+        if flag == "--brightness" || flag == "--background" {
+            assert!(
+                help.contains("uniform:LOW,HIGH"),
+                "{command:?} {flag}: {help}"
+            );
+        }
+    }
+}
+
+#[test]
+fn brightness_and_background_can_be_drawn_per_frame_from_the_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let simulate = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "simulate",
+            "--frames",
+            "30",
+            "--seed",
+            "4",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        (scanloc(&args), out)
+    };
+    let (output, fixed) = simulate("fixed.npy", &[]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let (output, drawn) = simulate(
+        "drawn.npy",
+        &[
+            "--brightness",
+            "uniform:5,10",
+            "--background",
+            "uniform:1,20",
+        ],
+    );
+    assert!(output.status.success(), "{}", stderr(&output));
+    // Each frame's mean count follows its own background: with N_bkg
+    // uniform on [1, 20] the frames' means spread over most of that range
+    // (at a fixed 8.4 they stay within ≈ ±0.5 of 8.4 + the QD's share).
+    let frame_means = |path: &Path| -> Vec<f64> {
+        let frames = io::read_frames(path).unwrap();
+        (0..frames.n)
+            .map(|i| {
+                frames.frame(i).iter().map(|&c| f64::from(c)).sum::<f64>()
+                    / frames.frame_len() as f64
+            })
+            .collect()
+    };
+    let spread = |means: Vec<f64>| {
+        means.iter().cloned().fold(f64::MIN, f64::max)
+            - means.iter().cloned().fold(f64::MAX, f64::min)
+    };
+    assert!(spread(frame_means(&fixed)) < 2.0);
+    assert!(spread(frame_means(&drawn)) > 8.0);
+    for (flags, field) in [
+        (["--brightness", "uniform:10,5"], "brightness"),
+        (["--brightness", "uniform:-1,5"], "brightness"),
+        (["--background", "uniform:1,inf"], "background"),
+        (["--background", "-3"], "background"),
+    ] {
+        let (output, _) = simulate("bad.npy", &flags);
+        assert_eq!(output.status.code(), Some(2), "{flags:?}");
+        let message = stderr(&output);
+        assert!(message.contains(field), "{flags:?}: {message}");
+        assert_eq!(message.trim_end().lines().count(), 1, "{message}");
+    }
+    let (output, _) = simulate("bad.npy", &["--brightness", "uniform:5"]);
+    assert_eq!(output.status.code(), Some(2));
+    assert!(
+        stderr(&output).contains("--brightness"),
+        "{}",
+        stderr(&output)
+    );
+    // train refuses the same before simulating anything.
+    let output = scanloc(&[
+        "train",
+        "--frames",
+        "10",
+        "--background",
+        "uniform:9,2",
+        "--out",
+        dir.path().join("m").to_str().unwrap(),
+    ]);
+    assert_eq!(output.status.code(), Some(2));
+    assert!(
+        stderr(&output).contains("background"),
+        "{}",
+        stderr(&output)
+    );
+    assert!(!dir.path().join("m").exists());
+}

@@ -16,7 +16,7 @@ use scanloc::types::{Dataset, FrameStack, Prediction};
 
 fn params(brightness: f64) -> SimParams {
     SimParams {
-        brightness,
+        brightness: brightness.into(),
         margin_px: 4.0,
         diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.75, 1.75])),
         ..SimParams::default()

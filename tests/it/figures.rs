@@ -13,7 +13,7 @@ fn example_panels() -> Vec<FramePanel> {
             let params = SimParams {
                 diffusion_um2_s: Distribution::Fixed(d),
                 margin_px: 4.0,
-                brightness: 30.0,
+                brightness: 30.0.into(),
                 ..SimParams::default()
             };
             let dataset = sim::simulate(&params, 1, 0..1, &hidden()).unwrap();

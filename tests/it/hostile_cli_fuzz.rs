@@ -371,6 +371,17 @@ fn distribution() -> BoxedStrategy<String> {
     .boxed()
 }
 
+/// A brightness or background flag: a number, or drawn per frame from a
+/// uniform below `max` (bounds in either order: reversed ones are refused).
+fn photometry(max: f64) -> BoxedStrategy<String> {
+    prop_oneof![
+        3 => small_real(0.0..max),
+        1 => (small_real(0.0..max), small_real(0.0..max))
+            .prop_map(|(a, b)| format!("uniform:{a},{b}")),
+    ]
+    .boxed()
+}
+
 fn output_name(extensions: &'static [&'static str]) -> BoxedStrategy<String> {
     prop_oneof![
         4 => prop::sample::select(extensions).prop_map(|e| format!("out.{e}")),
@@ -387,8 +398,8 @@ fn simulate_args() -> BoxedStrategy<Vec<String>> {
         ("--frames", number(small_int(1..5))),
         ("--seed", number(any::<u64>().prop_map(|v| v.to_string()))),
         ("--diffusion", distribution()),
-        ("--brightness", number(small_real(0.0..50.0))),
-        ("--background", number(small_real(0.0..20.0))),
+        ("--brightness", photometry(50.0)),
+        ("--background", photometry(20.0)),
         ("--height", number(small_int(1..33))),
         ("--width", number(small_int(1..33))),
         ("--pixel-size-um", number(small_real(0.01..1.0))),

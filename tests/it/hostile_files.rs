@@ -78,7 +78,7 @@ pub(crate) fn model_dir() -> &'static Path {
 
 fn tiny_model(seed: u64) -> TrainedCnn {
     let params = SimParams {
-        brightness: 40.0,
+        brightness: 40.0.into(),
         margin_px: 4.0,
         ..SimParams::default()
     };
@@ -383,7 +383,7 @@ fn cnn_batches_by_pixels_and_batching_never_changes_a_prediction() {
     let params = SimParams {
         height: 40,
         width: 50,
-        brightness: 40.0,
+        brightness: 40.0.into(),
         emitters: 3.into(),
         margin_px: 4.0,
         ..SimParams::default()

@@ -22,7 +22,7 @@ fn on_a_static_qd_the_estimator_reaches_the_cramer_rao_floor() {
     let params = SimParams {
         height: 14,
         width: 14,
-        brightness: 15.0,
+        brightness: 15.0.into(),
         margin_px: 4.0,
         diffusion_um2_s: Distribution::Fixed(0.0),
         ..SimParams::default()
@@ -37,7 +37,7 @@ fn on_a_static_qd_the_estimator_reaches_the_cramer_rao_floor() {
             // The positions `cramer_rao_rmse_px` averages over.
             let x = params.width as f64 / 2.0 - 0.5 + ix as f64 / positions as f64;
             let y = params.height as f64 / 2.0 - 0.5 + iy as f64 / positions as f64;
-            let expected = static_emitter_image(&params, x, y, 0.0).expected;
+            let expected = static_emitter_image(&params, x, y, 0.0).unwrap().expected;
             for _ in 0..repeats {
                 truths.push((x, y));
                 data.extend(
@@ -62,7 +62,7 @@ fn on_a_static_qd_the_estimator_reaches_the_cramer_rao_floor() {
         .map(|(p, (x, y))| (p.x - x).powi(2) + (p.y - y).powi(2))
         .sum::<f64>()
         / m;
-    let floor = cramer_rao_rmse_px(&params, positions);
+    let floor = cramer_rao_rmse_px(&params, positions).unwrap();
     let ratio = mse / (floor * floor);
     assert!(
         (ratio - 1.0).abs() < 3.0 / m.sqrt(),

@@ -55,12 +55,12 @@ fn end_minus_start_displacement_has_variance_2_d_t() {
 #[test]
 fn background_only_pixels_are_poisson_with_mean_and_variance_n_bkg() {
     let params = SimParams {
-        brightness: 0.0,
+        brightness: 0.0.into(),
         ..paper(1.0)
     };
     let dataset = simulate(&params, 5, 0..200, &hidden()).unwrap();
     let (mean, variance, n) = mean_and_variance(dataset.frames.data.iter().map(|&c| c as f64));
-    let lambda = params.background;
+    let lambda = params.background.fixed().unwrap();
     // Standard errors: √(λ/n) for the mean; for the variance
     // √((μ4 − σ⁴)/n) with Poisson μ4 = λ(1 + 3λ). Allow 5 of each.
     let mean_se = (lambda / n as f64).sqrt();
@@ -83,19 +83,19 @@ fn analytic_pixel(params: &SimParams, row: usize, column: usize, qd: (f64, f64, 
     let mut sum = 0.0;
     for j in 0..s {
         let beam_x = (column as f64 + (j as f64 + 0.5) / s as f64) * a;
-        sum += params.brightness / (2.0 * pi * sxy * sxy)
+        sum += params.brightness.fixed().unwrap() / (2.0 * pi * sxy * sxy)
             * (-((qd.0 - beam_x).powi(2) + (qd.1 - beam_y).powi(2)) / (2.0 * sxy * sxy)).exp()
             / (2.0 * pi * sz * sz).sqrt()
             * (-(qd.2 * qd.2) / (2.0 * sz * sz)).exp();
     }
-    sum / s as f64 + params.background
+    sum / s as f64 + params.background.fixed().unwrap()
 }
 
 #[test]
 fn expected_image_of_a_static_qd_matches_the_psf_formula() {
     for substeps in [1, 3] {
         let params = SimParams {
-            brightness: 50.0,
+            brightness: 50.0.into(),
             z_start: Distribution::Fixed(0.4),
             psf_cutoff_sigma: None,
             substeps,
@@ -134,13 +134,16 @@ fn total_expected_signal_matches_the_analytic_sum() {
         height: 64,
         width: 64,
         margin_px: 28.0,
-        brightness: 7.0,
+        brightness: 7.0.into(),
         ..paper(0.0)
     };
     let (expected, _) = sim::expected_frame(&params, 1, 0);
-    let signal: f64 = expected.iter().map(|e| e - params.background).sum();
+    let signal: f64 = expected
+        .iter()
+        .map(|e| e - params.background.fixed().unwrap())
+        .sum();
     let a = params.pixel_size_um;
-    let analytic = params.brightness
+    let analytic = params.brightness.fixed().unwrap()
         / (a * a)
         / (2.0 * std::f64::consts::PI * params.sigma_z_um.powi(2)).sqrt();
     // With the default 6σ cut-off, each of the ≤ 4096 pixels may lose at most
@@ -156,7 +159,7 @@ fn total_expected_signal_matches_the_analytic_sum() {
 fn psf_cutoff_error_stays_within_the_stated_bound() {
     for (cutoff, diffusion, substeps) in [(2.0, 1.0, 1), (3.0, 1.75, 4), (4.0, 0.0, 1)] {
         let exact = SimParams {
-            brightness: 500.0,
+            brightness: 500.0.into(),
             psf_cutoff_sigma: None,
             substeps,
             ..paper(diffusion)
@@ -244,7 +247,7 @@ fn several_emitters_give_one_truth_row_each() {
     )
     .unwrap();
     let total = |d: &scanloc::types::Dataset| d.frames.data.iter().map(|&c| c as f64).sum::<f64>();
-    let background = params.background * (10 * 40 * 40) as f64;
+    let background = params.background.fixed().unwrap() * (10 * 40 * 40) as f64;
     let ratio = (total(&dataset) - background) / (total(&one) - background);
     // Signal per QD ≈ 420 photons × 10 frames, shot noise of the whole
     // stack ≈ √(135k) ≈ 370: the ratio is 3 ± ~0.3.
@@ -255,7 +258,7 @@ fn several_emitters_give_one_truth_row_each() {
 fn pmt_noise_keeps_the_mean_and_scales_the_variance_by_the_excess_factor() {
     let factor = 1.5;
     let params = SimParams {
-        brightness: 0.0,
+        brightness: 0.0.into(),
         detector_noise: DetectorNoise::Pmt {
             excess_noise_factor: factor,
         },
@@ -263,7 +266,7 @@ fn pmt_noise_keeps_the_mean_and_scales_the_variance_by_the_excess_factor() {
     };
     let dataset = simulate(&params, 8, 0..200, &hidden()).unwrap();
     let (mean, variance, n) = mean_and_variance(dataset.frames.data.iter().map(|&c| c as f64));
-    let lambda = params.background;
+    let lambda = params.background.fixed().unwrap();
     // Rounding to whole counts adds ≈ 1/12 to the variance. Tolerances: 5
     // standard errors of the mean (√(F²λ/n)); 5 % on the variance (its
     // relative standard error is ≈ 1 % at n = 120k).

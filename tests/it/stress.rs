@@ -12,18 +12,30 @@ use rand_chacha::ChaCha8Rng;
 use scanloc::error::exit_code;
 use scanloc::io;
 use scanloc::progress::hidden;
-use scanloc::sim::{Distribution, SimParams, noise, simulate};
+use scanloc::sim::{Distribution, RandomDistribution, SimParams, noise, simulate};
 use scanloc::types::FrameStack;
 
 fn log_uniform(low: f64, high: f64) -> impl Strategy<Value = f64> {
     (low.ln()..high.ln()).prop_map(f64::exp)
 }
 
+/// A photometry parameter: fixed (often 0), or drawn per frame from a
+/// uniform between two values of the same range.
+fn photometry(high: f64) -> impl Strategy<Value = Distribution> {
+    prop_oneof![
+        2 => Just(Distribution::Fixed(0.0)),
+        4 => log_uniform(1e-3, high).prop_map(Distribution::Fixed),
+        2 => (log_uniform(1e-3, high), log_uniform(1e-3, high)).prop_map(|(a, b)| {
+            Distribution::Random(RandomDistribution::Uniform([a.min(b), a.max(b)]))
+        }),
+    ]
+}
+
 prop_compose! {
     fn extreme_params()(
         diffusion in prop_oneof![Just(0.0), log_uniform(1e-6, 100.0)],
-        brightness in prop_oneof![Just(0.0), log_uniform(1e-3, 1e6)],
-        background in prop_oneof![Just(0.0), log_uniform(1e-3, 1e4)],
+        brightness in photometry(1e6),
+        background in photometry(1e4),
         height in prop_oneof![Just(1usize), 1usize..64, Just(512usize)],
         width in prop_oneof![Just(1usize), 1usize..64],
         sigma_xy in log_uniform(1e-4, 100.0),

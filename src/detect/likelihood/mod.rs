@@ -5,7 +5,9 @@
 //! A bootstrap particle filter runs along the scan, one PSF sample at a
 //! time, in the order the beam visits them. Each particle is one QD path:
 //! its 3-D position (µm), its diffusion coefficient (fixed, or drawn from
-//! the prior over D) and the running sum of its positions. At every sample
+//! the prior over D), its frame's brightness N_qd and background N_bkg
+//! (fixed, or drawn from their priors when the microscope declares them as
+//! distributions) and the running sum of its positions. At every sample
 //! each particle takes the simulator's Brownian step
 //! ([`ScanModel::step_sds`]: along a row, or across a retrace); at the end
 //! of every pixel its weight is multiplied by the Poisson likelihood of the
@@ -56,6 +58,7 @@ pub const MAX_PARTICLES: usize = 10_000_000;
 /// ```yaml
 /// likelihood: {particles: 20000}                             # D and N_qd of the dataset
 /// likelihood: {diffusion_um2_s: {uniform: [0.75, 1.75]}}     # D unknown: a prior
+/// likelihood: {brightness: {uniform: [5, 10]}}                # N_qd unknown: a prior
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -67,8 +70,10 @@ pub struct LikelihoodParams {
     /// is marginalised), or absent: the microscope's own (in a manifest,
     /// the evaluated dataset's `diffusion_um2_s`).
     pub diffusion_um2_s: Option<Distribution>,
-    /// N_qd the filter assumes; absent: the microscope's own.
-    pub brightness: Option<f64>,
+    /// N_qd the filter assumes: a number, `{uniform: [LOW, HIGH]}` (a
+    /// prior, drawn per particle, so N_qd is marginalised), or absent: the
+    /// microscope's own (a distribution there is marginalised the same way).
+    pub brightness: Option<Distribution>,
     /// The score is the posterior mass within this distance (px) of the
     /// estimate.
     pub score_radius_px: f64,
@@ -100,15 +105,17 @@ impl LikelihoodParams {
         if let Some(diffusion) = &self.diffusion_um2_s {
             diffusion.validate("diffusion_um2_s", true)?;
         }
-        if let Some(brightness) = self.brightness {
-            crate::error::require_non_negative("brightness", brightness)?;
+        if let Some(brightness) = &self.brightness {
+            brightness.validate("brightness", true)?;
         }
         require_positive("score_radius_px", self.score_radius_px)?;
         Ok(())
     }
 
     /// The microscope the filter assumes: `microscope` with this detector's
-    /// diffusion coefficient and brightness where it sets them.
+    /// diffusion coefficient and brightness where it sets them. Its
+    /// background is the microscope's: a distribution there is a prior the
+    /// filter marginalises (drawn per particle).
     pub fn assumed_microscope(&self, microscope: &SimParams) -> SimParams {
         SimParams {
             diffusion_um2_s: self.diffusion_um2_s.unwrap_or(microscope.diffusion_um2_s),
@@ -152,6 +159,11 @@ struct Particles {
     /// Brownian step standard deviations (µm): along a row, across a retrace.
     step_sd: Vec<f64>,
     retrace_sd: Vec<f64>,
+    /// The particle's N_qd over the scan model's; empty when N_qd is fixed
+    /// (the model's own).
+    brightness_scale: Vec<f64>,
+    /// The particle's N_bkg; empty when the background is fixed.
+    background: Vec<f64>,
     /// Expected signal photons of the current pixel so far.
     signal: Vec<f64>,
     /// Importance weights, relative (rescaled whenever they are summed).
@@ -164,8 +176,9 @@ struct Particles {
 
 impl Particles {
     /// The per-particle vectors resampling copies (everything but the
-    /// weights and the pixel accumulator, which it resets).
-    fn carried(&mut self) -> [&mut Vec<f64>; 7] {
+    /// weights and the pixel accumulator, which it resets); the photometry
+    /// vectors are empty, and left so, when their parameter is fixed.
+    fn carried(&mut self) -> [&mut Vec<f64>; 9] {
         [
             &mut self.x,
             &mut self.y,
@@ -174,6 +187,8 @@ impl Particles {
             &mut self.sum_y,
             &mut self.step_sd,
             &mut self.retrace_sd,
+            &mut self.brightness_scale,
+            &mut self.background,
         ]
     }
 
@@ -198,8 +213,11 @@ impl Particles {
             ancestors.push(n - 1);
         }
         let mut spare = std::mem::take(&mut self.spare);
-        spare.resize_with(7, Vec::new);
+        spare.resize_with(9, Vec::new);
         for (source, destination) in self.carried().into_iter().zip(spare.iter_mut()) {
+            if source.is_empty() {
+                continue;
+            }
             destination.clear();
             destination.extend(ancestors.iter().map(|&a| source[a]));
             std::mem::swap(source, destination);
@@ -212,7 +230,9 @@ impl Particles {
 impl Filter<'_> {
     /// Draws the particles of a frame from the prior: start position uniform
     /// over the start ranges, depth from `z_start`, D from the assumed
-    /// diffusion coefficient (one draw per particle).
+    /// diffusion coefficient, then N_qd and N_bkg where they are
+    /// distributions (one draw each per particle; a fixed parameter draws
+    /// nothing, so such filters make the predictions they always made).
     fn initialise(&self, particles: &mut Particles, rng: &mut ChaCha8Rng) {
         let n = self.settings.particles;
         let ((x_low, x_high), (y_low, y_high)) = self.scan.start_ranges_px();
@@ -225,11 +245,14 @@ impl Filter<'_> {
             &mut p.sum_y,
             &mut p.step_sd,
             &mut p.retrace_sd,
+            &mut p.brightness_scale,
+            &mut p.background,
             &mut p.signal,
             &mut p.weight,
         ] {
             v.clear();
         }
+        let model_brightness = self.microscope.brightness.bounds().1;
         for _ in 0..n {
             let x = x_low + (x_high - x_low) * rng.random::<f64>();
             let y = y_low + (y_high - y_low) * rng.random::<f64>();
@@ -241,6 +264,14 @@ impl Filter<'_> {
             p.z.push(z);
             p.step_sd.push(step_sd);
             p.retrace_sd.push(retrace_sd);
+            if is_spread(&self.microscope.brightness) {
+                let brightness = self.microscope.brightness.sample(rng);
+                // A spread distribution has a positive upper bound.
+                p.brightness_scale.push(brightness / model_brightness);
+            }
+            if is_spread(&self.microscope.background) {
+                p.background.push(self.microscope.background.sample(rng));
+            }
         }
         p.sum_x.resize(n, 0.0);
         p.sum_y.resize(n, 0.0);
@@ -255,7 +286,7 @@ impl Filter<'_> {
         let microscope = &self.microscope;
         let (width, height) = (microscope.width, microscope.height);
         let substeps = microscope.substeps as usize;
-        let background = microscope.background;
+        let background = self.pixel_background();
         let (_, high) = microscope.diffusion_um2_s.bounds();
         let moving = high > 0.0;
         let n = particles.weight.len();
@@ -292,19 +323,49 @@ impl Filter<'_> {
         self.estimate(index, particles)
     }
 
+    /// How the background of a pixel is weighed: one known N_bkg for every
+    /// particle, or each particle's own against a common reference.
+    fn pixel_background(&self) -> PixelBackground {
+        let (low, high) = self.microscope.background.bounds();
+        if is_spread(&self.microscope.background) {
+            PixelBackground::PerParticle {
+                reference: 0.5 * (low + high),
+            }
+        } else {
+            PixelBackground::Known(low)
+        }
+    }
+
     /// Multiplies each particle's weight by the likelihood of a pixel's
-    /// `count` given its expected photons (relative to a pixel without
-    /// signal, which changes no ratio), resets the pixel accumulators, and
-    /// resamples when the effective sample size is low.
-    fn weigh_pixel(&self, p: &mut Particles, count: f64, background: f64, rng: &mut ChaCha8Rng) {
+    /// `count` given its expected photons (relative to a pixel of the
+    /// reference background without signal, which changes no ratio), resets
+    /// the pixel accumulators, and resamples when the effective sample size
+    /// is low.
+    fn weigh_pixel(
+        &self,
+        p: &mut Particles,
+        count: f64,
+        background: PixelBackground,
+        rng: &mut ChaCha8Rng,
+    ) {
         let (mut total, mut total_squares) = (0.0, 0.0);
-        for (weight, signal) in p.weight.iter_mut().zip(p.signal.iter_mut()) {
-            let s = std::mem::take(signal);
-            if s > 0.0 {
-                *weight *= poisson_likelihood_ratio(count, s, background);
-            } else if background <= 0.0 && count > 0.0 {
-                // No light expected, yet photons counted: impossible.
-                *weight = 0.0;
+        for (i, (weight, signal)) in p.weight.iter_mut().zip(p.signal.iter_mut()).enumerate() {
+            let mut s = std::mem::take(signal);
+            if let Some(scale) = p.brightness_scale.get(i) {
+                s *= scale;
+            }
+            match background {
+                PixelBackground::Known(background) => {
+                    if s > 0.0 {
+                        *weight *= poisson_likelihood_ratio(count, s, background);
+                    } else if background <= 0.0 && count > 0.0 {
+                        // No light expected, yet photons counted: impossible.
+                        *weight = 0.0;
+                    }
+                }
+                PixelBackground::PerParticle { reference } => {
+                    *weight *= poisson_ratio_to_reference(count, p.background[i] + s, reference);
+                }
             }
             total += *weight;
             total_squares += *weight * *weight;
@@ -358,6 +419,35 @@ impl Filter<'_> {
     }
 }
 
+/// The background a pixel's likelihood is computed with.
+#[derive(Debug, Clone, Copy)]
+enum PixelBackground {
+    /// The same N_bkg for every particle.
+    Known(f64),
+    /// Each particle's own N_bkg (`Particles::background`); likelihoods are
+    /// relative to Poisson(`reference`), a positive constant.
+    PerParticle { reference: f64 },
+}
+
+/// Whether a per-frame parameter can take more than one value, so the
+/// filter draws it per particle and marginalises it.
+fn is_spread(distribution: &Distribution) -> bool {
+    let (low, high) = distribution.bounds();
+    low < high
+}
+
+/// P(count | mean) / P(count | reference) for Poisson counts, `reference`
+/// > 0 (0 when `mean` is 0 and photons were counted).
+#[inline]
+fn poisson_ratio_to_reference(count: f64, mean: f64, reference: f64) -> f64 {
+    let log_ratio = if count > 0.0 {
+        count * (mean / reference).ln()
+    } else {
+        0.0
+    };
+    (log_ratio - (mean - reference)).exp()
+}
+
 /// P(count | background + signal) / P(count | background) for Poisson
 /// counts (the likelihood itself when there is no background).
 #[inline]
@@ -376,7 +466,9 @@ fn poisson_likelihood_ratio(count: f64, signal: f64, background: f64) -> f64 {
 ///
 /// `microscope` is the microscope the frames were taken with (its frame
 /// size must be theirs); `settings` may replace its diffusion coefficient
-/// and brightness. Frame `i` draws from ChaCha8 stream `i` of `seed`.
+/// and brightness. D, N_qd and N_bkg given as distributions are priors,
+/// drawn per particle and so marginalised. Frame `i` draws from ChaCha8
+/// stream `i` of `seed`.
 /// `progress` is advanced by one per finished frame.
 pub fn locate_stack(
     frames: &FrameStack,
@@ -433,10 +525,30 @@ mod tests {
             height: side,
             width: side,
             margin_px: 3.0,
-            brightness,
+            brightness: brightness.into(),
             diffusion_um2_s: Distribution::Fixed(diffusion),
             ..SimParams::default()
         }
+    }
+
+    /// `frames` frames of `microscope` (seed 7) and the filter's predictions
+    /// for them with `particles` particles (seed 3) under the same model.
+    fn simulate_and_locate(
+        microscope: &SimParams,
+        frames: usize,
+        particles: usize,
+    ) -> (crate::types::Dataset, Vec<Prediction>) {
+        let hidden = crate::progress::hidden();
+        let dataset = crate::sim::simulate(microscope, 7, 0..frames, &hidden).unwrap();
+        let predictions = locate_stack(
+            &dataset.frames,
+            microscope,
+            &settings(particles),
+            3,
+            &hidden,
+        )
+        .unwrap();
+        (dataset, predictions)
     }
 
     fn settings(particles: usize) -> LikelihoodParams {
@@ -465,6 +577,81 @@ mod tests {
                 "{got} vs {expected}"
             );
         }
+    }
+
+    #[test]
+    fn drawn_brightness_and_background_weigh_each_particle_by_its_own() {
+        let fixed = small(12, 1.0, 7.0);
+        let settings = settings(2);
+        let filter = |microscope: &SimParams| Filter {
+            scan: ScanModel::new(microscope),
+            microscope: microscope.clone(),
+            settings: &settings,
+            seed: 0,
+        };
+        // Fixed photometry: no per-particle values, nothing extra drawn.
+        let mut p = Particles::default();
+        let mut rng = frame_rng(0, 0);
+        filter(&fixed).initialise(&mut p, &mut rng);
+        assert!(p.brightness_scale.is_empty() && p.background.is_empty());
+        // Distributions: one value per particle, within the prior.
+        let drawn = SimParams {
+            brightness: "uniform:5,20".parse().unwrap(),
+            background: "uniform:2,10".parse().unwrap(),
+            ..fixed
+        };
+        let filter = filter(&drawn);
+        filter.initialise(&mut p, &mut rng);
+        assert_eq!((p.brightness_scale.len(), p.background.len()), (2, 2));
+        assert!(p.brightness_scale.iter().all(|s| (0.25..=1.0).contains(s)));
+        assert!(p.background.iter().all(|b| (2.0..=10.0).contains(b)));
+        // Same position (signal 8 photons at the model's N_qd = 20), one
+        // particle at N_qd 20 on N_bkg 2, the other at N_qd 5 on N_bkg 10:
+        // their weights are the Poisson probabilities of the count under
+        // 2 + 8 and 10 + 2 expected photons.
+        p.brightness_scale = vec![1.0, 0.25];
+        p.background = vec![2.0, 10.0];
+        p.signal = vec![8.0, 8.0];
+        p.weight = vec![1.0, 1.0];
+        let poisson =
+            |k: u32, mean: f64| (1..=k).fold((-mean).exp(), |p, i| p * mean / f64::from(i));
+        filter.weigh_pixel(&mut p, 14.0, filter.pixel_background(), &mut rng);
+        let expected = poisson(14, 10.0) / poisson(14, 12.0);
+        let got = p.weight[0] / p.weight[1];
+        assert!(
+            (got - expected).abs() <= 1e-12 * expected,
+            "{got} vs {expected}"
+        );
+        assert_eq!(p.signal, [0.0, 0.0]);
+        // No expected light, yet photons: impossible for that particle only.
+        p.background = vec![0.0, 3.0];
+        p.weight = vec![1.0, 1.0];
+        filter.weigh_pixel(&mut p, 2.0, filter.pixel_background(), &mut rng);
+        assert_eq!(p.weight[0], 0.0);
+        assert!(p.weight[1] > 0.0);
+    }
+
+    #[test]
+    fn a_filter_marginalising_photometry_localises_frames_of_drawn_photometry() {
+        // Static QDs in frames of N_qd uniform on [10, 30] and N_bkg on
+        // [4, 12]; the filter is given the same priors.
+        let microscope = SimParams {
+            brightness: "uniform:10,30".parse().unwrap(),
+            background: "uniform:4,12".parse().unwrap(),
+            ..small(14, 0.0, 7.0)
+        };
+        let (dataset, predictions) = simulate_and_locate(&microscope, 8, 2000);
+        // End to end (the test above checks the per-particle weights
+        // exactly): at N_qd ≥ 10 the Cramér–Rao floor here is below 0.3 px
+        // per axis, so an RMSE of 1 px over 8 frames is a wide margin for a
+        // working filter, and one whose weights went wrong misses it.
+        let mse = predictions
+            .iter()
+            .zip(&dataset.truth)
+            .map(|(p, t)| (p.x - t.x).powi(2) + (p.y - t.y).powi(2))
+            .sum::<f64>()
+            / predictions.len() as f64;
+        assert!(mse.sqrt() < 1.0, "RMSE {} px", mse.sqrt());
     }
 
     #[test]
@@ -513,17 +700,7 @@ mod tests {
         // static QD's centroid is pinned down by the frame, a fast one's
         // path between the rows that see it is not.
         let mean_score = |diffusion: f64| {
-            let microscope = small(14, diffusion, 20.0);
-            let dataset =
-                crate::sim::simulate(&microscope, 7, 0..6, &crate::progress::hidden()).unwrap();
-            let predictions = locate_stack(
-                &dataset.frames,
-                &microscope,
-                &settings(1000),
-                3,
-                &crate::progress::hidden(),
-            )
-            .unwrap();
+            let (_, predictions) = simulate_and_locate(&small(14, diffusion, 20.0), 6, 1000);
             predictions.iter().map(|p| p.score).sum::<f64>() / predictions.len() as f64
         };
         let (still, fast) = (mean_score(0.0), mean_score(8.0));

@@ -54,9 +54,15 @@ pub(super) fn apply_sim_overrides(
         if let Err(error) = serde_yaml::from_value::<SimParams>(serde_yaml::Value::Mapping(single))
         {
             let message = error.to_string();
-            let message = if message.contains("untagged enum Distribution") {
+            // A `{name: ...}` mapping of an unknown kind arrives tagged,
+            // which the untagged enums (`emitters`' and the distributions')
+            // refuse with a message naming neither.
+            let tagged = message.contains("do not support enum input");
+            let message = if message.contains("untagged enum Distribution")
+                || (tagged && name != "emitters")
+            {
                 "must be a number or {uniform: [LOW, HIGH]}".to_string()
-            } else if message.contains("untagged enum EmitterCount") {
+            } else if message.contains("untagged enum EmitterCount") || tagged {
                 "must be a whole number or {choice: [N, ...]} with optional weights: [W, ...]"
                     .to_string()
             } else {
@@ -70,10 +76,23 @@ pub(super) fn apply_sim_overrides(
         .map_err(|e| FieldError::at(path, e.to_string()))
 }
 
-/// `params` as a YAML mapping of its fields.
+/// `params` as a YAML mapping of its fields, each written as a manifest
+/// writes it and [`apply_sim_overrides`] passes it on: through JSON, so a
+/// distribution is the mapping `{uniform: [LOW, HIGH]}` its untagged enum
+/// reads back (serde_yaml would write a `!uniform` tag, which it cannot),
+/// then [`as_tagged_enum`] for the tagged enums (`{pmt: {...}}`).
 fn as_mapping(params: &SimParams) -> serde_yaml::Mapping {
-    match serde_yaml::to_value(params) {
-        Ok(serde_yaml::Value::Mapping(mapping)) => mapping,
+    let value = serde_json::to_value(params)
+        .map_err(|e| e.to_string())
+        .and_then(|json| serde_yaml::to_value(json).map_err(|e| e.to_string()));
+    match value {
+        Ok(serde_yaml::Value::Mapping(mapping)) => mapping
+            .into_iter()
+            .map(|(field, value)| {
+                let value = as_tagged_enum(&value);
+                (field, value)
+            })
+            .collect(),
         // A struct of numbers and enums always serialises to a mapping.
         other => unreachable!("SimParams serialised to {other:?}"),
     }
