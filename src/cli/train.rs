@@ -146,7 +146,6 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         within_loss_weight: args
             .within_loss_weight
             .unwrap_or(defaults.within_loss_weight),
-        ..defaults
     };
     architecture.validate()?;
     settings.validate()?;
