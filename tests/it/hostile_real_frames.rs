@@ -57,6 +57,23 @@ fn locate(input: &Path, out: &Path, extra: &[&str]) -> Output {
     scanloc(&args)
 }
 
+/// Each row's first four columns (frame, x, y, mass in TrackPy's and
+/// `locate`'s tables), parsed.
+fn features(path: &Path) -> Vec<(usize, f64, f64, f64)> {
+    rows(path)
+        .iter()
+        .map(|row| {
+            let cells: Vec<&str> = row.split(',').collect();
+            (
+                cells[0].parse().unwrap(),
+                cells[1].parse().unwrap(),
+                cells[2].parse().unwrap(),
+                cells[3].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
 #[test]
 fn crocker_grier_locates_background_subtracted_frames_as_trackpy() {
     let dir = tempfile::tempdir().unwrap();
@@ -64,30 +81,8 @@ fn crocker_grier_locates_background_subtracted_frames_as_trackpy() {
     let output = locate(&fixture("float_background_subtracted.npy"), &out, &[]);
     assert!(output.status.success(), "{}", stderr(&output));
     // TrackPy's features (make_float_fixtures.py), to the last bit.
-    let want: Vec<(usize, f64, f64, f64)> = rows(&fixture("float_background_subtracted.csv"))
-        .iter()
-        .map(|row| {
-            let cells: Vec<&str> = row.split(',').collect();
-            (
-                cells[0].parse().unwrap(),
-                cells[1].parse().unwrap(),
-                cells[2].parse().unwrap(),
-                cells[3].parse().unwrap(),
-            )
-        })
-        .collect();
-    let got: Vec<(usize, f64, f64, f64)> = rows(&out)
-        .iter()
-        .map(|row| {
-            let cells: Vec<&str> = row.split(',').collect();
-            (
-                cells[0].parse().unwrap(),
-                cells[1].parse().unwrap(),
-                cells[2].parse().unwrap(),
-                cells[3].parse().unwrap(),
-            )
-        })
-        .collect();
+    let want = features(&fixture("float_background_subtracted.csv"));
+    let got = features(&out);
     assert_eq!(got.len(), want.len());
     for feature in &want {
         assert!(
