@@ -22,8 +22,10 @@ use scanloc::sim::{self, EmitterCount, SimParams};
 /// `--validation-fraction` selects the best epoch, optionally adds
 /// `--fresh-frames-per-epoch` newly simulated frames every epoch, trains, and
 /// writes the model folder `--out` (model.bpk in burn's record format,
-/// config.json, training.json). Unset network and training options take the
-/// library defaults (the best measured setting). Same options and seed →
+/// config.json, training.json; with `--members K`, model-2.bpk and
+/// training-2.json up to K for the other networks of the ensemble). Unset
+/// network and training options take the library defaults (the best
+/// measured setting). Same options and seed →
 /// bit-identical weights.
 ///
 /// With `--test-frames`, also simulates a test set per `--test-diffusion`
@@ -101,6 +103,11 @@ pub struct TrainArgs {
     /// head stays untrained).
     #[arg(long)]
     within_loss_weight: Option<f64>,
+    /// Networks of a deep ensemble (1–16): each trained from its own seed
+    /// as a single network is, their output maps averaged at inference
+    /// (member 1 is the network a single training would give).
+    #[arg(long)]
+    members: Option<usize>,
     /// Test frames per test diffusion coefficient (0 = no test).
     #[arg(long, default_value_t = 0)]
     test_frames: usize,
@@ -146,6 +153,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         within_loss_weight: args
             .within_loss_weight
             .unwrap_or(defaults.within_loss_weight),
+        members: args.members.unwrap_or(defaults.members),
     };
     architecture.validate()?;
     settings.validate()?;
@@ -200,27 +208,47 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     let seconds = started.elapsed().as_secs_f64();
     bar.finish_and_clear();
     model.save(&args.out)?;
-    for epoch in &model.record.epochs {
-        eprintln!(
-            "epoch {:>3}: loss {:.4} (score {:.4}, offset {:.4}) validation AUC {}",
-            epoch.epoch,
-            epoch.loss,
-            epoch.score_loss,
-            epoch.offset_loss,
-            epoch
-                .validation_auc
-                .iter()
-                .map(|a| format!("{a:.3}"))
-                .collect::<Vec<_>>()
-                .join("/")
-        );
+    for (index, record) in model.records().enumerate() {
+        let member = if model.members() > 1 {
+            format!("member {}/{} ", index + 1, model.members())
+        } else {
+            String::new()
+        };
+        for epoch in &record.epochs {
+            eprintln!(
+                "{member}epoch {:>3}: loss {:.4} (score {:.4}, offset {:.4}) validation AUC {}",
+                epoch.epoch,
+                epoch.loss,
+                epoch.score_loss,
+                epoch.offset_loss,
+                epoch
+                    .validation_auc
+                    .iter()
+                    .map(|a| format!("{a:.3}"))
+                    .collect::<Vec<_>>()
+                    .join("/")
+            );
+        }
     }
-    let samples: usize = model.record.epochs.iter().map(|e| e.samples).sum();
+    let samples: usize = model
+        .records()
+        .flat_map(|record| &record.epochs)
+        .map(|e| e.samples)
+        .sum();
+    let kept: Vec<String> = model
+        .records()
+        .map(|record| record.best_epoch.to_string())
+        .collect();
+    let networks = if model.members() > 1 {
+        format!("{} networks × ", model.members())
+    } else {
+        String::new()
+    };
     println!(
-        "trained {} epochs ({samples} samples) in {seconds:.1} s ({:.0} samples/s); kept epoch {}; saved {}",
+        "trained {networks}{} epochs ({samples} samples) in {seconds:.1} s ({:.0} samples/s); kept epoch {}; saved {}",
         model.record.epochs.len(),
         samples as f64 / seconds,
-        model.record.best_epoch,
+        kept.join(", "),
         args.out.display()
     );
 

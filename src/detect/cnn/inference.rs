@@ -55,7 +55,7 @@ impl TrainedCnn {
         progress: &ProgressBar,
     ) -> anyhow::Result<Vec<Prediction>> {
         locate_with(
-            &self.net,
+            &self.nets,
             &self.architecture,
             self.settings.score_floor,
             frames,
@@ -68,7 +68,8 @@ impl TrainedCnn {
     /// maps of `frames` are exposed for diagnostics: row-major
     /// `[n, OUTPUT_CHANNELS, H, W]`, channels as the `*_CHANNEL` constants
     /// of [`super::model`] (score logit, x offset, y offset, ln σx, ln σy,
-    /// within-1-px logit).
+    /// within-1-px logit). An ensemble's are its members' combined by
+    /// [`combine_members`], the maps its predictions are read from.
     pub fn raw_output(&self, frames: &FrameStack) -> anyhow::Result<Vec<f32>> {
         let device = inference_device();
         let mut out = Vec::with_capacity(frames.n * OUTPUT_CHANNELS * frames.frame_len());
@@ -80,16 +81,134 @@ impl TrainedCnn {
                 frames.frame_len(),
                 self.architecture.edge_channel,
             );
-            let values = self
-                .net
-                .forward_inference(&input, [end - start, frames.height, frames.width], &device)
-                .into_data()
-                .try_to_vec::<f32>()
-                .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))?;
-            out.extend(values);
+            let outputs = member_outputs(
+                &self.nets,
+                &input,
+                [end - start, frames.height, frames.width],
+                &device,
+            )?;
+            out.extend(ensemble_output(outputs, frames.frame_len()));
         }
         Ok(out)
     }
+}
+
+/// Each network's raw output for the normalised `input` of a batch
+/// (`[n, input_channels, height, width]`), in member order, each row-major
+/// `[n, OUTPUT_CHANNELS, height, width]`.
+fn member_outputs(
+    nets: &[Net],
+    input: &[f32],
+    dims: [usize; 3],
+    device: &burn::prelude::Device,
+) -> anyhow::Result<Vec<Vec<f32>>> {
+    nets.iter()
+        .map(|net| {
+            net.forward_inference(input, dims, device)
+                .into_data()
+                .try_to_vec::<f32>()
+                .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))
+        })
+        .collect()
+}
+
+/// The output maps predictions are read from: a single network's
+/// untouched (bit for bit what it was before ensembles), an ensemble's
+/// members' combined by [`combine_members`].
+fn ensemble_output(mut outputs: Vec<Vec<f32>>, frame_len: usize) -> Vec<f32> {
+    if outputs.len() == 1 {
+        outputs.pop().expect("one output")
+    } else {
+        combine_members(&outputs, frame_len)
+    }
+}
+
+/// Combines the raw outputs of an ensemble's members (each row-major
+/// `[n, OUTPUT_CHANNELS, H, W]` with `frame_len` = H·W pixels, in member
+/// order) per pixel, before any peak is found:
+///
+/// - score logit, within-1-px logit, x and y offsets: the mean over
+///   members;
+/// - ln σx, ln σy: the σ of the members' mixture, σ² = mean of σ_k² +
+///   the variance over members of the offset on that axis (the population
+///   variance, about the mean offset), so members that disagree raise the
+///   reported uncertainty; stored back as ln σ.
+///
+/// Computed in f64 with every sum taken in member order (deterministic),
+/// the mixture through log-sum-exp so that no σ² overflows; rounded to f32
+/// at the end.
+pub fn combine_members(outputs: &[Vec<f32>], frame_len: usize) -> Vec<f32> {
+    let Some(first) = outputs.first() else {
+        return Vec::new();
+    };
+    let members = outputs.len() as f64;
+    let mut combined = vec![0.0f32; first.len()];
+    let frames = first.len() / (OUTPUT_CHANNELS * frame_len).max(1);
+    let mean = |at: usize| outputs.iter().map(|o| o[at] as f64).sum::<f64>() / members;
+    for frame in 0..frames {
+        for pixel in 0..frame_len {
+            let at = |channel: usize| (frame * OUTPUT_CHANNELS + channel) * frame_len + pixel;
+            for channel in [
+                SCORE_CHANNEL,
+                OFFSET_X_CHANNEL,
+                OFFSET_Y_CHANNEL,
+                WITHIN_1PX_CHANNEL,
+            ] {
+                combined[at(channel)] = mean(at(channel)) as f32;
+            }
+            for (offset_channel, log_sigma_channel) in [
+                (OFFSET_X_CHANNEL, LOG_SIGMA_X_CHANNEL),
+                (OFFSET_Y_CHANNEL, LOG_SIGMA_Y_CHANNEL),
+            ] {
+                let mean_offset = mean(at(offset_channel));
+                let offset_variance = outputs
+                    .iter()
+                    .map(|o| (o[at(offset_channel)] as f64 - mean_offset).powi(2))
+                    .sum::<f64>()
+                    / members;
+                // ln(mean σ_k²) by log-sum-exp over 2 ln σ_k.
+                let log_variances = || {
+                    outputs
+                        .iter()
+                        .map(|o| 2.0 * o[at(log_sigma_channel)] as f64)
+                };
+                let largest = log_variances().fold(f64::NEG_INFINITY, f64::max);
+                let log_mean_variance = largest
+                    + (log_variances().map(|v| (v - largest).exp()).sum::<f64>() / members).ln();
+                // ln(mean σ_k² + offset variance), added in log space.
+                let log_total = if offset_variance > 0.0 {
+                    let log_offset_variance = offset_variance.ln();
+                    log_mean_variance.max(log_offset_variance)
+                        + (-(log_mean_variance - log_offset_variance).abs())
+                            .exp()
+                            .ln_1p()
+                } else {
+                    log_mean_variance
+                };
+                combined[at(log_sigma_channel)] = (0.5 * log_total) as f32;
+            }
+        }
+    }
+    combined
+}
+
+/// Fails with the first non-finite value of `output` (a batch's raw
+/// output, row-major `[n, OUTPUT_CHANNELS, H, W]`, whose frame 0 is frame
+/// `first_frame` of the stack).
+fn check_finite(
+    output: &[f32],
+    first_frame: usize,
+    frame_len: usize,
+) -> Result<(), NonFiniteOutput> {
+    let Some(bad) = output.iter().position(|v| !v.is_finite()) else {
+        return Ok(());
+    };
+    let frame_values = OUTPUT_CHANNELS * frame_len;
+    Err(NonFiniteOutput {
+        frame: first_frame + bad / frame_values,
+        channel: (bad % frame_values) / frame_len,
+        pixel: bad % frame_len,
+    })
 }
 
 /// The network produced a NaN or infinity: its weights are damaged (a
@@ -113,9 +232,11 @@ impl std::fmt::Display for NonFiniteOutput {
 
 impl std::error::Error for NonFiniteOutput {}
 
-/// Runs `net` over `frames` in batches of `batch` and extracts the peaks.
+/// Runs `nets` (one network, or an ensemble's members, combined by
+/// [`combine_members`]) over `frames` in batches of `batch` and extracts
+/// the peaks. Fails if any member outputs a non-finite value.
 pub(crate) fn locate_with(
-    net: &Net,
+    nets: &[Net],
     arch: &CnnArchitecture,
     score_floor: f64,
     frames: &FrameStack,
@@ -141,21 +262,15 @@ pub(crate) fn locate_with(
             len,
             arch.edge_channel,
         );
-        let output = net
-            .forward_inference(&input, [end - start, height, width], &device)
-            .into_data()
-            .try_to_vec::<f32>()
-            .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))?;
+        let outputs = member_outputs(nets, &input, [end - start, height, width], &device)?;
+        // Each member checked on its own: the combination could hide a
+        // member's damage (a σ of 0 adds nothing to the mixture).
+        for output in &outputs {
+            check_finite(output, start, len)?;
+        }
+        let output = ensemble_output(outputs, len);
         for (offset, maps) in output.chunks_exact(OUTPUT_CHANNELS * len).enumerate() {
             let frame = start + offset;
-            if let Some(bad) = maps.iter().position(|v| !v.is_finite()) {
-                return Err(NonFiniteOutput {
-                    frame,
-                    channel: bad / len,
-                    pixel: bad % len,
-                }
-                .into());
-            }
             let logits = &maps[SCORE_CHANNEL * len..(SCORE_CHANNEL + 1) * len];
             let dx = &maps[OFFSET_X_CHANNEL * len..(OFFSET_X_CHANNEL + 1) * len];
             let dy = &maps[OFFSET_Y_CHANNEL * len..(OFFSET_Y_CHANNEL + 1) * len];

@@ -43,6 +43,8 @@ const STREAM_INIT: u64 = 1;
 const STREAM_SPLIT: u64 = 2;
 const STREAM_SHUFFLE: u64 = 3;
 const STREAM_FRESH: u64 = 4;
+/// The seeds of an ensemble's members 2, 3, … (index = 0-based member).
+const STREAM_MEMBER: u64 = 5;
 
 /// A ChaCha8 stream for `purpose` (and `index`, e.g. the epoch) of `seed`.
 fn stream(seed: u64, purpose: u64, index: u64) -> ChaCha8Rng {
@@ -255,7 +257,7 @@ fn validate(
         return Ok(Vec::new());
     }
     let predictions = locate_with(
-        net,
+        std::slice::from_ref(net),
         arch,
         settings.score_floor,
         &validation.frames,
@@ -283,6 +285,13 @@ fn validate(
 /// last epoch without validation frames). `progress` counts optimiser steps
 /// and shows the latest loss and validation AUC. Fails with an error naming
 /// the epoch and batch if the loss is not finite.
+///
+/// With `settings.members` = K > 1 (a deep ensemble), K networks are
+/// trained one after another, each exactly as above (its own
+/// initialisation, validation split, batch order, fresh frames and best
+/// epoch): the first from `seed`, the others from seeds drawn from a
+/// ChaCha stream of `seed` and the member's index. `progress` then counts
+/// all K × steps and its message names the member.
 pub fn train(
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
@@ -360,8 +369,10 @@ pub fn train_selecting_on(
     )
 }
 
-/// The training loop behind [`train`] (validation split off `training`) and
-/// [`train_selecting_on`] (`selection.external` given).
+/// The training behind [`train`] (validation split off `training`) and
+/// [`train_selecting_on`] (`selection.external` given): `settings.members`
+/// networks trained one after another by [`train_member`], each from its
+/// own [`member_seed`].
 fn train_and_select(
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
@@ -390,6 +401,83 @@ fn train_and_select(
             Some(params)
         }
     };
+    let mut nets = Vec::with_capacity(settings.members);
+    let mut records = Vec::with_capacity(settings.members);
+    for index in 0..settings.members {
+        let member = Member {
+            index,
+            count: settings.members,
+        };
+        let (net, record) = train_member(
+            arch,
+            settings,
+            training,
+            selection,
+            fresh_params,
+            member_seed(seed, index),
+            member,
+            progress,
+        )?;
+        nets.push(net);
+        records.push(record);
+    }
+    let mut records = records.into_iter();
+    let record = records.next().expect("at least one member");
+    Ok(TrainedCnn {
+        nets,
+        architecture: arch.clone(),
+        settings: settings.clone(),
+        record,
+        other_records: records.collect(),
+    })
+}
+
+/// The seed ensemble member `index` (0-based) trains from: the training
+/// seed itself for member 0, so a single network trains exactly as it
+/// would without ensembles; a seed drawn from a stream of its own for the
+/// others.
+fn member_seed(seed: u64, index: usize) -> u64 {
+    if index == 0 {
+        seed
+    } else {
+        stream(seed, STREAM_MEMBER, index as u64).random::<u64>()
+    }
+}
+
+/// Which member of how many a training run is (0-based `index`).
+#[derive(Clone, Copy)]
+struct Member {
+    index: usize,
+    count: usize,
+}
+
+impl Member {
+    /// "member 2/3: " for an ensemble's member, nothing for a single
+    /// network (whose messages stay as they were).
+    fn label(self) -> String {
+        if self.count > 1 {
+            format!("member {}/{}: ", self.index + 1, self.count)
+        } else {
+            String::new()
+        }
+    }
+}
+
+/// Trains one network from `seed` (its initialisation, validation split,
+/// batch order and fresh frames) and keeps its best epoch: the whole of a
+/// single network's training, one member of an ensemble's. `progress`
+/// counts the steps of all members.
+#[allow(clippy::too_many_arguments)]
+fn train_member(
+    arch: &CnnArchitecture,
+    settings: &TrainingSettings,
+    training: &Dataset,
+    selection: Selection<'_>,
+    fresh_params: Option<&SimParams>,
+    seed: u64,
+    member: Member,
+    progress: &ProgressBar,
+) -> anyhow::Result<(Net, TrainingRecord)> {
     let n = training.frames.n;
     let emitters = truth_by_frame(&training.truth, n)?;
 
@@ -437,8 +525,12 @@ fn train_and_select(
     let mut optimiser = AdamConfig::new().init();
     let steps_per_epoch = samples_per_epoch.div_ceil(settings.batch_size);
     let total_steps = steps_per_epoch * settings.epochs;
-    progress.set_length(total_steps as u64);
-    progress.set_position(0);
+    // One bar over every member's steps (each member has as many).
+    progress.set_length((total_steps * member.count) as u64);
+    if member.index == 0 {
+        progress.set_position(0);
+    }
+    let label = member.label();
 
     let mut epochs = Vec::with_capacity(settings.epochs);
     let mut best: Option<(f64, usize, Net)> = None;
@@ -483,7 +575,7 @@ fn train_and_select(
             if !loss_value.is_finite() {
                 // The settings (usually the learning rate) are at fault: bad input.
                 crate::bail_input!(
-                    "training diverged: non-finite loss ({loss_value}) at epoch {epoch}, batch {} of {steps_per_epoch}; lower training.learning_rate",
+                    "training diverged: {label}non-finite loss ({loss_value}) at epoch {epoch}, batch {} of {steps_per_epoch}; lower training.learning_rate",
                     batch_index + 1
                 );
             }
@@ -505,7 +597,7 @@ fn train_and_select(
                     // The last step blew the weights up; the loss that
                     // step saw was still finite.
                     crate::error::input_error(format!(
-                        "training diverged: the network's output is not finite after epoch {epoch}, batch {steps_per_epoch} of {steps_per_epoch} ({error}); lower training.learning_rate"
+                        "training diverged: {label}the network's output is not finite after epoch {epoch}, batch {steps_per_epoch} of {steps_per_epoch} ({error}); lower training.learning_rate"
                     ))
                 } else {
                     error
@@ -526,7 +618,7 @@ fn train_and_select(
             validation_mean_auc,
         };
         let message = format!(
-            "epoch {epoch}/{}: loss {:.4} (score {:.4}, offset {:.4}, sigma {:.4}, within {:.4}){}",
+            "{label}epoch {epoch}/{}: loss {:.4} (score {:.4}, offset {:.4}, sigma {:.4}, within {:.4}){}",
             settings.epochs,
             record.loss,
             record.score_loss,
@@ -547,7 +639,7 @@ fn train_and_select(
         );
         tracing::info!("{message}");
         progress.set_message(format!(
-            "loss {:.3}{}",
+            "{label}loss {:.3}{}",
             record.loss,
             validation_mean_auc
                 .map(|m| format!(" AUC {m:.3}"))
@@ -568,18 +660,14 @@ fn train_and_select(
         epochs.push(record);
     }
     let (_, best_epoch, best_net) = best.expect("at least one epoch ran");
-    Ok(TrainedCnn {
-        net: best_net,
-        architecture: arch.clone(),
-        settings: settings.clone(),
-        record: TrainingRecord {
-            seed,
-            training_frames: training_indices.len(),
-            validation_frames: n_validation,
-            epochs,
-            best_epoch,
-        },
-    })
+    let record = TrainingRecord {
+        seed,
+        training_frames: training_indices.len(),
+        validation_frames: n_validation,
+        epochs,
+        best_epoch,
+    };
+    Ok((best_net, record))
 }
 
 /// The learning rate of optimiser step `step` of `total`.
