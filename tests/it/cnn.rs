@@ -294,6 +294,22 @@ fn bad_settings_are_refused_naming_the_field() {
             "fresh_frames_per_epoch",
         ),
         (
+            TrainingSettings {
+                members: 0,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.members",
+        ),
+        (
+            TrainingSettings {
+                members: cnn::MAX_MEMBERS + 1,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.members",
+        ),
+        (
             base.clone(),
             CnnArchitecture {
                 channels: 0,
@@ -588,4 +604,265 @@ fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
         &path("locs.csv"),
     ]);
     assert!(out.status.success(), "{}", crate::common::stderr(&out));
+}
+
+// ---- deep ensembles (training.members) -----------------------------------
+
+/// The settings of the tiny ensembles below: `members` networks, one epoch,
+/// every local maximum a prediction (so a barely trained network still
+/// predicts and there is something to compare).
+fn ensemble_settings(members: usize) -> TrainingSettings {
+    TrainingSettings {
+        members,
+        score_floor: 0.0,
+        ..tiny_settings(1)
+    }
+}
+
+/// A 2-member ensemble trained on 80 frames (60 trained on, 20 validate),
+/// trained once for the file, with its training data and the progress bar
+/// it trained with.
+fn tiny_ensemble() -> &'static (Dataset, TrainedCnn, indicatif::ProgressBar) {
+    static ENSEMBLE: std::sync::OnceLock<(Dataset, TrainedCnn, indicatif::ProgressBar)> =
+        std::sync::OnceLock::new();
+    ENSEMBLE.get_or_init(|| {
+        let data = dataset(40.0, 80, 101);
+        let bar = hidden();
+        let model = cnn::train(
+            &tiny_architecture(),
+            &ensemble_settings(2),
+            &data,
+            None,
+            5,
+            &metrics::paper_aucs,
+            &bar,
+        )
+        .unwrap();
+        (data, model, bar)
+    })
+}
+
+#[test]
+fn an_ensembles_first_member_is_the_single_network_and_the_second_differs() {
+    let (data, ensemble, bar) = tiny_ensemble();
+    assert_eq!(ensemble.members(), 2);
+    assert_eq!(ensemble.other_records.len(), 1);
+    assert!(ensemble.member(2).is_none());
+    // One bar over both members: 60 frames in batches of 16 = 4 steps each.
+    assert_eq!(bar.length(), Some(8));
+    assert_eq!(bar.position(), 8);
+    // Member 1 trains from the seed itself: bit for bit the single network.
+    let single = cnn::train(
+        &tiny_architecture(),
+        &ensemble_settings(1),
+        data,
+        None,
+        5,
+        &metrics::paper_aucs,
+        &hidden(),
+    )
+    .unwrap();
+    let first = ensemble.member(0).unwrap();
+    let second = ensemble.member(1).unwrap();
+    assert!(first.to_bytes().unwrap() == single.to_bytes().unwrap());
+    // Member 2 from a seed of its own: other weights, other output.
+    assert_eq!(ensemble.record.seed, 5);
+    let second_seed = ensemble.other_records[0].seed;
+    assert_ne!(second_seed, 5);
+    assert_eq!(second.record.seed, second_seed);
+    let test = dataset(40.0, 10, 102);
+    assert_ne!(
+        first.raw_output(&test.frames).unwrap(),
+        second.raw_output(&test.frames).unwrap()
+    );
+    // Deterministic: the same ensemble again.
+    let again = cnn::train(
+        &tiny_architecture(),
+        &ensemble_settings(2),
+        data,
+        None,
+        5,
+        &metrics::paper_aucs,
+        &hidden(),
+    )
+    .unwrap();
+    assert!(again.to_bytes().unwrap() == ensemble.to_bytes().unwrap());
+}
+
+#[test]
+fn an_ensembles_maps_are_its_members_maps_combined_per_pixel() {
+    use scanloc::detect::cnn::model::{
+        LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
+        SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+    };
+    let (_, ensemble, _) = tiny_ensemble();
+    let test = dataset(40.0, 6, 103);
+    let len = test.frames.frame_len();
+    let combined = ensemble.raw_output(&test.frames).unwrap();
+    let first = ensemble
+        .member(0)
+        .unwrap()
+        .raw_output(&test.frames)
+        .unwrap();
+    let second = ensemble
+        .member(1)
+        .unwrap()
+        .raw_output(&test.frames)
+        .unwrap();
+    assert_eq!(combined.len(), first.len());
+    let mut sigma_raised = 0;
+    for frame in 0..test.frames.n {
+        for pixel in 0..len {
+            let at = |channel: usize| (frame * OUTPUT_CHANNELS + channel) * len + pixel;
+            let mean = |channel: usize| {
+                ((first[at(channel)] as f64 + second[at(channel)] as f64) / 2.0) as f32
+            };
+            for channel in [
+                SCORE_CHANNEL,
+                OFFSET_X_CHANNEL,
+                OFFSET_Y_CHANNEL,
+                WITHIN_1PX_CHANNEL,
+            ] {
+                assert_eq!(
+                    combined[at(channel)],
+                    mean(channel),
+                    "{frame} {pixel} {channel}"
+                );
+            }
+            for (offset, log_sigma) in [
+                (OFFSET_X_CHANNEL, LOG_SIGMA_X_CHANNEL),
+                (OFFSET_Y_CHANNEL, LOG_SIGMA_Y_CHANNEL),
+            ] {
+                // Two members: the offsets' variance is (half their gap)².
+                let half_gap = (first[at(offset)] as f64 - second[at(offset)] as f64) / 2.0;
+                let variance = |maps: &[f32]| (2.0 * maps[at(log_sigma)] as f64).exp();
+                let expected =
+                    ((variance(&first) + variance(&second)) / 2.0 + half_gap * half_gap).sqrt();
+                let got = (combined[at(log_sigma)] as f64).exp();
+                assert!(
+                    (got / expected - 1.0).abs() < 1e-5,
+                    "{frame} {pixel} {log_sigma}: σ {got} against {expected}"
+                );
+                let largest = variance(&first).max(variance(&second)).sqrt();
+                if got > largest {
+                    sigma_raised += 1;
+                }
+            }
+        }
+    }
+    // The members disagree somewhere, and there σ exceeds both members'.
+    assert!(sigma_raised > 0);
+}
+
+#[test]
+fn an_ensemble_round_trips_through_bytes_and_folders_and_locate() {
+    let (_, ensemble, _) = tiny_ensemble();
+    let test = dataset(40.0, 20, 104);
+    let predictions = ensemble.locate(&test.frames, &hidden()).unwrap();
+    assert!(!predictions.is_empty());
+    // The ensemble's predictions are neither member's.
+    for index in 0..2 {
+        let member = ensemble.member(index).unwrap();
+        assert_ne!(member.locate(&test.frames, &hidden()).unwrap(), predictions);
+    }
+
+    let bytes = ensemble.to_bytes().unwrap();
+    let restored = TrainedCnn::from_bytes(&bytes).unwrap();
+    assert!(restored.to_bytes().unwrap() == bytes);
+    assert_eq!(restored.other_records, ensemble.other_records);
+    assert_eq!(
+        restored.locate(&test.frames, &hidden()).unwrap(),
+        predictions
+    );
+    for bad in [&bytes[..bytes.len() - 10], &bytes[..bytes.len() / 2]] {
+        let error = TrainedCnn::from_bytes(bad).unwrap_err();
+        assert!(is_input_error(&error), "{error:#}");
+    }
+
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("model");
+    ensemble.save(&folder).unwrap();
+    for file in [
+        cnn::WEIGHTS_FILE,
+        "model-2.bpk",
+        cnn::CONFIG_FILE,
+        cnn::TRAINING_FILE,
+        "training-2.json",
+    ] {
+        assert!(folder.join(file).is_file(), "{file} missing");
+    }
+    let config = std::fs::read_to_string(folder.join(cnn::CONFIG_FILE)).unwrap();
+    assert!(config.contains("\"members\": 2"), "{config}");
+    let loaded = TrainedCnn::load(&folder).unwrap();
+    assert!(loaded.to_bytes().unwrap() == bytes);
+    assert_eq!(loaded.locate(&test.frames, &hidden()).unwrap(), predictions);
+
+    // `scanloc locate` reads the folder and predicts as the library does.
+    let path = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
+    scanloc::io::write_frames(&dir.path().join("frames.npy"), &test.frames).unwrap();
+    let locate = || {
+        crate::common::scanloc(&[
+            "locate",
+            "--method",
+            "cnn",
+            "--model",
+            &path("model"),
+            "--input",
+            &path("frames.npy"),
+            "--out",
+            &path("locs.csv"),
+        ])
+    };
+    let out = locate();
+    assert!(out.status.success(), "{}", crate::common::stderr(&out));
+    let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();
+    assert_eq!(read, predictions);
+
+    // A member missing, or one too many, is bad input naming the file.
+    let refused = |needle: &str| {
+        let out = locate();
+        let text = crate::common::stderr(&out);
+        assert_eq!(out.status.code(), Some(2), "{text}");
+        assert_eq!(text.trim().lines().count(), 1, "{text}");
+        assert!(text.contains(needle), "{needle} not in {text}");
+        assert!(!text.contains("panicked"), "{text}");
+    };
+    let second = std::fs::read(folder.join("model-2.bpk")).unwrap();
+    std::fs::remove_file(folder.join("model-2.bpk")).unwrap();
+    refused("model-2.bpk");
+    std::fs::write(folder.join("model-2.bpk"), &second).unwrap();
+    std::fs::write(folder.join("model-3.bpk"), &second).unwrap();
+    refused("model-3.bpk");
+
+    // A single network saved over the folder leaves no member of the
+    // ensemble behind.
+    let first = ensemble.member(0).unwrap();
+    first.save(&folder).unwrap();
+    for gone in ["model-2.bpk", "model-3.bpk", "training-2.json"] {
+        assert!(!folder.join(gone).exists(), "{gone} left behind");
+    }
+    let config = std::fs::read_to_string(folder.join(cnn::CONFIG_FILE)).unwrap();
+    assert!(!config.contains("members"), "{config}");
+    assert!(TrainedCnn::load(&folder).unwrap().to_bytes().unwrap() == first.to_bytes().unwrap());
+}
+
+#[test]
+fn train_refuses_a_member_count_out_of_range_naming_the_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("model");
+    for members in ["0", "17"] {
+        let output = crate::common::scanloc(&[
+            "train",
+            "--members",
+            members,
+            "--frames",
+            "10",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let text = crate::common::stderr(&output);
+        assert_eq!(output.status.code(), Some(2), "{text}");
+        assert!(text.contains("training.members"), "{text}");
+        assert!(!out.exists());
+    }
 }

@@ -390,7 +390,66 @@ pub fn local_maxima(
 
 #[cfg(test)]
 mod tests {
-    use super::local_maxima;
+    use super::{combine_members, local_maxima};
+    use crate::detect::cnn::model::{
+        LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
+        OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+    };
+
+    /// One frame of one pixel: the six maps' values in channel order.
+    fn pixel(score: f32, dx: f32, dy: f32, sigma_x: f32, sigma_y: f32, within: f32) -> Vec<f32> {
+        let mut maps = vec![0.0; OUTPUT_CHANNELS];
+        maps[SCORE_CHANNEL] = score;
+        maps[OFFSET_X_CHANNEL] = dx;
+        maps[OFFSET_Y_CHANNEL] = dy;
+        maps[LOG_SIGMA_X_CHANNEL] = sigma_x.ln();
+        maps[LOG_SIGMA_Y_CHANNEL] = sigma_y.ln();
+        maps[WITHIN_1PX_CHANNEL] = within;
+        maps
+    }
+
+    #[test]
+    fn two_members_combine_as_means_and_a_mixture_sigma() {
+        let first = pixel(1.0, 0.25, -0.5, 0.3, 0.5, 2.0);
+        let second = pixel(3.0, 0.75, -0.5, 0.4, 0.5, -1.0);
+        let combined = combine_members(&[first, second], 1);
+        assert_eq!(combined.len(), OUTPUT_CHANNELS);
+        assert_eq!(combined[SCORE_CHANNEL], 2.0);
+        assert_eq!(combined[OFFSET_X_CHANNEL], 0.5);
+        assert_eq!(combined[OFFSET_Y_CHANNEL], -0.5);
+        assert_eq!(combined[WITHIN_1PX_CHANNEL], 0.5);
+        // By hand: σx² = (0.3² + 0.4²) / 2 + the offsets' variance
+        // ((0.25 − 0.5)² + (0.75 − 0.5)²) / 2 = 0.125 + 0.0625 = 0.1875;
+        // the members agree on dy, so σy² = (0.5² + 0.5²) / 2 = 0.25.
+        let sigma_x = (combined[LOG_SIGMA_X_CHANNEL] as f64).exp();
+        let sigma_y = (combined[LOG_SIGMA_Y_CHANNEL] as f64).exp();
+        assert!((sigma_x - 0.1875f64.sqrt()).abs() < 1e-6, "σx {sigma_x}");
+        assert!((sigma_y - 0.5).abs() < 1e-6, "σy {sigma_y}");
+        // Disagreement raises σ above every member's.
+        assert!(sigma_x > 0.4);
+    }
+
+    #[test]
+    fn the_mixture_sigma_does_not_overflow_and_frames_stay_apart() {
+        // Two frames of two pixels; huge ln σ (whose σ² would overflow an
+        // f64) in frame 1, pixel 0.
+        let frame_len = 2;
+        let mut first = vec![0.0f32; 2 * OUTPUT_CHANNELS * frame_len];
+        let mut second = first.clone();
+        let at = |frame: usize, channel: usize, pixel: usize| {
+            (frame * OUTPUT_CHANNELS + channel) * frame_len + pixel
+        };
+        first[at(1, LOG_SIGMA_X_CHANNEL, 0)] = 1000.0;
+        second[at(1, LOG_SIGMA_X_CHANNEL, 0)] = 1000.0;
+        first[at(0, SCORE_CHANNEL, 1)] = 4.0;
+        let combined = combine_members(&[first, second], frame_len);
+        assert!(combined.iter().all(|v| v.is_finite()), "{combined:?}");
+        assert!((combined[at(1, LOG_SIGMA_X_CHANNEL, 0)] - 1000.0).abs() < 1e-3);
+        assert_eq!(combined[at(0, SCORE_CHANNEL, 1)], 2.0);
+        assert_eq!(combined[at(1, SCORE_CHANNEL, 1)], 0.0);
+        // σ = 1 in both members, no disagreement: ln σ stays 0.
+        assert_eq!(combined[at(0, LOG_SIGMA_Y_CHANNEL, 0)], 0.0);
+    }
 
     #[test]
     fn plateaus_give_one_peak_and_separate_peaks_all_count() {

@@ -776,3 +776,53 @@ impl TrainedCnn {
 }
 
 use std::io::Write as _;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_single_network_serialises_without_a_member_count() {
+        let single = serde_json::to_string(&TrainingSettings::default()).unwrap();
+        assert!(!single.contains("members"), "{single}");
+        let parsed: TrainingSettings = serde_json::from_str(&single).unwrap();
+        assert_eq!(parsed.members, 1);
+        let ensemble = TrainingSettings {
+            members: 3,
+            ..TrainingSettings::default()
+        };
+        let text = serde_json::to_string(&ensemble).unwrap();
+        assert!(text.contains("\"members\":3"), "{text}");
+        assert_eq!(
+            serde_json::from_str::<TrainingSettings>(&text).unwrap(),
+            ensemble
+        );
+    }
+
+    #[test]
+    fn member_counts_outside_1_to_16_are_refused_naming_the_field() {
+        for members in [0, MAX_MEMBERS + 1] {
+            let settings = TrainingSettings {
+                members,
+                ..TrainingSettings::default()
+            };
+            let error = settings.validate().unwrap_err();
+            assert_eq!(error.field(), "training.members", "{error}");
+        }
+        for members in [1, 2, MAX_MEMBERS] {
+            let settings = TrainingSettings {
+                members,
+                ..TrainingSettings::default()
+            };
+            assert!(settings.validate().is_ok());
+        }
+    }
+
+    #[test]
+    fn member_files_are_numbered_from_the_second() {
+        assert_eq!(weights_file(1), WEIGHTS_FILE);
+        assert_eq!(training_file(1), TRAINING_FILE);
+        assert_eq!(weights_file(2), "model-2.bpk");
+        assert_eq!(training_file(12), "training-12.json");
+    }
+}

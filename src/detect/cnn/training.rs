@@ -679,3 +679,21 @@ fn learning_rate(settings: &TrainingSettings, step: usize, total: usize) -> f64 
         settings.learning_rate
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::member_seed;
+
+    #[test]
+    fn the_first_member_keeps_the_seed_and_the_others_get_their_own() {
+        assert_eq!(member_seed(7, 0), 7);
+        let seeds: Vec<u64> = (0..4).map(|index| member_seed(7, index)).collect();
+        for (i, a) in seeds.iter().enumerate() {
+            for b in &seeds[i + 1..] {
+                assert_ne!(a, b, "{seeds:?}");
+            }
+        }
+        assert_ne!(member_seed(7, 1), member_seed(8, 1));
+        assert_eq!(member_seed(7, 2), member_seed(7, 2));
+    }
+}
