@@ -18,6 +18,12 @@
 //! in (0, 1)) is at least `score_floor`; position = pixel centre + predicted
 //! offset; score as [`CnnArchitecture::score`] says; uncertainty
 //! (`sigma_x`, `sigma_y`) = the σ maps at the peak pixel.
+//!
+//! A model may be a deep ensemble (`training.members` > 1): several
+//! networks trained from seeds of their own, whose output maps are
+//! combined per pixel before the peaks are found (docs/detectors.md,
+//! "Ensembles"); a single network is stored and predicts exactly as before
+//! ensembles existed.
 
 pub mod data;
 pub mod inference;
