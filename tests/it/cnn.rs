@@ -509,6 +509,13 @@ fn mean_of_top(
     )
 }
 
+/// Runs `scanloc locate --method cnn --model MODEL --input FRAMES --out OUT`.
+fn locate_cli(model: &str, frames: &str, out: &str) -> std::process::Output {
+    crate::common::scanloc(&[
+        "locate", "--method", "cnn", "--model", model, "--input", frames, "--out", out,
+    ])
+}
+
 #[test]
 fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
     // Trained on static to fast QDs, so the network sees both and can learn
@@ -577,17 +584,7 @@ fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
     model.save(&dir.path().join("model")).unwrap();
     scanloc::io::write_frames(&dir.path().join("easy.npy"), &easy.frames).unwrap();
     scanloc::io::csv_tables::write_truth(&dir.path().join("truth.csv"), &easy.truth).unwrap();
-    let out = crate::common::scanloc(&[
-        "locate",
-        "--method",
-        "cnn",
-        "--model",
-        &path("model"),
-        "--input",
-        &path("easy.npy"),
-        "--out",
-        &path("locs.csv"),
-    ]);
+    let out = locate_cli(&path("model"), &path("easy.npy"), &path("locs.csv"));
     assert!(out.status.success(), "{}", crate::common::stderr(&out));
     let table = std::fs::read_to_string(path("locs.csv")).unwrap();
     assert!(
@@ -800,19 +797,7 @@ fn an_ensemble_round_trips_through_bytes_and_folders_and_locate() {
     // `scanloc locate` reads the folder and predicts as the library does.
     let path = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
     scanloc::io::write_frames(&dir.path().join("frames.npy"), &test.frames).unwrap();
-    let locate = || {
-        crate::common::scanloc(&[
-            "locate",
-            "--method",
-            "cnn",
-            "--model",
-            &path("model"),
-            "--input",
-            &path("frames.npy"),
-            "--out",
-            &path("locs.csv"),
-        ])
-    };
+    let locate = || locate_cli(&path("model"), &path("frames.npy"), &path("locs.csv"));
     let out = locate();
     assert!(out.status.success(), "{}", crate::common::stderr(&out));
     let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();

@@ -401,6 +401,13 @@ fn train_and_select(
             Some(params)
         }
     };
+    let job = Job {
+        arch,
+        settings,
+        training,
+        selection,
+        fresh_params,
+    };
     let mut nets = Vec::with_capacity(settings.members);
     let mut records = Vec::with_capacity(settings.members);
     for index in 0..settings.members {
@@ -408,16 +415,7 @@ fn train_and_select(
             index,
             count: settings.members,
         };
-        let (net, record) = train_member(
-            arch,
-            settings,
-            training,
-            selection,
-            fresh_params,
-            member_seed(seed, index),
-            member,
-            progress,
-        )?;
+        let (net, record) = train_member(job, member_seed(seed, index), member, progress)?;
         nets.push(net);
         records.push(record);
     }
@@ -463,21 +461,35 @@ impl Member {
     }
 }
 
+/// What every member of a training shares: the network's shape, the
+/// settings, the data, how the epoch to keep is chosen and the checked
+/// parameters of the fresh frames.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    arch: &'a CnnArchitecture,
+    settings: &'a TrainingSettings,
+    training: &'a Dataset,
+    selection: Selection<'a>,
+    fresh_params: Option<&'a SimParams>,
+}
+
 /// Trains one network from `seed` (its initialisation, validation split,
 /// batch order and fresh frames) and keeps its best epoch: the whole of a
 /// single network's training, one member of an ensemble's. `progress`
 /// counts the steps of all members.
-#[allow(clippy::too_many_arguments)]
 fn train_member(
-    arch: &CnnArchitecture,
-    settings: &TrainingSettings,
-    training: &Dataset,
-    selection: Selection<'_>,
-    fresh_params: Option<&SimParams>,
+    job: Job<'_>,
     seed: u64,
     member: Member,
     progress: &ProgressBar,
 ) -> anyhow::Result<(Net, TrainingRecord)> {
+    let Job {
+        arch,
+        settings,
+        training,
+        selection,
+        fresh_params,
+    } = job;
     let n = training.frames.n;
     let emitters = truth_by_frame(&training.truth, n)?;
 
