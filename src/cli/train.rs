@@ -239,13 +239,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         .records()
         .map(|record| record.best_epoch.to_string())
         .collect();
-    let networks = if model.members() > 1 {
-        format!("{} networks × ", model.members())
+    let (networks, kept_epochs) = if model.members() > 1 {
+        (format!("{} networks × ", model.members()), "epochs")
     } else {
-        String::new()
+        (String::new(), "epoch")
     };
     println!(
-        "trained {networks}{} epochs ({samples} samples) in {seconds:.1} s ({:.0} samples/s); kept epoch {}; saved {}",
+        "trained {networks}{} epochs ({samples} samples) in {seconds:.1} s ({:.0} samples/s); kept {kept_epochs} {}; saved {}",
         model.record.epochs.len(),
         samples as f64 / seconds,
         kept.join(", "),

@@ -832,6 +832,37 @@ fn an_ensemble_round_trips_through_bytes_and_folders_and_locate() {
 }
 
 #[test]
+fn cross_validation_trains_every_member_and_selects_each_on_the_held_out_fold() {
+    let training = dataset(40.0, 48, 105);
+    let validation = dataset(40.0, 20, 106);
+    let train = |members: usize| {
+        cnn::train_selecting_on(
+            &tiny_architecture(),
+            &ensemble_settings(members),
+            &training,
+            ValidationSet {
+                dataset: &validation,
+                score: &metrics::paper_aucs,
+            },
+            None,
+            12,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let ensemble = train(3);
+    assert_eq!(ensemble.members(), 3);
+    for record in ensemble.records() {
+        assert_eq!(record.training_frames, 48);
+        assert_eq!(record.validation_frames, 20);
+    }
+    let seeds: Vec<u64> = ensemble.records().map(|r| r.seed).collect();
+    assert_eq!(seeds[0], 12);
+    assert!(seeds[1] != seeds[0] && seeds[2] != seeds[1] && seeds[2] != seeds[0]);
+    assert!(ensemble.member(0).unwrap().to_bytes().unwrap() == train(1).to_bytes().unwrap());
+}
+
+#[test]
 fn train_refuses_a_member_count_out_of_range_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("model");
