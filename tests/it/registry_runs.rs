@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "1b383f3981126c8320914021627ad7c8666c3ff1e19c027a3e73339ba8d9e392",
+            "6ec1cece2930bb07f72250a82e35a7f9cae46b329c8ba421df358fbd21ee12cf",
         ),
         (
             "predictions/cnn@test-0.75",
-            "6a08da9971f3671213255702cfbbc8fca196a0b51d45dee09a51487156756b81",
+            "6c14b040ca5ac512562a71d5eddc9490fd3a572c48724c5cf3d507ddafe4c0d9",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "9ece8234e80437a718d52d1a2c374989dc7161a4dfd320a4ed23341cd73ddf73",
+            "e4ecbb1a0fc359a2f38b19cc007e6da08711c1dda706de013fa71c5cf2da0780",
         ),
         (
             "predictions/cnn@test-1.00",
-            "de7d862ed2311c02e9a323aad50b638e49e8c49d23d270a0e449cd60662845b5",
+            "5b38a15604b591a3b98cba7cba1b74dd49e620ff0ad0a6a642c5f71cee123b43",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "608869f6a89eb0c0666df338753f676607c7dfd83d1884c251404d6c7cd41f6c",
+            "77632b5bd251acbe02c70a0618aeccc5fc2577786dbf03e5c632fe4c02124b7f",
         ),
         (
             "predictions/cnn@test-1.75",
-            "6416339312623b58cbecda7d204ac0a5b291e1a6ceb3292275a2724b4e09f4a7",
+            "3c27ccfe8a06173d9d1215e7915e81d9b8818bfbf24ef8f3922dbd868ef0d2a5",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "ec984804d8983c333e2bae3500639db348dab75cc82e55e442528c9af8d440c2",
+            "1ecbc6781bc65d297c1cfc9689a4390ed3c181d9091555d9119f841d4ff9e2d5",
         ),
         (
             "dataset/test-0.75+first300",
@@ -788,27 +788,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "a7b4da92fe9edb89d91fadc72bc8fc32423e67fa17d493e4091bbefd7963e869",
+            "8b62d68805b14c72813a97890c235f5b00949e0f92fae1dfe7a99190d1d70f08",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "ec987045b9552331c3ff0b37040e1012ee5daae4dfbddd173286394f578a733a",
+            "47bc45ff097e32276dc8716b93b8b820b6348e97a7a41e52caf07698b8238467",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "9a013d22e479e55db2cb2c0ffc165dab943b266e0729220f4bf5e25f1c987414",
+            "d78e134b4dfe47af07869dae4f8d24dabac2ae2f16fbaf644890de01766f773c",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "837c8a79778783c8282bbeea19b48d4c9bd75c8f3792b5d65a137781e60a6a2a",
+            "0bb07dcc67e14678c38cd5ccde3360dee2008de72d276b4093b8a6e4b4671973",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "e21866412ddc27feedbecc3588977f3676c68736fa414c75c718fb856b834a39",
+            "0303b2bb72b6f59ec390f37135ac7c211c180822733edb400e654fcd0ee558ca",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "afa7b6d24b11e0c8e4b29b7f7b98771421b25faf67cbae532c3a8798d014da2c",
+            "c5686bd1256c9c76b8f0be65df844fd2d07e268c8ace366c5d9ae7a912f161f7",
         ),
     ];
     assert_eq!(planned, recorded);
