@@ -35,8 +35,8 @@ reproduce-paper: build
 	@echo "report: reports/paper/report.md; audit with '$(BIN) registry runs', re-execute with '$(BIN) reproduce RUN'"
 
 # Five-fold cross-validation of the paper's CNN (the manifest's
-# cross_validation block; five trainings, about half an hour on 2 idle
-# cores). Resumes
+# cross_validation block; five trainings of the two-network ensemble, about
+# an hour on 2 idle cores). Resumes
 # where an interrupted sweep stopped.
 # EXECUTOR=slurm runs the folds as a Slurm job array and waits for it
 # (README, "Running on a cluster"); SWEEP_ARGS passes further options

@@ -543,6 +543,11 @@ fn train_member(
         progress.set_position(0);
     }
     let label = member.label();
+    if member.index > 0 {
+        // The bar's message still shows the previous member's last epoch
+        // until this member's first epoch ends: say who is training now.
+        progress.set_message(label.trim_end_matches([':', ' ']).to_string());
+    }
 
     let mut epochs = Vec::with_capacity(settings.epochs);
     let mut best: Option<(f64, usize, Net)> = None;
