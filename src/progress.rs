@@ -211,6 +211,13 @@ mod tests {
     #[derive(Clone, Default)]
     struct Shared(Arc<Mutex<Vec<u8>>>);
 
+    impl Shared {
+        /// Everything written so far, as text.
+        fn text(&self) -> String {
+            String::from_utf8(self.0.lock().unwrap().clone()).unwrap()
+        }
+    }
+
     impl Write for Shared {
         fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
             self.0.lock().unwrap().extend_from_slice(bytes);
@@ -241,7 +248,7 @@ mod tests {
         }
         std::thread::sleep(Duration::from_millis(1100));
         bar.inc(1);
-        let text = String::from_utf8(sink.0.lock().unwrap().clone()).unwrap();
+        let text = sink.text();
         let lines: Vec<&str> = text.lines().collect();
         assert!(!lines.is_empty(), "no progress line in {text:?}");
         assert!(lines.len() <= 3, "too many lines: {text:?}");
@@ -259,7 +266,7 @@ mod tests {
         bar.tick();
         std::thread::sleep(Duration::from_millis(1100));
         bar.tick();
-        let text = String::from_utf8(sink.0.lock().unwrap().clone()).unwrap();
+        let text = sink.text();
         let first = text.lines().next().expect("a progress line");
         assert!(
             first.contains("0/5") && first.ends_with("eta unknown)"),
@@ -292,7 +299,7 @@ mod tests {
         bar.inc(1);
         std::thread::sleep(Duration::from_millis(1100));
         bar.tick();
-        let text = String::from_utf8(sink.0.lock().unwrap().clone()).unwrap();
+        let text = sink.text();
         let last = text.lines().last().expect("a progress line");
         // About 2.2 s for one step: about 9 s left, never years.
         assert!(last.contains("1/5") && last.contains("/min"), "{last:?}");

@@ -76,15 +76,11 @@ impl TrainedCnn {
         let batch = inference_batch(frames.frame_len());
         for start in (0..frames.n).step_by(batch) {
             let end = (start + batch).min(frames.n);
-            let input = normalised_input(
-                (start..end).map(|i| frames.frame(i)),
-                frames.frame_len(),
-                self.architecture.edge_channel,
-            );
             let outputs = member_outputs(
                 &self.nets,
-                &input,
-                [end - start, frames.height, frames.width],
+                self.architecture.edge_channel,
+                frames,
+                start..end,
                 &device,
             )?;
             out.extend(ensemble_output(outputs, frames.frame_len()));
@@ -93,18 +89,25 @@ impl TrainedCnn {
     }
 }
 
-/// Each network's raw output for the normalised `input` of a batch
-/// (`[n, input_channels, height, width]`), in member order, each row-major
-/// `[n, OUTPUT_CHANNELS, height, width]`.
+/// Each network's raw output for the batch `frames[batch]` (normalised
+/// once, with the edge channel if `edge_channel`), in member order, each
+/// row-major `[n, OUTPUT_CHANNELS, height, width]`.
 fn member_outputs(
     nets: &[Net],
-    input: &[f32],
-    dims: [usize; 3],
+    edge_channel: bool,
+    frames: &FrameStack,
+    batch: std::ops::Range<usize>,
     device: &burn::prelude::Device,
 ) -> anyhow::Result<Vec<Vec<f32>>> {
+    let dims = [batch.len(), frames.height, frames.width];
+    let input = normalised_input(
+        batch.map(|i| frames.frame(i)),
+        frames.frame_len(),
+        edge_channel,
+    );
     nets.iter()
         .map(|net| {
-            net.forward_inference(input, dims, device)
+            net.forward_inference(&input, dims, device)
                 .into_data()
                 .try_to_vec::<f32>()
                 .map_err(|e| anyhow::anyhow!("reading the network output: {e:?}"))
@@ -257,12 +260,7 @@ pub(crate) fn locate_with(
     };
     for start in (0..frames.n).step_by(batch.max(1)) {
         let end = (start + batch).min(frames.n);
-        let input = normalised_input(
-            (start..end).map(|i| frames.frame(i)),
-            len,
-            arch.edge_channel,
-        );
-        let outputs = member_outputs(nets, &input, [end - start, height, width], &device)?;
+        let outputs = member_outputs(nets, arch.edge_channel, frames, start..end, &device)?;
         // Each member checked on its own: the combination could hide a
         // member's damage (a σ of 0 adds nothing to the mixture).
         for output in &outputs {

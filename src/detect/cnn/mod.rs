@@ -532,6 +532,18 @@ impl TrainedCnn {
             nets.push(net);
             records.push(member.record);
         }
+        Self::from_members(architecture, settings, nets, records)
+    }
+
+    /// A model from its member networks and their training records, both
+    /// in member order: member 1's record becomes [`record`](Self::record),
+    /// the others [`other_records`](Self::other_records).
+    pub(crate) fn from_members(
+        architecture: CnnArchitecture,
+        settings: TrainingSettings,
+        nets: Vec<model::Net>,
+        records: Vec<TrainingRecord>,
+    ) -> anyhow::Result<Self> {
         let mut records = records.into_iter();
         let record = records
             .next()

@@ -419,15 +419,7 @@ fn train_and_select(
         nets.push(net);
         records.push(record);
     }
-    let mut records = records.into_iter();
-    let record = records.next().expect("at least one member");
-    Ok(TrainedCnn {
-        nets,
-        architecture: arch.clone(),
-        settings: settings.clone(),
-        record,
-        other_records: records.collect(),
-    })
+    TrainedCnn::from_members(arch.clone(), settings.clone(), nets, records)
 }
 
 /// The seed ensemble member `index` (0-based) trains from: the training
@@ -450,14 +442,15 @@ struct Member {
 }
 
 impl Member {
-    /// "member 2/3: " for an ensemble's member, nothing for a single
-    /// network (whose messages stay as they were).
+    /// "member 2/3" for an ensemble's member, `None` for a single network.
+    fn name(self) -> Option<String> {
+        (self.count > 1).then(|| format!("member {}/{}", self.index + 1, self.count))
+    }
+
+    /// "member 2/3: " to start an ensemble member's messages, nothing for a
+    /// single network (whose messages stay as they were).
     fn label(self) -> String {
-        if self.count > 1 {
-            format!("member {}/{}: ", self.index + 1, self.count)
-        } else {
-            String::new()
-        }
+        self.name().map(|name| name + ": ").unwrap_or_default()
     }
 }
 
@@ -543,10 +536,12 @@ fn train_member(
         progress.set_position(0);
     }
     let label = member.label();
-    if member.index > 0 {
+    if member.index > 0
+        && let Some(name) = member.name()
+    {
         // The bar's message still shows the previous member's last epoch
         // until this member's first epoch ends: say who is training now.
-        progress.set_message(label.trim_end_matches([':', ' ']).to_string());
+        progress.set_message(name);
     }
 
     let mut epochs = Vec::with_capacity(settings.epochs);
