@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "6ec1cece2930bb07f72250a82e35a7f9cae46b329c8ba421df358fbd21ee12cf",
+            "1c32c65cfe1cc956e5007414a9231664e43c4ba537deabfd6d1c81c1225c64d1",
         ),
         (
             "predictions/cnn@test-0.75",
-            "6c14b040ca5ac512562a71d5eddc9490fd3a572c48724c5cf3d507ddafe4c0d9",
+            "bf465630731feb3567cd0db8365cbbf37f7e3951257fe992f0063891712ba346",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "e4ecbb1a0fc359a2f38b19cc007e6da08711c1dda706de013fa71c5cf2da0780",
+            "9e4b131c9a70ef816493839068a8efc0c3b087b619173d21d21e56358ae889b9",
         ),
         (
             "predictions/cnn@test-1.00",
-            "5b38a15604b591a3b98cba7cba1b74dd49e620ff0ad0a6a642c5f71cee123b43",
+            "0a441ca43f837266cb9613275ce829024cc59cc4c5fc33a17465816b8a3e6692",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "77632b5bd251acbe02c70a0618aeccc5fc2577786dbf03e5c632fe4c02124b7f",
+            "43379d0cc1ae2e094e9c048da2eae9f9c5e7e92d53e10dba2032ed5b81c39303",
         ),
         (
             "predictions/cnn@test-1.75",
-            "3c27ccfe8a06173d9d1215e7915e81d9b8818bfbf24ef8f3922dbd868ef0d2a5",
+            "a410a55ba3e5e85631dbeeca3a1bd6515b3f0d15971243f93577da25a73a61fd",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "1ecbc6781bc65d297c1cfc9689a4390ed3c181d9091555d9119f841d4ff9e2d5",
+            "a7ac3f9d58044f219fbcd0d1eddd9f99bf7e314db2515658c9d03ea6d1c1f591",
         ),
         (
             "dataset/test-0.75+first300",
@@ -788,27 +788,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "8b62d68805b14c72813a97890c235f5b00949e0f92fae1dfe7a99190d1d70f08",
+            "75e40de52cc6befb4688d526fc7b05891d2767da75967e2cf2af1b922606f950",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "47bc45ff097e32276dc8716b93b8b820b6348e97a7a41e52caf07698b8238467",
+            "f303bae1bfa2517d24c4036daf0daa8212fe4c42922220e5282c1c1b447509fc",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "d78e134b4dfe47af07869dae4f8d24dabac2ae2f16fbaf644890de01766f773c",
+            "979dc71ae852fddb78ca3926e1851c4ac6216264bfdf861c1c672a91665c9ae3",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "0bb07dcc67e14678c38cd5ccde3360dee2008de72d276b4093b8a6e4b4671973",
+            "8fc49ceb21ea86d08951ca17568b2cd77e079128526521cafb2086a4b6ba20c7",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "0303b2bb72b6f59ec390f37135ac7c211c180822733edb400e654fcd0ee558ca",
+            "570361fc55efb1096f511575ec6e9a948d9e83e009707389b7e1e4701d6a19db",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "c5686bd1256c9c76b8f0be65df844fd2d07e268c8ace366c5d9ae7a912f161f7",
+            "6c8c9e456c4161fc3684b9b2fc82699aa2c9c03525b1349244483fe3b46d7bc4",
         ),
     ];
     assert_eq!(planned, recorded);
