@@ -625,6 +625,7 @@ fn tiny_ensemble() -> &'static (Dataset, TrainedCnn, indicatif::ProgressBar) {
     ENSEMBLE.get_or_init(|| {
         let data = dataset(40.0, 80, 101);
         let bar = hidden();
+        bar.set_message("train tiny");
         let model = cnn::train(
             &tiny_architecture(),
             &ensemble_settings(2),
@@ -648,6 +649,13 @@ fn an_ensembles_first_member_is_the_single_network_and_the_second_differs() {
     // One bar over both members: 60 frames in batches of 16 = 4 steps each.
     assert_eq!(bar.length(), Some(8));
     assert_eq!(bar.position(), 8);
+    // Its message keeps the caller's name for the training and names the
+    // member (in a cross-validation log: which fold, which member).
+    let message = bar.message();
+    assert!(
+        message.starts_with("train tiny · member 2/2: loss "),
+        "{message:?}"
+    );
     // Member 1 trains from the seed itself: bit for bit the single network.
     let single = cnn::train(
         &tiny_architecture(),

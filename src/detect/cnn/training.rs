@@ -410,8 +410,13 @@ fn train_and_select(
     };
     let mut nets = Vec::with_capacity(settings.members);
     let mut records = Vec::with_capacity(settings.members);
+    // The caller's name for this training (e.g. "train cnn-cv1of5"): every
+    // message the training sets keeps it, so a log says which training an
+    // epoch belongs to.
+    let task = progress.message();
     for index in 0..settings.members {
         let member = Member {
+            task: &task,
             index,
             count: settings.members,
         };
@@ -434,21 +439,31 @@ fn member_seed(seed: u64, index: usize) -> u64 {
     }
 }
 
-/// Which member of how many a training run is (0-based `index`).
+/// Which member of how many a training run is (0-based `index`), in the
+/// training the caller calls `task` (the progress bar's message when the
+/// training began; may be empty).
 #[derive(Clone, Copy)]
-struct Member {
+struct Member<'a> {
+    task: &'a str,
     index: usize,
     count: usize,
 }
 
-impl Member {
-    /// "member 2/3" for an ensemble's member, `None` for a single network.
+impl Member<'_> {
+    /// The task and, for an ensemble's member, "member 2/3": "train cnn ·
+    /// member 2/3", "train cnn" for a single network; `None` when both are
+    /// missing.
     fn name(self) -> Option<String> {
-        (self.count > 1).then(|| format!("member {}/{}", self.index + 1, self.count))
+        let member = (self.count > 1).then(|| format!("member {}/{}", self.index + 1, self.count));
+        match (self.task.is_empty(), member) {
+            (true, member) => member,
+            (false, None) => Some(self.task.to_string()),
+            (false, Some(member)) => Some(format!("{} · {member}", self.task)),
+        }
     }
 
-    /// "member 2/3: " to start an ensemble member's messages, nothing for a
-    /// single network (whose messages stay as they were).
+    /// [`name`](Self::name) and ": " to start the member's messages (empty
+    /// when there is no name).
     fn label(self) -> String {
         self.name().map(|name| name + ": ").unwrap_or_default()
     }
@@ -473,7 +488,7 @@ struct Job<'a> {
 fn train_member(
     job: Job<'_>,
     seed: u64,
-    member: Member,
+    member: Member<'_>,
     progress: &ProgressBar,
 ) -> anyhow::Result<(Net, TrainingRecord)> {
     let Job {
