@@ -283,8 +283,10 @@ fn validate(
 /// metric: `metrics::paper_aucs`, the AUC at ε = 1, 2, 3 px); the weights
 /// of the epoch with the best mean score are kept (the earliest on ties; the
 /// last epoch without validation frames). `progress` counts optimiser steps
-/// and shows the latest loss and validation AUC. Fails with an error naming
-/// the epoch and batch if the loss is not finite.
+/// and shows the latest loss and validation AUC after its message as the
+/// training began (the caller's name for it, e.g. "train cnn"; give each
+/// training a bar of its own). Fails with an error naming the epoch and
+/// batch if the loss is not finite.
 ///
 /// With `settings.members` = K > 1 (a deep ensemble), K networks are
 /// trained one after another, each exactly as above (its own
@@ -551,11 +553,9 @@ fn train_member(
         progress.set_position(0);
     }
     let label = member.label();
-    if member.index > 0
-        && let Some(name) = member.name()
-    {
-        // The bar's message still shows the previous member's last epoch
-        // until this member's first epoch ends: say who is training now.
+    // Say who is training now: from member 2 on, the bar still shows the
+    // previous member's last epoch until this member's first one ends.
+    if let Some(name) = member.name() {
         progress.set_message(name);
     }
 
