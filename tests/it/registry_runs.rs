@@ -700,31 +700,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "1c32c65cfe1cc956e5007414a9231664e43c4ba537deabfd6d1c81c1225c64d1",
+            "c0480ec717a1a4e9facac5ee2cc9f5b1a8e50264e870b3d45d7eba249420d6f6",
         ),
         (
             "predictions/cnn@test-0.75",
-            "bf465630731feb3567cd0db8365cbbf37f7e3951257fe992f0063891712ba346",
+            "29eeaa26d0b17b971085bfa2f2058f62ae2539bb34b0a55187eb6249e8a42d56",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "9e4b131c9a70ef816493839068a8efc0c3b087b619173d21d21e56358ae889b9",
+            "080c8d3a91b324ffc997ca8abc6235618d4b03d6593303403dd4bd9119ead4b9",
         ),
         (
             "predictions/cnn@test-1.00",
-            "0a441ca43f837266cb9613275ce829024cc59cc4c5fc33a17465816b8a3e6692",
+            "e86aa8f2434f2929419c8696e46e17b6ef57115ff33c5d5eb7268a6eb7b1c3cb",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "43379d0cc1ae2e094e9c048da2eae9f9c5e7e92d53e10dba2032ed5b81c39303",
+            "90e3689099c21d3a8fa12ac339b76b7780ec332cd27b27395f40441470f45b54",
         ),
         (
             "predictions/cnn@test-1.75",
-            "a410a55ba3e5e85631dbeeca3a1bd6515b3f0d15971243f93577da25a73a61fd",
+            "e978e68ddf381271c4c7966c8b04da9b37af63919ca3c0962b2a008a8369b8a1",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "a7ac3f9d58044f219fbcd0d1eddd9f99bf7e314db2515658c9d03ea6d1c1f591",
+            "86ac117340193d2ceaeb9960d84b3b4c15ec3ee0fe9c2b0026ef56016fef8cf3",
         ),
         (
             "dataset/test-0.75+first300",
@@ -788,27 +788,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "75e40de52cc6befb4688d526fc7b05891d2767da75967e2cf2af1b922606f950",
+            "bd66353303d037bc8ca7bd66c093177e6f965303974c922f18a109b20400fd16",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "f303bae1bfa2517d24c4036daf0daa8212fe4c42922220e5282c1c1b447509fc",
+            "b2fcfd4fdb2fcdd8241a8444e4d026d0b4902f5e0230e76b2155efcc16bfbe91",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "979dc71ae852fddb78ca3926e1851c4ac6216264bfdf861c1c672a91665c9ae3",
+            "7169f009a4212d1287cfeaded88e41d1ce98f34825544de7434e4b66f8982189",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "8fc49ceb21ea86d08951ca17568b2cd77e079128526521cafb2086a4b6ba20c7",
+            "36776d8f93780c27218a644a1386688a8717ac229b64db8cef9a903ac9241595",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "570361fc55efb1096f511575ec6e9a948d9e83e009707389b7e1e4701d6a19db",
+            "b7d45c016996a4da88b6ab98f45c347d300af425c8ab7e697c60ea256e2337cd",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "6c8c9e456c4161fc3684b9b2fc82699aa2c9c03525b1349244483fe3b46d7bc4",
+            "189beac6ee11be8eb91a622a37b05fd976f248d2bd8cac870bd8ec7fb51ad38d",
         ),
     ];
     assert_eq!(planned, recorded);
