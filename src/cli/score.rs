@@ -9,6 +9,7 @@ use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::limits::check_frame_count;
+use scanloc::metrics::paired::{self, PairedDifference};
 use scanloc::metrics::{self, Score, ScoreReading};
 
 /// Score localisations against ground truth (docs/metric.md).
@@ -29,6 +30,12 @@ use scanloc::metrics::{self, Score, ScoreReading};
 /// them) and must be below 10,000,000; empty optional cells are missing
 /// values. Localisations none of which is on a frame of the truth file are
 /// refused (exit 2) rather than scored 0.
+///
+/// With --compare, also the paired bootstrap of the difference between the
+/// AUC of --locs and that of --compare (another detector's localisations
+/// on the same frames): the difference, its standard error and a 95 %
+/// interval per ε, from --resamples resamples of the frames drawn with
+/// replacement (docs/metric.md, "Comparing two detectors").
 #[derive(Debug, Args)]
 pub struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).
@@ -67,6 +74,21 @@ pub struct ScoreArgs {
     /// (eps_px,k,score,precision,recall).
     #[arg(long)]
     curve: Option<PathBuf>,
+    /// A second localisations CSV of the same test set to compare with:
+    /// prints the paired bootstrap of AUC(--locs) − AUC(--compare).
+    #[arg(long)]
+    compare: Option<PathBuf>,
+    /// The column of --compare that ranks its localisations. Default: the
+    /// --score-column.
+    #[arg(long, requires = "compare")]
+    compare_score_column: Option<String>,
+    /// Resamples of the paired bootstrap (1 to 100,000).
+    #[arg(long, default_value_t = 1000, requires = "compare")]
+    resamples: u64,
+    /// Seed of the bootstrap's draws of frames: the same seed and files
+    /// give the same figures.
+    #[arg(long, default_value_t = 0, requires = "compare")]
+    seed: u64,
 }
 
 pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
@@ -76,8 +98,18 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             &[("--curve", curve)],
         )?;
     }
+    let resamples = paired::check_resamples("--resamples", args.resamples)?;
     let truth = csv_tables::read_truth(&args.truth)?;
     let predictions = csv_tables::read_predictions_scored_by(&args.locs, &args.score_column)?;
+    let compared = match &args.compare {
+        Some(path) => Some(csv_tables::read_predictions_scored_by(
+            path,
+            args.compare_score_column
+                .as_deref()
+                .unwrap_or(&args.score_column),
+        )?),
+        None => None,
+    };
     // Frame numbers are below MAX_FRAMES (checked by the readers), so this
     // cannot overflow.
     let frames_with_truth = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
@@ -101,7 +133,10 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         }
         None => frames_with_truth,
     };
-    refuse_disjoint_frames(&args, &truth, &predictions)?;
+    refuse_disjoint_frames(&args.locs, &args.truth, &truth, &predictions)?;
+    if let (Some(path), Some(compared)) = (&args.compare, &compared) {
+        refuse_disjoint_frames(path, &args.truth, &truth, compared)?;
+    }
     if let Some(threshold) = args.threshold
         && !threshold.is_finite()
     {
@@ -124,6 +159,21 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         reading,
     )
     .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
+    let comparison = match (&args.compare, &compared) {
+        (Some(path), Some(compared)) => Some(
+            paired::paired_bootstrap(
+                &predictions,
+                compared,
+                &truth,
+                frames,
+                &args.eps,
+                resamples,
+                args.seed,
+            )
+            .map_err(|e| input_error(format!("{}: {e}", path.display())))?,
+        ),
+        _ => None,
+    };
     if let Some(path) = &args.curve {
         io::write_atomically(path, |writer| {
             let mut csv = csv::Writer::from_writer(writer);
@@ -148,10 +198,17 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         for per_eps in &mut summary.per_eps {
             per_eps.curve.clear();
         }
-        serde_json::to_writer(&mut *stdout, &summary)?;
+        let mut json = serde_json::to_value(&summary)?;
+        if let (Some(comparison), Some(object)) = (&comparison, json.as_object_mut()) {
+            object.insert("comparison".into(), serde_json::to_value(comparison)?);
+        }
+        serde_json::to_writer(&mut *stdout, &json)?;
         writeln!(stdout)?;
     } else {
         write_table(stdout, &score)?;
+        if let (Some(comparison), Some(path)) = (&comparison, &args.compare) {
+            write_comparison(stdout, comparison, &args.locs, path, args.seed)?;
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -161,7 +218,8 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
 /// the files of two different recordings, would otherwise score an AUC of
 /// 0 without a word.
 fn refuse_disjoint_frames(
-    args: &ScoreArgs,
+    locs: &std::path::Path,
+    truth_path: &std::path::Path,
     truth: &[scanloc::types::TruthRow],
     predictions: &[scanloc::types::Prediction],
 ) -> anyhow::Result<()> {
@@ -180,8 +238,8 @@ fn refuse_disjoint_frames(
     };
     Err(input_error(format!(
         "{}: no localisation is on a frame of {} (localisations on frames {}, truth on frames {}); are both from the same recording, numbered from the same first frame?",
-        args.locs.display(),
-        args.truth.display(),
+        locs.display(),
+        truth_path.display(),
         range(&mut predictions.iter().map(|p| p.frame)),
         range(&mut truth.iter().map(|t| t.frame)),
     )))
@@ -291,6 +349,42 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
                 maybe(bin.observed_frequency)
             )?;
         }
+    }
+    Ok(())
+}
+
+/// The paired comparison under the table: per ε, both AUCs, their
+/// difference, its bootstrap standard error and 95 % interval.
+fn write_comparison(
+    out: &mut dyn Write,
+    comparison: &[PairedDifference],
+    locs: &std::path::Path,
+    compared: &std::path::Path,
+    seed: u64,
+) -> anyhow::Result<()> {
+    let resamples = comparison.first().map_or(0, |c| c.resamples);
+    writeln!(
+        out,
+        "paired comparison: AUC of {} minus AUC of {}, frames resampled with replacement ({resamples} resamples, seed {seed})",
+        locs.display(),
+        compared.display()
+    )?;
+    writeln!(
+        out,
+        "{:>8} {:>8} {:>11} {:>10} {:>9} {:>19}",
+        "eps_px", "AUC", "AUC_compare", "difference", "std_err", "95% interval"
+    )?;
+    for c in comparison {
+        writeln!(
+            out,
+            "{:>8} {:>8.4} {:>11.4} {:>+10.4} {:>9.4} {:>19}",
+            c.eps_px,
+            c.auc,
+            c.auc_compared,
+            c.difference,
+            c.standard_error,
+            format!("[{:+.4}, {:+.4}]", c.interval_95.0, c.interval_95.1),
+        )?;
     }
     Ok(())
 }

@@ -17,10 +17,12 @@
 //! and expected calibration error), and the figures of scenes with several
 //! or no QDs per frame at a score threshold ([`scenes`]: recall, precision,
 //! Jaccard index, RMSE of matched localisations, false localisations per
-//! empty frame).
+//! empty frame), and whether one detector beats another by more than the
+//! test set's luck ([`paired`]: a paired bootstrap over frames).
 
 pub mod calibration;
 pub mod headroom;
+pub mod paired;
 pub mod scenes;
 
 use std::cmp::Ordering;

@@ -576,3 +576,101 @@ fn a_manifest_threshold_changes_only_its_detectors_evaluation_keys() {
         }
     }
 }
+
+#[test]
+fn score_compares_two_detectors_with_a_paired_bootstrap() {
+    use crate::common::{scanloc, stderr, stdout};
+    let dir = tempfile::tempdir().unwrap();
+    let path = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    // 200 frames of one QD: `exact` finds each; `half` misses every other
+    // one by 1.5 px and ranks its hits first (its AUC at 1 px is 1/2, at 2
+    // px 1).
+    let mut truth = String::from("frame,x,y\n");
+    let mut exact = String::from("frame,x,y,score\n");
+    let mut half = String::from("frame,x,y,mass\n");
+    for frame in 0..200 {
+        truth.push_str(&format!("{frame},5,5\n"));
+        exact.push_str(&format!("{frame},5,5,0.9\n"));
+        let (x, mass) = if frame % 2 == 0 {
+            (5.0, 9.0)
+        } else {
+            (6.5, 1.0)
+        };
+        half.push_str(&format!("{frame},{x},5,{mass}\n"));
+    }
+    std::fs::write(path("truth.csv"), truth).unwrap();
+    std::fs::write(path("exact.csv"), exact).unwrap();
+    std::fs::write(path("half.csv"), half).unwrap();
+    let (truth, exact, half) = (path("truth.csv"), path("exact.csv"), path("half.csv"));
+    let compare = [
+        "score",
+        "--truth",
+        &truth,
+        "--locs",
+        &exact,
+        "--compare",
+        &half,
+        "--compare-score-column",
+        "mass",
+        "--eps",
+        "1,2",
+    ];
+    let output = scanloc(&[&compare[..], &["--json"]].concat());
+    assert!(output.status.success(), "{}", stderr(&output));
+    let json: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    // The score of --locs is unchanged; the comparison is beside it.
+    assert!(close(json["per_eps"][0]["auc"].as_f64().unwrap(), 1.0));
+    let comparison = json["comparison"].as_array().unwrap();
+    assert_eq!(comparison.len(), 2);
+    let at_1 = &comparison[0];
+    assert!(close(at_1["auc_compared"].as_f64().unwrap(), 0.5));
+    assert!(close(at_1["difference"].as_f64().unwrap(), 0.5));
+    assert_eq!(at_1["resamples"], 1000);
+    // √(½ · ½ / 200) = 0.035; 1,000 resamples estimate it within ≈ 2.2 %,
+    // the tolerance is 15 %.
+    let standard_error = at_1["standard_error"].as_f64().unwrap();
+    assert!((standard_error - 0.0354).abs() < 0.0053, "{standard_error}");
+    let interval = at_1["interval_95"].as_array().unwrap();
+    assert!(interval[0].as_f64().unwrap() > 0.4 && interval[1].as_f64().unwrap() < 0.6);
+    assert!(close(comparison[1]["difference"].as_f64().unwrap(), 0.0));
+    // The same seed gives the same figures; the table names them.
+    let again = scanloc(&[&compare[..], &["--json"]].concat());
+    assert_eq!(stdout(&again), stdout(&output));
+    let table = stdout(&scanloc(&compare));
+    for expected in [
+        "paired comparison",
+        "1000 resamples, seed 0",
+        "95% interval",
+        "+0.5000",
+    ] {
+        assert!(table.contains(expected), "{expected:?} in\n{table}");
+    }
+    // Bad input: exit 2 naming the flag or the file.
+    std::fs::write(path("elsewhere.csv"), "frame,x,y,mass\n500,5,5,1\n").unwrap();
+    let elsewhere = compare.map(|arg| {
+        if arg == half {
+            path("elsewhere.csv")
+        } else {
+            arg.to_string()
+        }
+    });
+    let elsewhere: Vec<&str> = elsewhere.iter().map(String::as_str).collect();
+    for (args, named) in [
+        (
+            [&compare[..], &["--resamples", "0"]].concat(),
+            "--resamples",
+        ),
+        (
+            [&compare[..], &["--resamples", "100001"]].concat(),
+            "--resamples",
+        ),
+        (elsewhere, "elsewhere.csv"),
+    ] {
+        let output = scanloc(&args);
+        assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+        assert!(stderr(&output).contains(named), "{}", stderr(&output));
+    }
+    // The bootstrap's options need --compare.
+    let output = scanloc(&["score", "--truth", &truth, "--locs", &exact, "--seed", "3"]);
+    assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+}
