@@ -7,9 +7,12 @@ use clap::Args;
 use scanloc::registry::{Found, Registry, RunKind};
 
 /// Write a Markdown report of a run: the AUC table beside the reference
-/// (the paper's Table 1), localisation quality, precision–recall curves,
-/// example frames with trajectories, localisation panels and error
-/// histograms (PNG and SVG).
+/// (the paper's Table 1), localisation quality, where the AUC is lost, each
+/// detector's gap to the attainable bound (a likelihood detector on the
+/// same frames) with its bootstrap uncertainty, the scene and calibration
+/// figures, precision–recall curves, reliability diagrams, example frames
+/// with trajectories, localisation panels and error histograms (PNG and
+/// SVG).
 ///
 /// The metric and the paper's table: docs/metric.md. Figures are drawn with
 /// the embedded Roboto font, or the TrueType file named by SCANLOC_FONT.

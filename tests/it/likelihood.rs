@@ -231,3 +231,78 @@ fn locate_with_the_likelihood_method_writes_one_row_per_frame() {
         assert!(stderr(&out).contains(message), "{}", stderr(&out));
     }
 }
+
+#[test]
+fn the_report_states_each_detectors_gap_to_the_bound_with_its_uncertainty() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = dir.path().join("bound.yaml");
+    // Crocker–Grier beside the two bounds on the same first frames.
+    let text = SMALL_MANIFEST
+        .replace("frames: 4,", "frames: 12,")
+        .replace("frames: 2}", "frames: 10}")
+        .replace(
+            "evaluations:\n",
+            "  cg: {crocker_grier: {diameter: 5, minmass: 0}}\nevaluations:\n  - {detector: cg, datasets: [test], frames: 10}\n",
+        );
+    std::fs::write(&manifest, &text).unwrap();
+    let registry = dir.path().join("registry");
+    let run = run_json(&manifest, &registry, &[]);
+    let auc = |detector: &str, eps: f64| {
+        run["auc"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["detector"] == detector && c["eps_px"] == eps)
+            .unwrap_or_else(|| panic!("{detector} at {eps} in {}", run["auc"]))["auc"]
+            .as_f64()
+            .unwrap()
+    };
+    let out = dir.path().join("report");
+    let output = scanloc(&[
+        "report",
+        run["run"].as_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("## Against the attainable bound"),
+        "{report}"
+    );
+    // One row per (detector, bound, ε); none compares a bound with itself.
+    let rows: Vec<Vec<&str>> = report
+        .lines()
+        .skip_while(|l| !l.starts_with("## Against the attainable bound"))
+        .filter(|l| {
+            l.starts_with("| cg |") || l.starts_with("| known |") || l.starts_with("| marginal |")
+        })
+        .map(|l| l.split('|').map(str::trim).collect())
+        .take_while(|cells: &Vec<&str>| cells.len() == 11)
+        .collect();
+    assert_eq!(rows.len(), 6, "{report}");
+    for cells in &rows {
+        assert_eq!(cells[1], "cg");
+        assert!(["known", "marginal"].contains(&cells[2]), "{cells:?}");
+        assert_eq!(cells[3], "test+first10");
+        let eps: f64 = cells[4].parse().unwrap();
+        let number = |i: usize| cells[i].parse::<f64>().unwrap();
+        // The AUCs are the run's, the difference theirs (to the printed
+        // rounding), the interval holds a standard error's worth of room.
+        assert!((number(5) - auc("cg", eps)).abs() < 0.0006, "{cells:?}");
+        assert!((number(6) - auc(cells[2], eps)).abs() < 0.0006, "{cells:?}");
+        assert!(
+            (number(7) - (number(5) - number(6))).abs() < 0.0015,
+            "{cells:?}"
+        );
+        assert!(number(8) >= 0.0, "{cells:?}");
+        let interval: Vec<f64> = cells[9]
+            .trim_matches(['[', ']'])
+            .split(", ")
+            .map(|v| v.parse().unwrap())
+            .collect();
+        assert!(interval[0] <= interval[1], "{cells:?}");
+    }
+}

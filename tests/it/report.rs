@@ -53,6 +53,11 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
     // at each detector's threshold (the CNN's 0.5, none for trackpy); the
     // CNN's calibration (its score is a sigmoid), not trackpy's (a mass).
     assert!(markdown.contains("## Where the AUC is lost"), "{markdown}");
+    // No likelihood detector in the run: no comparison with a bound.
+    assert!(
+        !markdown.contains("## Against the attainable bound"),
+        "{markdown}"
+    );
     assert_eq!(
         markdown
             .lines()
