@@ -292,6 +292,18 @@ pub fn score(
     )
 }
 
+/// Refuses a matching radius that is not a positive number of pixels.
+fn check_radii(eps_px: &[f64]) -> anyhow::Result<()> {
+    for &eps in eps_px {
+        if !(eps.is_finite() && eps > 0.0) {
+            return Err(input_error(format!(
+                "eps: must be a positive number of pixels, got {eps}"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// Refuses a test set without ground truth, where recall and the AUC are
 /// undefined.
 fn refuse_without_truth(truth: &[TruthRow]) -> anyhow::Result<()> {
@@ -320,13 +332,7 @@ pub fn score_read_as(
     reading: ScoreReading,
 ) -> anyhow::Result<Score> {
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
-    for &eps in eps_px {
-        if !(eps.is_finite() && eps > 0.0) {
-            return Err(input_error(format!(
-                "eps: must be a positive number of pixels, got {eps}"
-            )));
-        }
-    }
+    check_radii(eps_px)?;
     if let Some(threshold) = reading.threshold
         && !threshold.is_finite()
     {

@@ -15,8 +15,8 @@ use rand::{RngExt as _, SeedableRng as _};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::{checked_truth_by_frame, ranking, refuse_without_truth, walk};
-use crate::error::{FieldError, input_error};
+use super::{check_radii, checked_truth_by_frame, ranking, refuse_without_truth, walk};
+use crate::error::FieldError;
 use crate::types::{Prediction, TruthRow};
 
 /// Most resamples a comparison may ask for: the differences are kept to
@@ -78,13 +78,7 @@ pub fn paired_bootstrap(
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
     checked_truth_by_frame(compared, truth, frames)?;
     refuse_without_truth(truth)?;
-    for &eps in eps_px {
-        if !(eps.is_finite() && eps > 0.0) {
-            return Err(input_error(format!(
-                "eps: must be a positive number of pixels, got {eps}"
-            )));
-        }
-    }
+    check_radii(eps_px)?;
     let aucs = |predictions: &[Prediction], truth: &[TruthRow]| -> anyhow::Result<Vec<f64>> {
         let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
         let mut ranked = predictions.to_vec();
