@@ -101,13 +101,17 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
     let resamples = paired::check_resamples("--resamples", args.resamples)?;
     let truth = csv_tables::read_truth(&args.truth)?;
     let predictions = csv_tables::read_predictions_scored_by(&args.locs, &args.score_column)?;
+    // --compare's file and its localisations.
     let compared = match &args.compare {
-        Some(path) => Some(csv_tables::read_predictions_scored_by(
+        Some(path) => Some((
             path,
-            args.compare_score_column
-                .as_deref()
-                .unwrap_or(&args.score_column),
-        )?),
+            csv_tables::read_predictions_scored_by(
+                path,
+                args.compare_score_column
+                    .as_deref()
+                    .unwrap_or(&args.score_column),
+            )?,
+        )),
         None => None,
     };
     // Frame numbers are below MAX_FRAMES (checked by the readers), so this
@@ -134,7 +138,7 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         None => frames_with_truth,
     };
     refuse_disjoint_frames(&args.locs, &args.truth, &truth, &predictions)?;
-    if let (Some(path), Some(compared)) = (&args.compare, &compared) {
+    if let Some((path, compared)) = &compared {
         refuse_disjoint_frames(path, &args.truth, &truth, compared)?;
     }
     if let Some(threshold) = args.threshold
@@ -159,8 +163,8 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         reading,
     )
     .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
-    let comparison = match (&args.compare, &compared) {
-        (Some(path), Some(compared)) => Some(
+    let comparison = match &compared {
+        Some((path, compared)) => Some(
             paired::paired_bootstrap(
                 &predictions,
                 compared,
@@ -172,7 +176,7 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             )
             .map_err(|e| input_error(format!("{}: {e}", path.display())))?,
         ),
-        _ => None,
+        None => None,
     };
     if let Some(path) = &args.curve {
         io::write_atomically(path, |writer| {
@@ -206,7 +210,7 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         writeln!(stdout)?;
     } else {
         write_table(stdout, &score)?;
-        if let (Some(comparison), Some(path)) = (&comparison, &args.compare) {
+        if let (Some(comparison), Some((path, _))) = (&comparison, &compared) {
             write_comparison(stdout, comparison, &args.locs, path, args.seed)?;
         }
     }

@@ -75,10 +75,10 @@ pub fn paired_bootstrap(
     seed: u64,
 ) -> anyhow::Result<Vec<PairedDifference>> {
     check_resamples("resamples", resamples as u64)?;
-    let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
-    checked_truth_by_frame(compared, truth, frames)?;
     refuse_without_truth(truth)?;
     check_radii(eps_px)?;
+    // Also the checks of the predictions and truth (finite, on frames
+    // `0..frames`): the observed AUCs are computed first.
     let aucs = |predictions: &[Prediction], truth: &[TruthRow]| -> anyhow::Result<Vec<f64>> {
         let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
         let mut ranked = predictions.to_vec();
@@ -90,7 +90,6 @@ pub fn paired_bootstrap(
     };
     let observed = aucs(predictions, truth)?;
     let observed_compared = aucs(compared, truth)?;
-    drop(truth_by_frame);
 
     // Rows of each frame, so that a resample is assembled in time
     // proportional to its size.

@@ -476,11 +476,8 @@ fn write_bound_comparison_table(
         "| detector | bound | dataset | ε (px) | AUC | bound's AUC | difference | standard error | 95 % interval |"
     )?;
     writeln!(markdown, "|---|---|---|---|---|---|---|---|---|")?;
-    let predictions = |key: &str| -> anyhow::Result<Vec<Prediction>> {
-        Ok(load_artefact(registry, key)?
-            .predictions()?
-            .as_ref()
-            .clone())
+    let predictions = |key: &str| -> anyhow::Result<std::sync::Arc<Vec<Prediction>>> {
+        Ok(load_artefact(registry, key)?.predictions()?.clone())
     };
     for (other, bound) in pairs {
         let artefact = load_artefact(registry, &other.dataset_key)?;
