@@ -21,8 +21,9 @@ use scanloc::metrics::{self, Score, ScoreReading};
 /// RMSE of the localisations at or above the score threshold; then the
 /// RMSE of each frame's top-scoring prediction, the fraction of frames
 /// without a prediction, the false localisations per frame without truth,
-/// and with --probability the reliability diagram and its expected
-/// calibration error. The test set's frames are 0 to the largest frame
+/// with --probability the reliability diagram and its expected
+/// calibration error, and for localisations with `sigma_x,sigma_y` columns
+/// how well that uncertainty describes their error. The test set's frames are 0 to the largest frame
 /// index of the truth file, or --frames. A truth file without rows (a set
 /// of empty frames) needs --frames; its figures per ε are then undefined.
 ///
@@ -353,6 +354,19 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
                 maybe(bin.observed_frequency)
             )?;
         }
+    }
+    if let Some(u) = &score.uncertainty {
+        writeln!(
+            out,
+            "uncertainty (sigma_x, sigma_y of each frame's top prediction), {} localisations: \
+             RMS of error/sigma x {:.3}, y {:.3} (1 if calibrated); within 1 sigma {:.3} \
+             (0.683 if Gaussian); rank correlation of sigma with the error {}",
+            u.localisations,
+            u.rms_normalised_error_x,
+            u.rms_normalised_error_y,
+            u.within_one_sigma,
+            maybe(u.rank_correlation)
+        )?;
     }
     Ok(())
 }

@@ -209,6 +209,17 @@ impl DetectorSpec {
             DetectorSpec::Likelihood(_) => crate::detect::likelihood::CODE_VERSION,
         }
     }
+
+    /// Version of the code that turns this detector's model (if any) and a
+    /// dataset into predictions; part of their content key. The CNN's
+    /// names its decoding apart from its training, so a change in how
+    /// output maps become predictions keeps the trained models' keys.
+    pub fn locate_code_version(&self) -> &'static str {
+        match self {
+            DetectorSpec::Cnn(_) => crate::detect::cnn::DECODE_VERSION,
+            _ => self.code_version(),
+        }
+    }
 }
 
 /// A named detector.

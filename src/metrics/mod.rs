@@ -94,6 +94,11 @@ pub struct Score {
     /// existed).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub reliability: Option<calibration::Reliability>,
+    /// How well the localisations' σ describes their error (absent when no
+    /// top prediction carries a σ, and in evaluations stored before it
+    /// existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub uncertainty: Option<calibration::UncertaintyCalibration>,
 }
 
 /// How a detector's score is read beyond ranking (`docs/metric.md`,
@@ -405,6 +410,7 @@ pub fn score_read_as(
             frames,
         )),
         reliability,
+        uncertainty: calibration::uncertainty_calibration(&ranked, &truth_by_frame),
     })
 }
 

@@ -80,6 +80,7 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     write_bound_comparison_table(registry, &mut markdown, &evaluations)?;
     write_scene_table(&mut markdown, &evaluations)?;
     write_calibration_table(&mut markdown, &evaluations)?;
+    write_uncertainty_table(&mut markdown, &evaluations)?;
 
     writeln!(markdown, "\n## Figures\n")?;
     example_frames(out, &resolved.microscope, resolved.seed)?;
@@ -613,6 +614,55 @@ fn write_calibration_table(
     Ok(())
 }
 
+/// How well each detector's own uncertainty (`sigma_x`, `sigma_y`)
+/// describes its localisations' error (docs/metric.md, "Calibration of
+/// the uncertainty"); absent when no detector reports one.
+fn write_uncertainty_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
+    let reported: Vec<(
+        &Evaluation,
+        &crate::metrics::calibration::UncertaintyCalibration,
+    )> = evaluations
+        .iter()
+        .filter_map(|e| e.score.uncertainty.as_ref().map(|u| (e, u)))
+        .collect();
+    if reported.is_empty() {
+        return Ok(());
+    }
+    writeln!(markdown, "\n## Calibration of the uncertainty\n")?;
+    writeln!(
+        markdown,
+        "For detectors that report each localisation's expected error σx, σy (px): over each \
+         frame's top prediction, the root mean square of the error divided by σ on each axis (1 \
+         when σ is right on average, above 1 when it is too small), the fraction of the per-axis \
+         errors within 1 σ (0.683 for a Gaussian error of that σ), and Spearman's rank \
+         correlation of σ with the distance to the truth (how well σ sorts precise from \
+         imprecise localisations, as a filter on localisation precision does; docs/metric.md, \
+         \"Calibration of the uncertainty\").\n"
+    )?;
+    writeln!(
+        markdown,
+        "| detector | dataset | localisations | RMS error/σ x | RMS error/σ y | within 1 σ | rank correlation |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|")?;
+    for (e, u) in reported {
+        writeln!(
+            markdown,
+            "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {} |",
+            e.detector,
+            e.dataset,
+            u.localisations,
+            u.rms_normalised_error_x,
+            u.rms_normalised_error_y,
+            u.within_one_sigma,
+            or_dash(u.rank_correlation)
+        )?;
+    }
+    Ok(())
+}
+
 /// One reliability diagram per dataset with a probability-scored
 /// evaluation: each detector's mean score against observed frequency per
 /// non-empty bin, beside the diagonal of a calibrated score.
@@ -890,6 +940,7 @@ mod tests {
                 reading: None,
                 empty_frames: None,
                 reliability: None,
+                uncertainty: None,
             },
         }
     }

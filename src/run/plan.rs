@@ -31,7 +31,7 @@ pub const SUBSET_VERSION: &str = "scanloc-subset/1";
 
 /// Version of the scoring step (the metric of `docs/metric.md` and its
 /// `score.json`).
-pub const METRIC_VERSION: &str = "scanloc-metric/2";
+pub const METRIC_VERSION: &str = "scanloc-metric/3";
 
 /// What a step does.
 #[derive(Debug, Clone)]
@@ -272,7 +272,7 @@ impl Plan {
         dataset: usize,
         model: Option<usize>,
     ) -> anyhow::Result<usize> {
-        let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.code_version());
+        let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.locate_code_version());
         let dataset_step = &self.steps[dataset];
         let mut description = json!({
             "kind": "predictions",

@@ -680,7 +680,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-0.75",
-            "1b20ff6707fd5e077886d7cada435a0e3188463480f1fc62808589eb8d4952cf",
+            "4c76984dcf4fc0c9703088e27328dff86818d6c163ab69ab6dc8a5d0238074e4",
         ),
         (
             "predictions/trackpy@test-1.00",
@@ -688,7 +688,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.00",
-            "55ac1424a4347deacf907977a37ef1917ea93fefe00cd88a7c1dd4b68a34be50",
+            "40d6ee871711320b2e79c219fc122b543f0be2394f3cc4b3863b050e3e7d4cf9",
         ),
         (
             "predictions/trackpy@test-1.75",
@@ -696,7 +696,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.75",
-            "dbe8fc927408be0ed7b5ad079b5967c31f0bb2e42e9f1e323eb9fcf759a2458a",
+            "a097d86618da7fbd5428c2b96de3e1d171cd3f6237f7a5cf1d86531cc49f1dae",
         ),
         (
             "model/cnn",
@@ -704,27 +704,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75",
-            "29eeaa26d0b17b971085bfa2f2058f62ae2539bb34b0a55187eb6249e8a42d56",
+            "ce0f4b8e1e11ac731d11243678bb8be8fe8252a4205e812bbcb4e6f05bd05ab2",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "080c8d3a91b324ffc997ca8abc6235618d4b03d6593303403dd4bd9119ead4b9",
+            "8f9d2671e54d3c6727d3b1b90763317424480d447bc24e8e5b7caf03e4a99999",
         ),
         (
             "predictions/cnn@test-1.00",
-            "e86aa8f2434f2929419c8696e46e17b6ef57115ff33c5d5eb7268a6eb7b1c3cb",
+            "12c24b2d1bb17ec20823c241b19b875e4340a182b7bd0d7131661a5f37da33c6",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "90e3689099c21d3a8fa12ac339b76b7780ec332cd27b27395f40441470f45b54",
+            "c43caf869c496cb46834f6b4d25462aaef2cb868639365f00c18170c3be81d02",
         ),
         (
             "predictions/cnn@test-1.75",
-            "e978e68ddf381271c4c7966c8b04da9b37af63919ca3c0962b2a008a8369b8a1",
+            "5ea9579186ebdab04e41bb144cd4224dfd7b987922d14500d405a34242e03aa9",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "86ac117340193d2ceaeb9960d84b3b4c15ec3ee0fe9c2b0026ef56016fef8cf3",
+            "ea3aa1a39aa9ffa26db7cb5ed7c5c3fd99ddaca2e766be0df9dac0a2cc44a593",
         ),
         (
             "dataset/test-0.75+first300",
@@ -736,7 +736,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-0.75+first300",
-            "b2bcbb7a5377d19ec7951444058a24c75fcbeea3246a22ab4ac5f208e58d1b48",
+            "a673fe3ab3185a88555cd9023350be62331f308086cf5ea3d4db514034be19a7",
         ),
         (
             "dataset/test-1.00+first300",
@@ -748,7 +748,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.00+first300",
-            "c667cf140b939d14cc74f711f9b1a8dad771989bd47cf15ee0bc136dd9ef40e4",
+            "e3d61b5cb3387e229602b5bd76f33edab0d597e9b3d25819eaa4ee893392d676",
         ),
         (
             "dataset/test-1.75+first300",
@@ -760,7 +760,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.75+first300",
-            "b7e9adc14ce136c6252b9a695718eeea6bda46e023a53967e653ad3574339c73",
+            "e82d1349793f6967da3e58c2b4f4d9234c6afd91929bc7e91f0e45460b6333fa",
         ),
         (
             "predictions/bound-marginal-d@test-0.75+first300",
@@ -768,7 +768,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-0.75+first300",
-            "cebc0b2d00ba5c124c211fe55f627b2bca13a8c2f4b4d965dc288f459316cc94",
+            "ac379fbb591ba6793a34437cbfad2f529434635018b2d089635ee44c9a423d65",
         ),
         (
             "predictions/bound-marginal-d@test-1.00+first300",
@@ -776,7 +776,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.00+first300",
-            "595d894d1a04ed6f8e843d75a92d607d060b4519ebb3c1340c1aad6ef5bef7a8",
+            "ab7a10b8d79160ba8b62dba93ea9ee00e8a1612de9ead2787b453af1c835ca27",
         ),
         (
             "predictions/bound-marginal-d@test-1.75+first300",
@@ -784,31 +784,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.75+first300",
-            "b65695c32fcd784deee421d0e8d6e54118d9aa547beb0bb22159e155a1c14e1e",
+            "3a4e7512e40aa07629aa9131e1827368b8e958f45de2eb020292a2aa5f68bbb7",
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "bd66353303d037bc8ca7bd66c093177e6f965303974c922f18a109b20400fd16",
+            "d4755a8690bf6e6c70a064ef78e16661495d5a87898f95eade78904a9167b491",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "b2fcfd4fdb2fcdd8241a8444e4d026d0b4902f5e0230e76b2155efcc16bfbe91",
+            "088efa261a53f69f00d6a9b4d91fec61417f5acdbef996d533f6907c7eba4fcf",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "7169f009a4212d1287cfeaded88e41d1ce98f34825544de7434e4b66f8982189",
+            "da14789c1e76c39990e7957905f411b4cd124784627acd0a19a5ea809e2c06b1",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "36776d8f93780c27218a644a1386688a8717ac229b64db8cef9a903ac9241595",
+            "5525946452a132686f92788768d8ee014158f85ea0d45d76d6101f8b17c1c735",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "b7d45c016996a4da88b6ab98f45c347d300af425c8ab7e697c60ea256e2337cd",
+            "e29f25ff6dafc6f04f6345fc84bae585a7ea8f13e65a0c58927c153732420708",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "189beac6ee11be8eb91a622a37b05fd976f248d2bd8cac870bd8ec7fb51ad38d",
+            "0124733b9aa453ea8a098fe7898341ac733bfc4a9c36a44f2db04c6ee1fc4e7e",
         ),
     ];
     assert_eq!(planned, recorded);

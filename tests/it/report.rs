@@ -86,6 +86,25 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
         "{calibration}"
     );
     assert!(!calibration.contains("| trackpy |"), "{calibration}");
+    // The CNN's σ against its errors; trackpy reports no σ.
+    let uncertainty = markdown
+        .split("## Calibration of the uncertainty")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("an uncertainty section");
+    let rows: Vec<&str> = uncertainty
+        .lines()
+        .filter(|l| l.starts_with("| cnn | test-"))
+        .collect();
+    assert_eq!(rows.len(), 3, "{uncertainty}");
+    for row in rows {
+        // localisations, RMS error/σ x and y, within 1 σ: numbers.
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        for cell in &cells[3..7] {
+            assert!(cell.parse::<f64>().is_ok_and(f64::is_finite), "{row}");
+        }
+    }
+    assert!(!uncertainty.contains("| trackpy |"), "{uncertainty}");
     for figure in [
         "example_frames",
         "localisations",

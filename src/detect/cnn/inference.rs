@@ -4,10 +4,10 @@ use indicatif::ProgressBar;
 
 use super::data::normalised_input;
 use super::model::{
-    LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, Net, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
-    OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+    LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, Net, OFFSET_X_CHANNEL,
+    OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
 };
-use super::{CnnArchitecture, CnnScore, TrainedCnn, inference_device};
+use super::{CnnArchitecture, CnnScore, TrainedCnn, TrainingSettings, inference_device};
 use crate::types::{FrameStack, LocalisationSigma, Prediction};
 
 /// Most frames per forward pass (small frames; the paper's 24 × 25 pixel
@@ -57,7 +57,7 @@ impl TrainedCnn {
         locate_with(
             &self.nets,
             &self.architecture,
-            self.settings.score_floor,
+            &self.settings,
             frames,
             frames_per_batch,
             progress,
@@ -241,7 +241,7 @@ impl std::error::Error for NonFiniteOutput {}
 pub(crate) fn locate_with(
     nets: &[Net],
     arch: &CnnArchitecture,
-    score_floor: f64,
+    settings: &TrainingSettings,
     frames: &FrameStack,
     batch: usize,
     progress: &ProgressBar,
@@ -251,6 +251,8 @@ pub(crate) fn locate_with(
     let len = frames.frame_len();
     let mut predictions = Vec::new();
     crate::limits::check_frame_not_empty(height, width)?;
+    let score_floor = settings.score_floor;
+    let sigma_source = SigmaSource::of(settings);
     // The floor compared on logits (sigmoid is monotone), so no pixel's
     // sigmoid needs computing unless it is a candidate.
     let logit_floor = if score_floor > 0.0 {
@@ -266,9 +268,11 @@ pub(crate) fn locate_with(
         for output in &outputs {
             check_finite(output, start, len)?;
         }
-        let output = ensemble_output(outputs, len);
+        let combined = (outputs.len() > 1).then(|| combine_members(&outputs, len));
+        let output = combined.as_deref().unwrap_or(&outputs[0]);
         for (offset, maps) in output.chunks_exact(OUTPUT_CHANNELS * len).enumerate() {
             let frame = start + offset;
+            let frame_start = offset * OUTPUT_CHANNELS * len;
             let logits = &maps[SCORE_CHANNEL * len..(SCORE_CHANNEL + 1) * len];
             let dx = &maps[OFFSET_X_CHANNEL * len..(OFFSET_X_CHANNEL + 1) * len];
             let dy = &maps[OFFSET_Y_CHANNEL * len..(OFFSET_Y_CHANNEL + 1) * len];
@@ -294,14 +298,27 @@ pub(crate) fn locate_with(
                         arch.refine_radius_px,
                     )
                 };
-                let sigma = LocalisationSigma {
+                let maps_sigma = LocalisationSigma {
                     x: (log_sigma_x[p] as f64).exp(),
                     y: (log_sigma_y[p] as f64).exp(),
                 };
                 let score = match arch.score {
                     CnnScore::Heatmap => sigmoid(logit),
                     CnnScore::Within1px => sigmoid(within[p] as f64),
-                    CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(sigma),
+                    CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(maps_sigma),
+                };
+                let sigma = match sigma_source {
+                    SigmaSource::Maps => maps_sigma,
+                    SigmaSource::Within1px => {
+                        let spread = |channel: usize| {
+                            member_variance(&outputs, frame_start + channel * len + p)
+                        };
+                        sigma_from_within(
+                            within[p] as f64,
+                            spread(OFFSET_X_CHANNEL),
+                            spread(OFFSET_Y_CHANNEL),
+                        )
+                    }
                 };
                 predictions.push(Prediction {
                     frame,
@@ -315,6 +332,70 @@ pub(crate) fn locate_with(
         }
     }
     Ok(predictions)
+}
+
+/// Where a prediction's `sigma_x`, `sigma_y` come from (docs/detectors.md,
+/// "Uncertainty").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum SigmaSource {
+    /// The within-1-px head, read as the σ of an isotropic Gaussian error
+    /// with that probability of lying within 1 px ([`sigma_from_within`]),
+    /// widened by the members' disagreement: when the head was trained.
+    Within1px,
+    /// The σ maps (an ensemble's as their mixture): for networks whose
+    /// within-1-px head was left untrained.
+    Maps,
+}
+
+impl SigmaSource {
+    fn of(settings: &TrainingSettings) -> Self {
+        if settings.within_loss_weight > 0.0 {
+            SigmaSource::Within1px
+        } else {
+            SigmaSource::Maps
+        }
+    }
+}
+
+/// The population variance over members of the value at index `at` of
+/// their raw outputs (0 for one network), summed in member order.
+fn member_variance(outputs: &[Vec<f32>], at: usize) -> f64 {
+    let members = outputs.len() as f64;
+    let mean = outputs.iter().map(|o| o[at] as f64).sum::<f64>() / members;
+    outputs
+        .iter()
+        .map(|o| (o[at] as f64 - mean).powi(2))
+        .sum::<f64>()
+        / members
+}
+
+/// A localisation's σ per axis from its within-1-px logit: the σ of the
+/// isotropic 2-D Gaussian error whose probability of lying within 1 px is
+/// the head's p (the Rayleigh distribution: p = 1 − exp(−1 / 2σ²), so
+/// σ² = 1 / (2 · −ln(1 − p)), and −ln(1 − p) = softplus(logit), computed
+/// without forming 1 − p), plus on each axis the variance of the members'
+/// offsets (`spread_x`, `spread_y`; 0 for one network). ln σ stays within
+/// [`LOG_SIGMA_RANGE`] (σ from 0.007 to 20 px): a head certain of a miss
+/// says "20 px", not infinity.
+pub(crate) fn sigma_from_within(
+    within_logit: f64,
+    spread_x: f64,
+    spread_y: f64,
+) -> LocalisationSigma {
+    let softplus = within_logit.max(0.0) + (-within_logit.abs()).exp().ln_1p();
+    let variance = 0.5 / softplus;
+    let axis = |spread: f64| {
+        let log_sigma = 0.5 * (variance + spread).ln();
+        if log_sigma.is_nan() {
+            LOG_SIGMA_RANGE.1.exp()
+        } else {
+            log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1).exp()
+        }
+    };
+    LocalisationSigma {
+        x: axis(spread_x),
+        y: axis(spread_y),
+    }
 }
 
 fn sigmoid(logit: f64) -> f64 {
@@ -388,7 +469,7 @@ pub fn local_maxima(
 
 #[cfg(test)]
 mod tests {
-    use super::{combine_members, local_maxima};
+    use super::{combine_members, gaussian_within_1px, local_maxima, sigma_from_within};
     use crate::detect::cnn::model::{
         LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
         OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
@@ -460,5 +541,31 @@ mod tests {
         assert_eq!(local_maxima(&map, 3, 6, 1), vec![(0, 1), (2, 5)]);
         // A larger window lets the stronger peak suppress the weaker one.
         assert_eq!(local_maxima(&map, 3, 6, 4), vec![(0, 1)]);
+    }
+
+    #[test]
+    fn the_sigma_read_from_the_within_head_inverts_its_probability() {
+        for logit in [-6.0, -2.0, -0.3, 0.0, 0.7, 3.0, 8.0] {
+            let p = 1.0 / (1.0 + f64::exp(-logit));
+            let sigma = sigma_from_within(logit, 0.0, 0.0);
+            assert_eq!(sigma.x, sigma.y);
+            // The isotropic Gaussian of that σ is within 1 px with
+            // probability p.
+            let back = gaussian_within_1px(sigma);
+            assert!(
+                (back - p).abs() < 1e-12,
+                "logit {logit}: {back} against {p}"
+            );
+        }
+        // Surer of a hit, smaller σ.
+        assert!(sigma_from_within(2.0, 0.0, 0.0).x < sigma_from_within(1.0, 0.0, 0.0).x);
+        // Members' disagreement adds in quadrature, per axis.
+        let alone = sigma_from_within(0.5, 0.0, 0.0).x;
+        let spread = sigma_from_within(0.5, 0.25, 0.0);
+        assert!((spread.x - (alone * alone + 0.25).sqrt()).abs() < 1e-12);
+        assert_eq!(spread.y, alone);
+        // Certain of a miss or of a hit: bounded to [e⁻⁵, e³] px, finite.
+        assert_eq!(sigma_from_within(-1e4, 0.0, 0.0).x, 3.0f64.exp());
+        assert_eq!(sigma_from_within(1e6, 0.0, 0.0).x, (-5.0f64).exp());
     }
 }

@@ -420,10 +420,21 @@ pub const FORMAT: &str = "scanloc-cnn/2";
 /// Version of the training and inference code, part of the content key of
 /// every model and prediction in the registry: bump it whenever a change
 /// would alter trained weights (initialisation, batching, loss, optimiser,
-/// data augmentation, selection) or the predictions made from them
-/// (decoding, peak suppression), so cached models made by the old code are
-/// not reused. Kept apart from [`FORMAT`], which only names the encoding.
+/// data augmentation, selection, and the validation predictions the best
+/// epoch is chosen by), so cached models made by the old code are not
+/// reused. Kept apart from [`FORMAT`], which only names the encoding.
 pub const CODE_VERSION: &str = "scanloc-cnn/2";
+/// Version of the decoding (output maps → predictions: peaks, positions,
+/// scores, σ), the code version of every CNN prediction's content key:
+/// bump its second part when a change alters predictions but not the
+/// trained weights, so cached models stay valid while their predictions
+/// are made anew. It names [`CODE_VERSION`] too, so a training change
+/// also renews the predictions.
+///
+/// `decode/1`: σ from the within-1-px head (docs/detectors.md,
+/// "Uncertainty"); before it, the predictions' key had [`CODE_VERSION`]
+/// alone.
+pub const DECODE_VERSION: &str = "scanloc-cnn/2+decode/1";
 /// First bytes of a [`TrainedCnn::to_bytes`] blob.
 const MAGIC: &[u8] = b"SCANLOC-CNN\n";
 /// File names inside a saved model folder: member 1's weights and training

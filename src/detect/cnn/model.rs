@@ -54,6 +54,12 @@ const INITIAL_CENTRE_PRIOR: f64 = 0.01;
 /// early in training, so the first likelihood gradients are moderate.
 const INITIAL_SIGMA_PX: f64 = 0.5;
 
+/// Bounds of ln σ: σ from 0.007 to 20 px. In training they bound the σ
+/// maps in the likelihood (a pixel whose offset happens to be exact cannot
+/// drive its σ, and the loss, towards −∞); at inference they bound every
+/// reported σ.
+pub const LOG_SIGMA_RANGE: (f64, f64) = (-5.0, 3.0);
+
 /// One dilated 3×3 convolution, optionally batch-normalised, then ReLU.
 #[derive(Module, Debug)]
 pub struct ConvBlock {

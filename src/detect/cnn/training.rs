@@ -15,7 +15,8 @@ use rand_chacha::ChaCha8Rng;
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{NonFiniteOutput, inference_batch, locate_with};
 use super::model::{
-    BodyStep, LOG_SIGMA_X_CHANNEL, Net, OFFSET_X_CHANNEL, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
+    BodyStep, LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, OFFSET_X_CHANNEL, SCORE_CHANNEL,
+    WITHIN_1PX_CHANNEL,
 };
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
 use crate::sim::{self, SimParams};
@@ -104,11 +105,6 @@ struct BatchLoss {
     within: Tensor<1>,
     body: BodyStep,
 }
-
-/// Bounds of the ln σ maps in the likelihood: σ from 0.007 to 20 px. Keeps
-/// a pixel whose offset happens to be exact from driving its σ (and the
-/// loss) towards −∞.
-const LOG_SIGMA_RANGE: (f64, f64) = (-5.0, 3.0);
 
 /// Largest distance (pixels) between a localisation and a centroid for the
 /// within-1-px head's target to be 1.
@@ -259,7 +255,7 @@ fn validate(
     let predictions = locate_with(
         std::slice::from_ref(net),
         arch,
-        settings.score_floor,
+        settings,
         &validation.frames,
         inference_batch(validation.frames.frame_len()),
         &ProgressBar::hidden(),
