@@ -20,8 +20,10 @@ use scanloc::sim::SimParams;
 /// --model MODEL` (a model folder saved by `scanloc train`, or a model of
 /// the registry: RUN:DETECTOR or a content key) the columns are
 /// frame,x,y,sigma_x,sigma_y,score: sigma_x, sigma_y are the network's
-/// estimate of each localisation's error in pixels (filter on them as on an
-/// SMLM localisation precision), score as the model's `architecture.score`;
+/// estimate of each localisation's error in pixels, the standard deviation
+/// per axis (read from its within-1-px probability; filter on them as on an
+/// SMLM localisation precision; `scanloc score` says how well they describe
+/// the errors), score as the model's `architecture.score`;
 /// a line on standard output names the model (its registry key, run and
 /// detector, or folder) and the sha256 of its bytes, the same for a
 /// registry model and its exported folder. With `--method likelihood` (a
