@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{TruthByFrame, nearest_squared_distance};
+use super::{TruthByFrame, nearest_squared_distance, nearest_truth};
 use crate::error::input_error;
 use crate::types::Prediction;
 
@@ -147,10 +147,7 @@ pub(super) fn uncertainty_calibration(
         .iter()
         .filter_map(|p| {
             let sigma = p.sigma?;
-            let (tx, ty) = truth_by_frame.of(p.frame).iter().copied().min_by(|a, b| {
-                let d = |t: &(f64, f64)| (p.x - t.0).powi(2) + (p.y - t.1).powi(2);
-                d(a).total_cmp(&d(b))
-            })?;
+            let ((tx, ty), _) = nearest_truth(p, truth_by_frame)?;
             Some((sigma.x, sigma.y, p.x - tx, p.y - ty))
         })
         .collect();
@@ -222,20 +219,6 @@ mod tests {
     use super::*;
     use crate::types::{LocalisationSigma, TruthRow};
 
-    fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
-        TruthRow {
-            frame,
-            x,
-            y,
-            x_start: x,
-            y_start: y,
-            x_end: x,
-            y_end: y,
-            z_mean: 0.0,
-            diffusion: 1.0,
-        }
-    }
-
     fn located(frame: usize, x: f64, y: f64, score: f64, sigma: (f64, f64)) -> Prediction {
         Prediction {
             sigma: Some(LocalisationSigma {
@@ -255,8 +238,10 @@ mod tests {
         //   frame 2: error (3, 4),     σ (2, 2)   → z (1.5, 2),  neither
         //   frame 3: error (0.2, 0.1) from (30, 30), σ (0.5, 0.5) → z (0.4, 0.2)
         // frame 0's second prediction (lower score, far off) is not a top one.
-        let mut truth: Vec<TruthRow> = (0..4).map(|f| truth(f, 10.0, 10.0)).collect();
-        truth.push(super::tests::truth(3, 30.0, 30.0));
+        let mut truth: Vec<TruthRow> = (0..4)
+            .map(|f| TruthRow::stationary(f, 10.0, 10.0))
+            .collect();
+        truth.push(TruthRow::stationary(3, 30.0, 30.0));
         let predictions = vec![
             located(0, 10.5, 10.0, 0.9, (1.0, 1.0)),
             located(0, 20.0, 20.0, 0.1, (0.1, 0.1)),

@@ -226,11 +226,17 @@ fn top_squared_errors(ranked: &[Prediction], truth: &TruthByFrame) -> HashMap<us
 /// Squared distance from `p` to the nearest ground truth of its frame
 /// (infinite if the frame has none).
 fn nearest_squared_distance(p: &Prediction, truth: &TruthByFrame) -> f64 {
+    nearest_truth(p, truth).map_or(f64::INFINITY, |(_, squared)| squared)
+}
+
+/// The ground truth of `p`'s frame nearest to it (the first of equally
+/// near ones) and its squared distance; `None` if the frame has none.
+fn nearest_truth(p: &Prediction, truth: &TruthByFrame) -> Option<((f64, f64), f64)> {
     truth
         .of(p.frame)
         .iter()
-        .map(|&(x, y)| (p.x - x).powi(2) + (p.y - y).powi(2))
-        .fold(f64::INFINITY, f64::min)
+        .map(|&(x, y)| ((x, y), (p.x - x).powi(2) + (p.y - y).powi(2)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
 /// Each frame's top prediction (the first met in ranking order), in

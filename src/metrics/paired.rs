@@ -175,17 +175,7 @@ mod tests {
     use super::*;
 
     fn truth(frame: usize) -> TruthRow {
-        TruthRow {
-            frame,
-            x: 10.0,
-            y: 10.0,
-            x_start: 10.0,
-            y_start: 10.0,
-            x_end: 10.0,
-            y_end: 10.0,
-            z_mean: 0.0,
-            diffusion: 1.0,
-        }
+        TruthRow::stationary(frame, 10.0, 10.0)
     }
 
     fn prediction(frame: usize, dx: f64, score: f64) -> Prediction {

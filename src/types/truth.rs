@@ -25,6 +25,25 @@ pub struct TruthRow {
     pub diffusion: f64,
 }
 
+impl TruthRow {
+    /// A QD that stood still in focus at `(x, y)` while frame `frame` was
+    /// scanned: its centroid, start and end all there, D = 0. (What a
+    /// hand-worked metric case needs: the metric reads only frame, x, y.)
+    pub fn stationary(frame: usize, x: f64, y: f64) -> Self {
+        Self {
+            frame,
+            x,
+            y,
+            x_start: x,
+            y_start: y,
+            x_end: x,
+            y_end: y,
+            z_mean: 0.0,
+            diffusion: 0.0,
+        }
+    }
+}
+
 /// Frames and their ground truth (one row per emitter per frame, ordered
 /// by frame then emitter), as the simulator makes them.
 #[derive(Debug, Clone, PartialEq, Default)]

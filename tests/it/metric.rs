@@ -4,17 +4,7 @@ use scanloc::metrics::score;
 use scanloc::types::{Prediction, TruthRow};
 
 fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
-    TruthRow {
-        frame,
-        x,
-        y,
-        x_start: x,
-        y_start: y,
-        x_end: x,
-        y_end: y,
-        z_mean: 0.0,
-        diffusion: 0.0,
-    }
+    TruthRow::stationary(frame, x, y)
 }
 
 fn prediction(frame: usize, x: f64, y: f64, score: f64) -> Prediction {
