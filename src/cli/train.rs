@@ -96,11 +96,13 @@ pub struct TrainArgs {
     #[arg(long)]
     offset_loss_weight: Option<f64>,
     /// Weight of the Gaussian likelihood that trains the σ maps (0 = the σ
-    /// maps stay untrained).
+    /// maps stay untrained). The reported sigma_x, sigma_y come from the
+    /// within-1-px head unless its weight is 0.
     #[arg(long)]
     sigma_loss_weight: Option<f64>,
     /// Weight of the cross-entropy that trains the within-1-px head (0 = the
-    /// head stays untrained).
+    /// head stays untrained, and the reported sigma_x, sigma_y are read from
+    /// the σ maps instead).
     #[arg(long)]
     within_loss_weight: Option<f64>,
     /// Networks of a deep ensemble (1–16): each trained from its own seed
