@@ -97,7 +97,7 @@ pub struct TrainArgs {
     offset_loss_weight: Option<f64>,
     /// Weight of the Gaussian likelihood that trains the σ maps (0 = the σ
     /// maps stay untrained). The reported sigma_x, sigma_y come from the
-    /// within-1-px head unless its weight is 0.
+    /// within-1-px head unless --within-loss-weight is 0.
     #[arg(long)]
     sigma_loss_weight: Option<f64>,
     /// Weight of the cross-entropy that trains the within-1-px head (0 = the
