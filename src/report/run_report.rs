@@ -6,8 +6,10 @@
 //! curves, reliability diagrams, example frames, localisation panels and
 //! error histograms.
 
+use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
 use super::recorded::RecordedManifest;
@@ -477,16 +479,27 @@ fn write_bound_comparison_table(
         "| detector | bound | dataset | ε (px) | AUC | bound's AUC | difference | standard error | 95 % interval |"
     )?;
     writeln!(markdown, "|---|---|---|---|---|---|---|---|---|")?;
-    let predictions = |key: &str| -> anyhow::Result<std::sync::Arc<Vec<Prediction>>> {
-        Ok(load_artefact(registry, key)?.predictions()?.clone())
-    };
+    // Each artefact read once: a dataset (and a detector's predictions on
+    // it) serves every bound it is compared with.
+    let mut datasets: HashMap<&str, Arc<Dataset>> = HashMap::new();
+    let mut predictions: HashMap<&str, Arc<Vec<Prediction>>> = HashMap::new();
     for (other, bound) in pairs {
-        let artefact = load_artefact(registry, &other.dataset_key)?;
-        let data = artefact.dataset()?;
+        let data = cached(&mut datasets, &other.dataset_key, |key| {
+            Ok(load_artefact(registry, key)?.dataset()?.clone())
+        })?;
+        let mut predictions_of = |key| {
+            cached(&mut predictions, key, |key| {
+                Ok(load_artefact(registry, key)?.predictions()?.clone())
+            })
+        };
+        let (located, bound_located) = (
+            predictions_of(&other.predictions_key)?,
+            predictions_of(&bound.predictions_key)?,
+        );
         let eps: Vec<f64> = other.score.per_eps.iter().map(|s| s.eps_px).collect();
         let comparison = crate::metrics::paired::paired_bootstrap(
-            &predictions(&other.predictions_key)?,
-            &predictions(&bound.predictions_key)?,
+            &located,
+            &bound_located,
             &data.truth,
             data.frames.n,
             &eps,
@@ -511,6 +524,20 @@ fn write_bound_comparison_table(
         }
     }
     Ok(())
+}
+
+/// The value of `key` in `cache`, loaded by `load` the first time.
+fn cached<'k, T>(
+    cache: &mut HashMap<&'k str, Arc<T>>,
+    key: &'k str,
+    load: impl FnOnce(&str) -> anyhow::Result<Arc<T>>,
+) -> anyhow::Result<Arc<T>> {
+    if let Some(value) = cache.get(key) {
+        return Ok(value.clone());
+    }
+    let value = load(key)?;
+    cache.insert(key, value.clone());
+    Ok(value)
 }
 
 /// The scene figures: per evaluation and ε, recall, precision, Jaccard

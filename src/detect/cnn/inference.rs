@@ -163,12 +163,7 @@ pub fn combine_members(outputs: &[Vec<f32>], frame_len: usize) -> Vec<f32> {
                 (OFFSET_X_CHANNEL, LOG_SIGMA_X_CHANNEL),
                 (OFFSET_Y_CHANNEL, LOG_SIGMA_Y_CHANNEL),
             ] {
-                let mean_offset = mean(at(offset_channel));
-                let offset_variance = outputs
-                    .iter()
-                    .map(|o| (o[at(offset_channel)] as f64 - mean_offset).powi(2))
-                    .sum::<f64>()
-                    / members;
+                let offset_variance = member_variance(outputs, at(offset_channel));
                 // ln(mean σ_k²) by log-sum-exp over 2 ln σ_k.
                 let log_variances = || {
                     outputs
