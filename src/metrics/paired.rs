@@ -57,6 +57,57 @@ pub fn check_resamples(name: &str, resamples: u64) -> Result<usize, FieldError> 
     Ok(resamples as usize)
 }
 
+/// One detector's AUC at one radius ε with its spread over a bootstrap of
+/// the frames: how much a new test set of the same size would move it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AucSpread {
+    pub eps_px: f64,
+    /// The AUC on the test set itself.
+    pub auc: f64,
+    /// The standard deviation of the AUC over the resamples: its standard
+    /// error (NaN from fewer than two resamples).
+    pub standard_error: f64,
+    /// The 2.5 % and 97.5 % quantiles of the AUC over the resamples (as in
+    /// [`PairedDifference::interval_95`]).
+    pub interval_95: (f64, f64),
+    /// Resamples that held a ground truth.
+    pub resamples: usize,
+}
+
+/// The bootstrap of the AUC of `predictions`, made on a test set of
+/// `frames` frames with `truth`, at each radius of `eps_px`: the frames
+/// resampled exactly as [`paired_bootstrap`] resamples them (same seed,
+/// same resamples), so this is the spread of either side of that paired
+/// difference.
+///
+/// Refuses what [`paired_bootstrap`] refuses.
+pub fn bootstrap_auc(
+    predictions: &[Prediction],
+    truth: &[TruthRow],
+    frames: usize,
+    eps_px: &[f64],
+    resamples: usize,
+    seed: u64,
+) -> anyhow::Result<Vec<AucSpread>> {
+    let Resampled { observed, aucs } =
+        resampled_aucs(&[predictions], truth, frames, eps_px, resamples, seed)?;
+    Ok(eps_px
+        .iter()
+        .zip(aucs.into_iter().next().expect("one detector"))
+        .enumerate()
+        .map(|(k, (&eps, values))| {
+            let spread = Spread::of(values);
+            AucSpread {
+                eps_px: eps,
+                auc: observed[0][k],
+                standard_error: spread.standard_error,
+                interval_95: spread.interval_95,
+                resamples: spread.resamples,
+            }
+        })
+        .collect())
+}
+
 /// The paired bootstrap of the AUC of `predictions` minus the AUC of
 /// `compared`, both made on a test set of `frames` frames with `truth`, at
 /// each radius of `eps_px`: `resamples` resamples of the frames drawn with
@@ -74,12 +125,58 @@ pub fn paired_bootstrap(
     resamples: usize,
     seed: u64,
 ) -> anyhow::Result<Vec<PairedDifference>> {
+    let Resampled { observed, aucs } = resampled_aucs(
+        &[predictions, compared],
+        truth,
+        frames,
+        eps_px,
+        resamples,
+        seed,
+    )?;
+    let (ours, theirs) = (&aucs[0], &aucs[1]);
+    Ok(eps_px
+        .iter()
+        .enumerate()
+        .map(|(k, &eps)| {
+            let differences = ours[k].iter().zip(&theirs[k]).map(|(a, b)| a - b).collect();
+            let spread = Spread::of(differences);
+            PairedDifference {
+                eps_px: eps,
+                auc: observed[0][k],
+                auc_compared: observed[1][k],
+                difference: observed[0][k] - observed[1][k],
+                standard_error: spread.standard_error,
+                interval_95: spread.interval_95,
+                resamples: spread.resamples,
+            }
+        })
+        .collect())
+}
+
+/// Each detector's AUCs on the test set itself (`observed[detector][ε]`)
+/// and on every resample that held a ground truth
+/// (`aucs[detector][ε][resample]`).
+struct Resampled {
+    observed: Vec<Vec<f64>>,
+    aucs: Vec<Vec<Vec<f64>>>,
+}
+
+/// The bootstrap behind [`paired_bootstrap`] and [`bootstrap_auc`]: every
+/// detector scored on the same resamples of the frames.
+fn resampled_aucs(
+    detectors: &[&[Prediction]],
+    truth: &[TruthRow],
+    frames: usize,
+    eps_px: &[f64],
+    resamples: usize,
+    seed: u64,
+) -> anyhow::Result<Resampled> {
     check_resamples("resamples", resamples as u64)?;
     refuse_without_truth(truth)?;
     check_radii(eps_px)?;
     // Also the checks of the predictions and truth (finite, on frames
     // `0..frames`): the observed AUCs are computed first.
-    let aucs = |predictions: &[Prediction], truth: &[TruthRow]| -> anyhow::Result<Vec<f64>> {
+    let aucs_of = |predictions: &[Prediction], truth: &[TruthRow]| -> anyhow::Result<Vec<f64>> {
         let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
         let mut ranked = predictions.to_vec();
         ranked.sort_by(ranking);
@@ -88,39 +185,41 @@ pub fn paired_bootstrap(
             .map(|&eps| walk(&ranked, &truth_by_frame, truth.len(), eps, false).auc)
             .collect())
     };
-    let observed = aucs(predictions, truth)?;
-    let observed_compared = aucs(compared, truth)?;
+    let observed = detectors
+        .iter()
+        .map(|predictions| aucs_of(predictions, truth))
+        .collect::<anyhow::Result<Vec<_>>>()?;
 
     // Rows of each frame, so that a resample is assembled in time
     // proportional to its size.
-    let by_frame = |rows: &[Prediction]| {
-        let mut grouped: Vec<Vec<Prediction>> = vec![Vec::new(); frames];
-        for p in rows {
-            grouped[p.frame].push(*p);
-        }
-        grouped
-    };
-    let predictions_by_frame = by_frame(predictions);
-    let compared_by_frame = by_frame(compared);
+    let by_frame: Vec<Vec<Vec<Prediction>>> = detectors
+        .iter()
+        .map(|rows| {
+            let mut grouped: Vec<Vec<Prediction>> = vec![Vec::new(); frames];
+            for p in rows.iter() {
+                grouped[p.frame].push(*p);
+            }
+            grouped
+        })
+        .collect();
     let mut truth_by_frame: Vec<Vec<TruthRow>> = vec![Vec::new(); frames];
     for t in truth {
         truth_by_frame[t.frame].push(*t);
     }
 
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut differences: Vec<Vec<f64>> = vec![Vec::with_capacity(resamples); eps_px.len()];
-    let (mut drawn, mut drawn_truth, mut drawn_compared) = (Vec::new(), Vec::new(), Vec::new());
+    let mut aucs: Vec<Vec<Vec<f64>>> =
+        vec![vec![Vec::with_capacity(resamples); eps_px.len()]; detectors.len()];
+    let mut drawn: Vec<Vec<Prediction>> = vec![Vec::new(); detectors.len()];
+    let mut drawn_truth = Vec::new();
+    let mut draws = Vec::with_capacity(frames);
     for _ in 0..resamples {
-        drawn.clear();
-        drawn_truth.clear();
-        drawn_compared.clear();
         // Draw j of the resample becomes frame j: a frame drawn twice is
         // two frames of the resample.
-        for j in 0..frames {
-            let frame = rng.random_range(0..frames);
-            let renumbered = |p: &Prediction| Prediction { frame: j, ..*p };
-            drawn.extend(predictions_by_frame[frame].iter().map(renumbered));
-            drawn_compared.extend(compared_by_frame[frame].iter().map(renumbered));
+        draws.clear();
+        draws.extend((0..frames).map(|_| rng.random_range(0..frames)));
+        drawn_truth.clear();
+        for (j, &frame) in draws.iter().enumerate() {
             drawn_truth.extend(
                 truth_by_frame[frame]
                     .iter()
@@ -130,44 +229,49 @@ pub fn paired_bootstrap(
         if drawn_truth.is_empty() {
             continue;
         }
-        let a = aucs(&drawn, &drawn_truth)?;
-        let b = aucs(&drawn_compared, &drawn_truth)?;
-        for (k, differences) in differences.iter_mut().enumerate() {
-            differences.push(a[k] - b[k]);
+        for ((drawn, grouped), aucs) in drawn.iter_mut().zip(&by_frame).zip(&mut aucs) {
+            drawn.clear();
+            for (j, &frame) in draws.iter().enumerate() {
+                drawn.extend(grouped[frame].iter().map(|p| Prediction { frame: j, ..*p }));
+            }
+            for (k, value) in aucs_of(drawn, &drawn_truth)?.into_iter().enumerate() {
+                aucs[k].push(value);
+            }
         }
     }
+    Ok(Resampled { observed, aucs })
+}
 
-    Ok(eps_px
-        .iter()
-        .zip(differences)
-        .enumerate()
-        .map(|(k, (&eps, mut differences))| {
-            let n = differences.len();
-            let mean = differences.iter().sum::<f64>() / n.max(1) as f64;
-            // Undefined (NaN, `null` in JSON) from fewer than two resamples.
-            let variance = if n < 2 {
-                f64::NAN
-            } else {
-                differences.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1) as f64
-            };
-            differences.sort_by(f64::total_cmp);
-            let quantile = |q: f64| {
-                differences
-                    .get(((q * n as f64).floor() as usize).min(n.saturating_sub(1)))
-                    .copied()
-                    .unwrap_or(f64::NAN)
-            };
-            PairedDifference {
-                eps_px: eps,
-                auc: observed[k],
-                auc_compared: observed_compared[k],
-                difference: observed[k] - observed_compared[k],
-                standard_error: variance.sqrt(),
-                interval_95: (quantile(0.025), quantile(0.975)),
-                resamples: n,
-            }
-        })
-        .collect())
+/// The standard deviation and 95 % percentile interval of resampled values.
+struct Spread {
+    standard_error: f64,
+    interval_95: (f64, f64),
+    resamples: usize,
+}
+
+impl Spread {
+    fn of(mut values: Vec<f64>) -> Self {
+        let n = values.len();
+        let mean = values.iter().sum::<f64>() / n.max(1) as f64;
+        // Undefined (NaN, `null` in JSON) from fewer than two resamples.
+        let variance = if n < 2 {
+            f64::NAN
+        } else {
+            values.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1) as f64
+        };
+        values.sort_by(f64::total_cmp);
+        let quantile = |q: f64| {
+            values
+                .get(((q * n as f64).floor() as usize).min(n.saturating_sub(1)))
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        Spread {
+            standard_error: variance.sqrt(),
+            interval_95: (quantile(0.025), quantile(0.975)),
+            resamples: n,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -188,6 +292,20 @@ mod tests {
         }
     }
 
+    /// A detector that misses by 1.5 px on every other frame and ranks its
+    /// hits first: its AUC at ε = 1 px is the fraction it hits, 1/2.
+    fn half_hitting(frames: usize) -> Vec<Prediction> {
+        (0..frames)
+            .map(|f| {
+                if f % 2 == 0 {
+                    prediction(f, 0.0, 0.9)
+                } else {
+                    prediction(f, 1.5, 0.1)
+                }
+            })
+            .collect()
+    }
+
     /// 400 frames of one QD: the first detector finds every one exactly;
     /// the second misses by 1.5 px on every other frame and ranks its hits
     /// first, so its AUC at ε = 1 px is the fraction it hits, 1/2, and the
@@ -198,15 +316,7 @@ mod tests {
         let frames = 400;
         let truth: Vec<TruthRow> = (0..frames).map(truth).collect();
         let perfect: Vec<Prediction> = (0..frames).map(|f| prediction(f, 0.0, 1.0)).collect();
-        let half: Vec<Prediction> = (0..frames)
-            .map(|f| {
-                if f % 2 == 0 {
-                    prediction(f, 0.0, 0.9)
-                } else {
-                    prediction(f, 1.5, 0.1)
-                }
-            })
-            .collect();
+        let half = half_hitting(frames);
         let result = paired_bootstrap(&perfect, &half, &truth, frames, &[1.0, 2.0], 2000, 7)
             .expect("valid inputs");
         let at_1 = result[0];
@@ -229,6 +339,43 @@ mod tests {
         assert!(at_2.difference.abs() < 1e-12, "{at_2:?}");
         assert!(at_2.standard_error < 1e-12, "{at_2:?}");
         assert!(at_2.interval_95.0.abs() < 1e-12 && at_2.interval_95.1.abs() < 1e-12);
+    }
+
+    /// One detector's AUC on its own: the half-hitting detector of the test
+    /// above has AUC 1/2 at ε = 1 px with the binomial standard error 0.025,
+    /// and its spread is the paired difference's against a detector that is
+    /// right on every frame (1 − AUC has the AUC's spread), draw for draw.
+    #[test]
+    fn the_standard_error_of_one_auc_is_that_of_its_hit_rate() {
+        let frames = 400;
+        let truth: Vec<TruthRow> = (0..frames).map(truth).collect();
+        let perfect: Vec<Prediction> = (0..frames).map(|f| prediction(f, 0.0, 1.0)).collect();
+        let half = half_hitting(frames);
+        let alone = bootstrap_auc(&half, &truth, frames, &[1.0], 2000, 7).expect("valid inputs");
+        let paired =
+            paired_bootstrap(&perfect, &half, &truth, frames, &[1.0], 2000, 7).expect("valid");
+        let at_1 = alone[0];
+        assert!((at_1.auc - 0.5).abs() < 1e-12, "{at_1:?}");
+        assert_eq!(at_1.resamples, 2000);
+        // 2,000 resamples: the standard deviation to ≈ 1.6 % of itself.
+        assert!(
+            (at_1.standard_error - 0.025).abs() < 0.0025,
+            "standard error {}",
+            at_1.standard_error
+        );
+        assert!(at_1.interval_95.0 < at_1.auc && at_1.auc < at_1.interval_95.1);
+        assert!((at_1.standard_error - paired[0].standard_error).abs() < 1e-12);
+        let mirrored = (1.0 - paired[0].interval_95.1, 1.0 - paired[0].interval_95.0);
+        assert!(
+            (at_1.interval_95.0 - mirrored.0).abs() < 1e-12,
+            "{at_1:?} {mirrored:?}"
+        );
+        assert!(
+            (at_1.interval_95.1 - mirrored.1).abs() < 1e-12,
+            "{at_1:?} {mirrored:?}"
+        );
+        let error = bootstrap_auc(&half, &truth, frames, &[1.0], 0, 7).unwrap_err();
+        assert!(error.to_string().contains("resamples"), "{error}");
     }
 
     #[test]

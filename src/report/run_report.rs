@@ -1,5 +1,6 @@
 //! `scanloc report RUN`: a Markdown report of a recorded run, with its AUC
-//! table beside the reference (the paper's Table 1), where the AUC is lost
+//! table beside the reference (the paper's Table 1), each reference cell
+//! judged against the test set's luck (a bootstrap over frames), where the AUC is lost
 //! (the ranking headroom of the top predictions), each detector's gap to
 //! the attainable bound with its bootstrap uncertainty, the scene figures at the
 //! score threshold, the calibration of probability scores, precision–recall
@@ -11,11 +12,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use rayon::prelude::*;
+
 use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
 use super::recorded::RecordedManifest;
 use crate::error::input_error;
 use crate::manifest::Reference;
 use crate::metrics::Score;
+use crate::metrics::paired::{AucSpread, bootstrap_auc};
 use crate::progress::hidden;
 use crate::registry::{Registry, RunRecord};
 use crate::run::{cross_validation, load_artefact};
@@ -79,7 +83,11 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     write_cross_validation_table(&mut markdown, &record, &resolved)?;
     write_quality_table(&mut markdown, &evaluations)?;
     write_headroom_table(&mut markdown, &evaluations)?;
-    write_bound_comparison_table(registry, &mut markdown, &evaluations)?;
+    let mut artefacts = Artefacts::new(registry);
+    if let Some(reference) = reference {
+        write_reference_spread_table(&mut artefacts, &mut markdown, &evaluations, reference)?;
+    }
+    write_bound_comparison_table(&mut artefacts, &mut markdown, &evaluations)?;
     write_scene_table(&mut markdown, &evaluations)?;
     write_calibration_table(&mut markdown, &evaluations)?;
     write_uncertainty_table(&mut markdown, &evaluations)?;
@@ -437,6 +445,126 @@ fn write_headroom_table(markdown: &mut String, evaluations: &[Evaluation]) -> an
 
 /// Resamples of the paired bootstraps in the report, and their seed: fixed,
 /// so a report is a function of the run.
+/// Each AUC that has a reference value, with the standard error of a
+/// bootstrap over its test set's frames, and whether it is ahead of the
+/// reference, behind it or level with it given both figures' luck: the
+/// reference's own standard error is unknown, so it is taken to be ours (a
+/// test set of the same size and kind), which makes the difference's
+/// standard error √2 times ours; ahead or behind only beyond twice that
+/// (docs/metric.md, "The test set's luck").
+fn write_reference_spread_table<'k>(
+    artefacts: &mut Artefacts<'_, 'k>,
+    markdown: &mut String,
+    evaluations: &'k [Evaluation],
+    reference: &Reference,
+) -> anyhow::Result<()> {
+    let compared: Vec<&Evaluation> = evaluations
+        .iter()
+        .filter(|e| {
+            e.score
+                .per_eps
+                .iter()
+                .any(|s| reference.auc(&e.detector, &e.dataset, s.eps_px).is_some())
+        })
+        .collect();
+    if compared.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        markdown,
+        "\n## Against the reference, with the test set's luck\n"
+    )?;
+    writeln!(
+        markdown,
+        "Each AUC with the standard error and 95 % interval of a bootstrap over its test set's \
+         frames ({REPORT_RESAMPLES} resamples, seed {REPORT_BOOTSTRAP_SEED}): how far a new test \
+         set of the same size would move it. The reference's figure was measured on a test set \
+         of its own and carries such an error too; taken to be the same as ours, the difference's \
+         standard error is √2 times ours, and a cell is *ahead* or *behind* only when the \
+         difference exceeds twice that, *level* otherwise (docs/metric.md, \"The test set's \
+         luck\").\n"
+    )?;
+    writeln!(
+        markdown,
+        "| detector | dataset | ε (px) | AUC | standard error | 95 % interval | reference | difference | its standard error | verdict |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|---|---|---|")?;
+    let mut inputs = Vec::with_capacity(compared.len());
+    for evaluation in compared {
+        let data = artefacts.dataset(&evaluation.dataset_key)?;
+        let located = artefacts.predictions(&evaluation.predictions_key)?;
+        inputs.push((evaluation, data, located));
+    }
+    // The bootstraps in parallel (each seeded on its own, so the figures do
+    // not depend on the thread count), the rows in the evaluations' order.
+    let spreads: Vec<Vec<AucSpread>> = inputs
+        .par_iter()
+        .map(|(evaluation, data, located)| {
+            let eps: Vec<f64> = evaluation.score.per_eps.iter().map(|s| s.eps_px).collect();
+            bootstrap_auc(
+                located,
+                &data.truth,
+                data.frames.n,
+                &eps,
+                REPORT_RESAMPLES,
+                REPORT_BOOTSTRAP_SEED,
+            )
+        })
+        .collect::<anyhow::Result<_>>()?;
+    for ((evaluation, _, _), spreads) in inputs.iter().zip(spreads) {
+        for spread in spreads {
+            let Some(theirs) =
+                reference.auc(&evaluation.detector, &evaluation.dataset, spread.eps_px)
+            else {
+                continue;
+            };
+            let verdict = LuckVerdict::of(spread.auc - theirs, spread.standard_error);
+            writeln!(
+                markdown,
+                "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {theirs:.2} | {:+.3} | {:.3} | {} |",
+                evaluation.detector,
+                evaluation.dataset,
+                spread.eps_px,
+                spread.auc,
+                spread.standard_error,
+                spread.interval_95.0,
+                spread.interval_95.1,
+                spread.auc - theirs,
+                verdict.standard_error,
+                verdict.word,
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// A difference from a reference judged against both figures' luck.
+struct LuckVerdict {
+    /// √2 × our AUC's standard error.
+    standard_error: f64,
+    /// `ahead`, `behind` or `level` (`—` without a standard error).
+    word: &'static str,
+}
+
+impl LuckVerdict {
+    fn of(difference: f64, standard_error: f64) -> Self {
+        let standard_error = std::f64::consts::SQRT_2 * standard_error;
+        let word = if !standard_error.is_finite() {
+            "—"
+        } else if difference > 2.0 * standard_error {
+            "ahead"
+        } else if difference < -2.0 * standard_error {
+            "behind"
+        } else {
+            "level"
+        };
+        Self {
+            standard_error,
+            word,
+        }
+    }
+}
+
 const REPORT_RESAMPLES: usize = 1000;
 const REPORT_BOOTSTRAP_SEED: u64 = 0;
 
@@ -445,10 +573,10 @@ const REPORT_BOOTSTRAP_SEED: u64 = 0;
 /// the AUC difference (docs/metric.md, "Comparing two detectors"), so the
 /// gap to the bound is stated with its uncertainty. Nothing when no
 /// likelihood detector shares a test set with another detector.
-fn write_bound_comparison_table(
-    registry: &Registry,
+fn write_bound_comparison_table<'k>(
+    artefacts: &mut Artefacts<'_, 'k>,
     markdown: &mut String,
-    evaluations: &[Evaluation],
+    evaluations: &'k [Evaluation],
 ) -> anyhow::Result<()> {
     let pairs: Vec<(&Evaluation, &Evaluation)> = evaluations
         .iter()
@@ -479,23 +607,10 @@ fn write_bound_comparison_table(
         "| detector | bound | dataset | ε (px) | AUC | bound's AUC | difference | standard error | 95 % interval |"
     )?;
     writeln!(markdown, "|---|---|---|---|---|---|---|---|---|")?;
-    // Each artefact read once: a dataset (and a detector's predictions on
-    // it) serves every bound it is compared with.
-    let mut datasets: HashMap<&str, Arc<Dataset>> = HashMap::new();
-    let mut predictions: HashMap<&str, Arc<Vec<Prediction>>> = HashMap::new();
     for (other, bound) in pairs {
-        let data = cached(&mut datasets, &other.dataset_key, |key| {
-            Ok(load_artefact(registry, key)?.dataset()?.clone())
-        })?;
-        let mut predictions_of = |key| {
-            cached(&mut predictions, key, |key| {
-                Ok(load_artefact(registry, key)?.predictions()?.clone())
-            })
-        };
-        let (located, bound_located) = (
-            predictions_of(&other.predictions_key)?,
-            predictions_of(&bound.predictions_key)?,
-        );
+        let data = artefacts.dataset(&other.dataset_key)?;
+        let located = artefacts.predictions(&other.predictions_key)?;
+        let bound_located = artefacts.predictions(&bound.predictions_key)?;
         let eps: Vec<f64> = other.score.per_eps.iter().map(|s| s.eps_px).collect();
         let comparison = crate::metrics::paired::paired_bootstrap(
             &located,
@@ -526,18 +641,41 @@ fn write_bound_comparison_table(
     Ok(())
 }
 
-/// The value of `key` in `cache`, loaded by `load` the first time.
-fn cached<'k, T>(
-    cache: &mut HashMap<&'k str, Arc<T>>,
-    key: &'k str,
-    load: impl FnOnce(&str) -> anyhow::Result<Arc<T>>,
-) -> anyhow::Result<Arc<T>> {
-    if let Some(value) = cache.get(key) {
-        return Ok(value.clone());
+/// The run's datasets and predictions, each read from the registry once
+/// however many tables use it (a test set serves every detector scored on
+/// it, a detector's predictions every bound they are compared with).
+struct Artefacts<'r, 'k> {
+    registry: &'r Registry,
+    datasets: HashMap<&'k str, Arc<Dataset>>,
+    predictions: HashMap<&'k str, Arc<Vec<Prediction>>>,
+}
+
+impl<'r, 'k> Artefacts<'r, 'k> {
+    fn new(registry: &'r Registry) -> Self {
+        Self {
+            registry,
+            datasets: HashMap::new(),
+            predictions: HashMap::new(),
+        }
     }
-    let value = load(key)?;
-    cache.insert(key, value.clone());
-    Ok(value)
+
+    fn dataset(&mut self, key: &'k str) -> anyhow::Result<Arc<Dataset>> {
+        if let Some(dataset) = self.datasets.get(key) {
+            return Ok(dataset.clone());
+        }
+        let dataset = load_artefact(self.registry, key)?.dataset()?.clone();
+        self.datasets.insert(key, dataset.clone());
+        Ok(dataset)
+    }
+
+    fn predictions(&mut self, key: &'k str) -> anyhow::Result<Arc<Vec<Prediction>>> {
+        if let Some(predictions) = self.predictions.get(key) {
+            return Ok(predictions.clone());
+        }
+        let predictions = load_artefact(self.registry, key)?.predictions()?.clone();
+        self.predictions.insert(key, predictions.clone());
+        Ok(predictions)
+    }
 }
 
 /// The scene figures: per evaluation and ε, recall, precision, Jaccard
@@ -1015,5 +1153,18 @@ mod tests {
         let mut markdown = String::new();
         write_reference_note(&mut markdown, &evaluations, &reference, &7.5.into()).unwrap();
         assert!(markdown.is_empty(), "{markdown}");
+    }
+
+    #[test]
+    fn a_difference_is_ahead_or_behind_only_beyond_twice_its_combined_standard_error() {
+        // Our standard error 0.01: the difference's √2 × 0.01 ≈ 0.0141, the
+        // verdict's threshold ≈ 0.0283.
+        let verdict = |difference| LuckVerdict::of(difference, 0.01).word;
+        assert_eq!(verdict(0.03), "ahead");
+        assert_eq!(verdict(-0.03), "behind");
+        assert_eq!(verdict(0.027), "level");
+        assert_eq!(verdict(-0.027), "level");
+        assert!((LuckVerdict::of(0.0, 0.01).standard_error - 0.01 * 2f64.sqrt()).abs() < 1e-15);
+        assert_eq!(LuckVerdict::of(0.5, f64::NAN).word, "—");
     }
 }

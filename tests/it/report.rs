@@ -176,3 +176,88 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// The reference table: each AUC with its bootstrap standard error, the
+/// difference from the reference, √2 times that error, and a verdict that
+/// follows the rule (ahead or behind only beyond twice the difference's
+/// standard error).
+#[test]
+fn report_judges_each_reference_cell_against_the_test_sets_luck() {
+    const MANIFEST: &str = "\
+name: luck
+seed: 11
+microscope: {brightness: 7, margin_px: 4}
+datasets:
+  test-0.75: {frames: 120, diffusion_um2_s: 0.75}
+metrics: {eps_px: [1, 2, 3]}
+detectors:
+  trackpy:
+    crocker_grier: {diameter: 7, minmass: 0}
+evaluations:
+  - detector: trackpy
+    datasets: [test-0.75]
+reference:
+  source: made up for the test
+  rows:
+    - detector: trackpy
+      label: TrackPy
+      auc:
+        test-0.75: [1.0, 0.0, 0.5]
+";
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = crate::common::write_manifest(dir.path(), "luck.yaml", MANIFEST);
+    let registry = dir.path().join("registry");
+    let run = crate::common::run_json(&manifest, &registry, &[]);
+    let run_id = run["run"].as_str().unwrap();
+    let report_dir = dir.path().join("report");
+    let out = scanloc(&[
+        "report",
+        run_id,
+        "--registry",
+        registry.to_str().unwrap(),
+        "--out",
+        report_dir.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let markdown = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
+    let section = markdown
+        .split("## Against the reference, with the test set's luck")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("a reference section");
+    let rows: Vec<Vec<&str>> = section
+        .lines()
+        .filter(|l| l.starts_with("| trackpy | test-0.75 |"))
+        .map(|l| l.split('|').map(str::trim).collect())
+        .collect();
+    assert_eq!(rows.len(), 3, "{section}");
+    let number = |cell: &str| cell.parse::<f64>().unwrap_or_else(|_| panic!("{cell}"));
+    let mut verdicts = Vec::new();
+    for (row, reference) in rows.iter().zip([1.0, 0.0, 0.5]) {
+        // | detector | dataset | ε | AUC | SE | interval | reference | difference | its SE | verdict |
+        let (auc, se) = (number(row[4]), number(row[5]));
+        // 120 frames: a hit rate's standard error is at most √(0.25/120) ≈ 0.046;
+        // an AUC's is of that order, and not zero on frames this noisy.
+        assert!(se > 0.001 && se < 0.1, "{row:?}");
+        assert_eq!(number(row[7]), reference);
+        let difference = number(row[8]);
+        assert!((difference - (auc - reference)).abs() < 0.0011, "{row:?}");
+        let combined = number(row[9]);
+        assert!((combined - 2f64.sqrt() * se).abs() < 0.0011, "{row:?}");
+        let expected = if difference > 2.0 * combined {
+            "ahead"
+        } else if difference < -2.0 * combined {
+            "behind"
+        } else {
+            "level"
+        };
+        assert_eq!(row[10], expected, "{row:?}");
+        verdicts.push(row[10]);
+    }
+    // Crocker–Grier is far from perfect at 1 px and far from nothing at 2 px.
+    assert_eq!(&verdicts[..2], &["behind", "ahead"], "{section}");
+}
