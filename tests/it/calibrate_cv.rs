@@ -1,6 +1,6 @@
 //! `scanloc calibrate` (docs/metric.md) and `scanloc cv` on small manifests.
 
-use crate::common::{scanloc, smoke, stderr, stdout, write_manifest};
+use crate::common::{report_markdown, scanloc, smoke, stderr, stdout, write_manifest};
 
 const REFERENCE: &str = "
 reference:
@@ -128,17 +128,11 @@ fn cross_validation_reports_mean_and_spread_and_resumes_from_cache() {
     assert!(cells.iter().any(|c| c["std"].as_f64().unwrap() > 0.0));
     assert!(result["computed_steps"].as_u64().unwrap() > 0);
     // The report of the cv run has the mean ± sd table.
-    let report_dir = dir.path().join("report");
-    let out = scanloc(&[
-        "report",
+    let report = report_markdown(
+        &registry,
         result["run"].as_str().unwrap(),
-        "--out",
-        report_dir.to_str().unwrap(),
-        "--registry",
-        registry.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let report = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
+        &dir.path().join("report"),
+    );
     assert!(
         report.contains("3-fold cross-validation of cnn"),
         "{report}"

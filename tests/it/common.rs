@@ -54,6 +54,31 @@ pub fn run_json(manifest: &Path, registry: &Path, extra: &[&str]) -> serde_json:
     serde_json::from_str(&text).expect("run --json prints JSON")
 }
 
+/// Runs `scanloc report RUN --registry DIR --out OUT`, asserts success,
+/// and returns the Markdown it wrote.
+pub fn report_markdown(registry: &Path, run: &str, out: &Path) -> String {
+    let output = scanloc(&[
+        "report",
+        run,
+        "--registry",
+        registry.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    std::fs::read_to_string(out.join("report.md")).expect("report.md written")
+}
+
+/// The text of the report's section `## heading` up to the next section;
+/// panics (with the report) if there is none.
+pub fn report_section<'m>(markdown: &'m str, heading: &str) -> &'m str {
+    markdown
+        .split(&format!("## {heading}\n"))
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .unwrap_or_else(|| panic!("no section {heading:?}: {markdown}"))
+}
+
 /// Every file under `dir` with the sha256 of its bytes.
 pub fn snapshot(dir: &Path) -> BTreeMap<PathBuf, String> {
     let mut files = BTreeMap::new();

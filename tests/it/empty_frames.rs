@@ -7,7 +7,7 @@ use std::collections::BTreeSet;
 use scanloc::registry::Registry;
 use scanloc::run::load_artefact;
 
-use crate::common::{run_json, scanloc, stderr, stdout, write_manifest};
+use crate::common::{report_markdown, run_json, scanloc, stderr, stdout, write_manifest};
 
 /// Smoke-sized: a CNN trained briefly on frames of 0–2 QDs, and test sets
 /// of one QD, of empty frames, and of 0 or 1 QD per frame.
@@ -202,18 +202,8 @@ fn sets_of_empty_frames_are_scored_by_their_false_localisations() {
 
     // The report: no AUC column for the empty set, its false localisations
     // in the table at the score threshold.
-    let run_id = run["run"].as_str().unwrap();
     let report_dir = dir.path().join("report");
-    let out = scanloc(&[
-        "report",
-        run_id,
-        "--registry",
-        registry_dir.to_str().unwrap(),
-        "--out",
-        report_dir.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let markdown = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
+    let markdown = report_markdown(&registry_dir, run["run"].as_str().unwrap(), &report_dir);
     // Error histograms of the sets with QDs only.
     assert!(report_dir.join("errors_test.png").exists());
     assert!(!report_dir.join("errors_empty.png").exists(), "{markdown}");

@@ -257,17 +257,11 @@ fn the_report_states_each_detectors_gap_to_the_bound_with_its_uncertainty() {
             .as_f64()
             .unwrap()
     };
-    let out = dir.path().join("report");
-    let output = scanloc(&[
-        "report",
+    let report = report_markdown(
+        &registry,
         run["run"].as_str().unwrap(),
-        "--registry",
-        registry.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(output.status.success(), "{}", stderr(&output));
-    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+        &dir.path().join("report"),
+    );
     assert!(
         report.contains("## Against the attainable bound"),
         "{report}"

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use crate::common::scanloc;
+use crate::common::{report_markdown, report_section, run_json, scanloc, write_manifest};
 
 #[test]
 fn report_of_a_smoke_run_has_the_table_and_every_figure() {
@@ -72,11 +72,7 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
             && markdown.contains("| trackpy | test-0.75 | none | 1 |"),
         "{markdown}"
     );
-    let calibration = markdown
-        .split("## Calibration of the score")
-        .nth(1)
-        .and_then(|rest| rest.split("\n## ").next())
-        .expect("a calibration section");
+    let calibration = report_section(&markdown, "Calibration of the score");
     assert_eq!(
         calibration
             .lines()
@@ -87,11 +83,7 @@ fn report_of_a_smoke_run_has_the_table_and_every_figure() {
     );
     assert!(!calibration.contains("| trackpy |"), "{calibration}");
     // The CNN's σ against its errors; trackpy reports no σ.
-    let uncertainty = markdown
-        .split("## Calibration of the uncertainty")
-        .nth(1)
-        .and_then(|rest| rest.split("\n## ").next())
-        .expect("an uncertainty section");
+    let uncertainty = report_section(&markdown, "Calibration of the uncertainty");
     let rows: Vec<&str> = uncertainty
         .lines()
         .filter(|l| l.starts_with("| cnn | test-"))
@@ -205,30 +197,15 @@ reference:
         test-0.75: [1.0, 0.0, 0.5]
 ";
     let dir = tempfile::tempdir().unwrap();
-    let manifest = crate::common::write_manifest(dir.path(), "luck.yaml", MANIFEST);
+    let manifest = write_manifest(dir.path(), "luck.yaml", MANIFEST);
     let registry = dir.path().join("registry");
-    let run = crate::common::run_json(&manifest, &registry, &[]);
-    let run_id = run["run"].as_str().unwrap();
-    let report_dir = dir.path().join("report");
-    let out = scanloc(&[
-        "report",
-        run_id,
-        "--registry",
-        registry.to_str().unwrap(),
-        "--out",
-        report_dir.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let run = run_json(&manifest, &registry, &[]);
+    let markdown = report_markdown(
+        &registry,
+        run["run"].as_str().unwrap(),
+        &dir.path().join("report"),
     );
-    let markdown = std::fs::read_to_string(report_dir.join("report.md")).unwrap();
-    let section = markdown
-        .split("## Against the reference, with the test set's luck")
-        .nth(1)
-        .and_then(|rest| rest.split("\n## ").next())
-        .expect("a reference section");
+    let section = report_section(&markdown, "Against the reference, with the test set's luck");
     let rows: Vec<Vec<&str>> = section
         .lines()
         .filter(|l| l.starts_with("| trackpy | test-0.75 |"))
