@@ -5,11 +5,11 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::Args;
+use clap::{ArgGroup, Args};
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::limits::check_frame_count;
-use scanloc::metrics::paired::{self, PairedDifference};
+use scanloc::metrics::paired::{self, AucSpread, PairedDifference};
 use scanloc::metrics::{self, Score, ScoreReading};
 
 /// Score localisations against ground truth (docs/metric.md).
@@ -36,8 +36,12 @@ use scanloc::metrics::{self, Score, ScoreReading};
 /// AUC of --locs and that of --compare (another detector's localisations
 /// on the same frames): the difference, its standard error and a 95 %
 /// interval per ε, from --resamples resamples of the frames drawn with
-/// replacement (docs/metric.md, "Comparing two detectors").
+/// replacement (docs/metric.md, "Comparing two detectors"). With
+/// --bootstrap, each AUC's own standard error and 95 % interval from the
+/// same resamples: how far a new test set of the same size would move it
+/// (docs/metric.md, "The test set's luck").
 #[derive(Debug, Args)]
+#[command(group(ArgGroup::new("resampling").args(["compare", "bootstrap"]).multiple(true)))]
 pub struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).
     #[arg(long)]
@@ -83,12 +87,17 @@ pub struct ScoreArgs {
     /// --score-column.
     #[arg(long, requires = "compare")]
     compare_score_column: Option<String>,
-    /// Resamples of the paired bootstrap (1 to 100,000).
-    #[arg(long, default_value_t = 1000, requires = "compare")]
+    /// Also print each AUC's bootstrap standard error and 95 % interval over
+    /// the frames (the test set's luck).
+    #[arg(long)]
+    bootstrap: bool,
+    /// Resamples of the bootstrap (1 to 100,000), for --compare and
+    /// --bootstrap.
+    #[arg(long, default_value_t = 1000, requires = "resampling")]
     resamples: u64,
     /// Seed of the bootstrap's draws of frames: the same seed and files
     /// give the same figures.
-    #[arg(long, default_value_t = 0, requires = "compare")]
+    #[arg(long, default_value_t = 0, requires = "resampling")]
     seed: u64,
 }
 
@@ -179,6 +188,21 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         ),
         None => None,
     };
+    let spread = if args.bootstrap {
+        Some(
+            paired::bootstrap_auc(
+                &predictions,
+                &truth,
+                frames,
+                &args.eps,
+                resamples,
+                args.seed,
+            )
+            .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?,
+        )
+    } else {
+        None
+    };
     if let Some(path) = &args.curve {
         io::write_atomically(path, |writer| {
             let mut csv = csv::Writer::from_writer(writer);
@@ -204,13 +228,21 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             per_eps.curve.clear();
         }
         let mut json = serde_json::to_value(&summary)?;
-        if let (Some(comparison), Some(object)) = (&comparison, json.as_object_mut()) {
-            object.insert("comparison".into(), serde_json::to_value(comparison)?);
+        if let Some(object) = json.as_object_mut() {
+            if let Some(spread) = &spread {
+                object.insert("spread".into(), serde_json::to_value(spread)?);
+            }
+            if let Some(comparison) = &comparison {
+                object.insert("comparison".into(), serde_json::to_value(comparison)?);
+            }
         }
         serde_json::to_writer(&mut *stdout, &json)?;
         writeln!(stdout)?;
     } else {
         write_table(stdout, &score)?;
+        if let Some(spread) = &spread {
+            write_spread(stdout, spread, args.seed)?;
+        }
         if let (Some(comparison), Some((path, _))) = (&comparison, &compared) {
             write_comparison(stdout, comparison, &args.locs, path, args.seed)?;
         }
@@ -366,6 +398,32 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
             u.rms_normalised_error_y,
             u.within_one_sigma,
             maybe(u.rank_correlation)
+        )?;
+    }
+    Ok(())
+}
+
+/// Each AUC's bootstrap under the table: per ε, the AUC, its standard
+/// error and 95 % interval.
+fn write_spread(out: &mut dyn Write, spread: &[AucSpread], seed: u64) -> anyhow::Result<()> {
+    let resamples = spread.first().map_or(0, |s| s.resamples);
+    writeln!(
+        out,
+        "bootstrap of the AUC: frames resampled with replacement ({resamples} resamples, seed {seed})"
+    )?;
+    writeln!(
+        out,
+        "{:>8} {:>8} {:>9} {:>19}",
+        "eps_px", "AUC", "std_err", "95% interval"
+    )?;
+    for s in spread {
+        writeln!(
+            out,
+            "{:>8} {:>8.4} {:>9.4} {:>19}",
+            s.eps_px,
+            s.auc,
+            s.standard_error,
+            format!("[{:.4}, {:.4}]", s.interval_95.0, s.interval_95.1),
         )?;
     }
     Ok(())

@@ -660,7 +660,38 @@ fn score_compares_two_detectors_with_a_paired_bootstrap() {
         assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
         assert!(stderr(&output).contains(named), "{}", stderr(&output));
     }
-    // The bootstrap's options need --compare.
+    // The bootstrap's options need --compare or --bootstrap.
     let output = scanloc(&["score", "--truth", &truth, "--locs", &exact, "--seed", "3"]);
     assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+
+    // One detector's own spread: `half` alone on the same resamples has
+    // the paired difference's standard error (1 − its AUC has its spread).
+    let alone = [
+        "score",
+        "--truth",
+        &truth,
+        "--locs",
+        &half,
+        "--score-column",
+        "mass",
+        "--eps",
+        "1,2",
+        "--bootstrap",
+    ];
+    let output = scanloc(&[&alone[..], &["--json"]].concat());
+    assert!(output.status.success(), "{}", stderr(&output));
+    let json: serde_json::Value = serde_json::from_str(&stdout(&output)).unwrap();
+    assert!(json.get("comparison").is_none(), "{json}");
+    let spread = json["spread"].as_array().unwrap();
+    assert_eq!(spread.len(), 2);
+    assert!(close(spread[0]["auc"].as_f64().unwrap(), 0.5));
+    let own = spread[0]["standard_error"].as_f64().unwrap();
+    assert!(
+        (own - standard_error).abs() < 1e-12,
+        "{own} vs {standard_error}"
+    );
+    assert!(close(spread[1]["standard_error"].as_f64().unwrap(), 0.0));
+    let table = stdout(&scanloc(&alone));
+    assert!(table.contains("bootstrap of the AUC"), "{table}");
+    assert!(!table.contains("paired comparison"), "{table}");
 }
