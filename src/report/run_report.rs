@@ -443,15 +443,13 @@ fn write_headroom_table(markdown: &mut String, evaluations: &[Evaluation]) -> an
     Ok(())
 }
 
-/// Resamples of the paired bootstraps in the report, and their seed: fixed,
-/// so a report is a function of the run.
 /// Each AUC that has a reference value, with the standard error of a
 /// bootstrap over its test set's frames, and whether it is ahead of the
 /// reference, behind it or level with it given both figures' luck: the
 /// reference's own standard error is unknown, so it is taken to be ours (a
 /// test set of the same size and kind), which makes the difference's
 /// standard error √2 times ours; ahead or behind only beyond twice that
-/// (docs/metric.md, "The test set's luck").
+/// plus the reference's rounding (docs/metric.md, "The test set's luck").
 fn write_reference_spread_table<'k>(
     artefacts: &mut Artefacts<'_, 'k>,
     markdown: &mut String,
@@ -481,8 +479,8 @@ fn write_reference_spread_table<'k>(
          set of the same size would move it. The reference's figure was measured on a test set \
          of its own and carries such an error too; taken to be the same as ours, the difference's \
          standard error is √2 times ours, and a cell is *ahead* or *behind* only when the \
-         difference exceeds twice that, *level* otherwise (docs/metric.md, \"The test set's \
-         luck\").\n"
+         difference exceeds twice that plus the reference's rounding (half a unit of its last \
+         decimal), *level* otherwise (docs/metric.md, \"The test set's luck\").\n"
     )?;
     writeln!(
         markdown,
@@ -518,7 +516,8 @@ fn write_reference_spread_table<'k>(
             else {
                 continue;
             };
-            let verdict = LuckVerdict::of(spread.auc - theirs, spread.standard_error);
+            let verdict =
+                LuckVerdict::of(spread.auc - theirs, spread.standard_error, rounding(theirs));
             writeln!(
                 markdown,
                 "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {theirs:.2} | {:+.3} | {:.3} | {} |",
@@ -547,13 +546,16 @@ struct LuckVerdict {
 }
 
 impl LuckVerdict {
-    fn of(difference: f64, standard_error: f64) -> Self {
+    /// `difference` = ours − the reference; `standard_error` ours;
+    /// `rounding` how far the printed reference may be from its value.
+    fn of(difference: f64, standard_error: f64, rounding: f64) -> Self {
         let standard_error = std::f64::consts::SQRT_2 * standard_error;
-        let word = if !standard_error.is_finite() {
+        let margin = 2.0 * standard_error + rounding;
+        let word = if !margin.is_finite() {
             "—"
-        } else if difference > 2.0 * standard_error {
+        } else if difference > margin {
             "ahead"
-        } else if difference < -2.0 * standard_error {
+        } else if difference < -margin {
             "behind"
         } else {
             "level"
@@ -565,6 +567,20 @@ impl LuckVerdict {
     }
 }
 
+/// Half a unit of the last decimal a published figure is written with
+/// (0.99 → 0.005, 0.5 → 0.05): the figure is known to that much. Read from
+/// the shortest decimal form of the value, so a figure written with a
+/// trailing zero (0.50) counts as its shorter form, the cautious reading.
+fn rounding(published: f64) -> f64 {
+    let text = published.abs().to_string();
+    let decimals = text
+        .split_once('.')
+        .map_or(0, |(_, fraction)| fraction.len());
+    0.5 * 10f64.powi(-(decimals.min(300) as i32))
+}
+
+/// Resamples of the bootstraps in the report, and their seed: fixed, so a
+/// report is a function of the run.
 const REPORT_RESAMPLES: usize = 1000;
 const REPORT_BOOTSTRAP_SEED: u64 = 0;
 
@@ -1158,13 +1174,27 @@ mod tests {
     #[test]
     fn a_difference_is_ahead_or_behind_only_beyond_twice_its_combined_standard_error() {
         // Our standard error 0.01: the difference's √2 × 0.01 ≈ 0.0141, the
-        // verdict's threshold ≈ 0.0283.
-        let verdict = |difference| LuckVerdict::of(difference, 0.01).word;
+        // verdict's threshold ≈ 0.0283 for an exact reference.
+        let verdict = |difference| LuckVerdict::of(difference, 0.01, 0.0).word;
         assert_eq!(verdict(0.03), "ahead");
         assert_eq!(verdict(-0.03), "behind");
         assert_eq!(verdict(0.027), "level");
         assert_eq!(verdict(-0.027), "level");
-        assert!((LuckVerdict::of(0.0, 0.01).standard_error - 0.01 * 2f64.sqrt()).abs() < 1e-15);
-        assert_eq!(LuckVerdict::of(0.5, f64::NAN).word, "—");
+        // A reference printed as 0.99 may be 0.985 to 0.995: 0.005 more.
+        assert_eq!(LuckVerdict::of(0.03, 0.01, 0.005).word, "level");
+        assert_eq!(LuckVerdict::of(-0.034, 0.01, 0.005).word, "behind");
+        let combined = LuckVerdict::of(0.0, 0.01, 0.0).standard_error;
+        assert!((combined - 0.01 * 2f64.sqrt()).abs() < 1e-15);
+        assert_eq!(LuckVerdict::of(0.5, f64::NAN, 0.005).word, "—");
+    }
+
+    #[test]
+    fn a_published_figure_is_known_to_half_a_unit_of_its_last_decimal() {
+        for (published, half_unit) in [(0.99, 0.005), (0.5, 0.05), (0.125, 0.0005), (1.0, 0.5)] {
+            assert!(
+                (rounding(published) - half_unit).abs() < 1e-15,
+                "{published}"
+            );
+        }
     }
 }
