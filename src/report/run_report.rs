@@ -520,7 +520,7 @@ fn write_reference_spread_table<'k>(
                 LuckVerdict::of(spread.auc - theirs, spread.standard_error, rounding(theirs));
             writeln!(
                 markdown,
-                "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {theirs:.2} | {:+.3} | {:.3} | {} |",
+                "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {theirs} | {:+.3} | {:.3} | {} |",
                 evaluation.detector,
                 evaluation.dataset,
                 spread.eps_px,
