@@ -197,7 +197,9 @@ fn write_cross_validation_table(
          Each fold's model is trained on the other {} folds of the training set and keeps the epoch \
          with the best mean AUC on its held-out fold. Cells: mean ± sample standard deviation \
          (n − 1) over the {folds} models, the reference's value where it has one, then each \
-         fold's value.\n",
+         fold's value. The folds share each test set, so the spread is the models' alone: a new \
+         test set of the same size moves an AUC further (docs/metric.md, \"The test set's \
+         luck\").\n",
         folds - 1
     )?;
     writeln!(
