@@ -678,22 +678,32 @@ impl<'r, 'k> Artefacts<'r, 'k> {
     }
 
     fn dataset(&mut self, key: &'k str) -> anyhow::Result<Arc<Dataset>> {
-        if let Some(dataset) = self.datasets.get(key) {
-            return Ok(dataset.clone());
-        }
-        let dataset = load_artefact(self.registry, key)?.dataset()?.clone();
-        self.datasets.insert(key, dataset.clone());
-        Ok(dataset)
+        let registry = self.registry;
+        cached(&mut self.datasets, key, || {
+            Ok(load_artefact(registry, key)?.dataset()?.clone())
+        })
     }
 
     fn predictions(&mut self, key: &'k str) -> anyhow::Result<Arc<Vec<Prediction>>> {
-        if let Some(predictions) = self.predictions.get(key) {
-            return Ok(predictions.clone());
-        }
-        let predictions = load_artefact(self.registry, key)?.predictions()?.clone();
-        self.predictions.insert(key, predictions.clone());
-        Ok(predictions)
+        let registry = self.registry;
+        cached(&mut self.predictions, key, || {
+            Ok(load_artefact(registry, key)?.predictions()?.clone())
+        })
     }
+}
+
+/// The value of `key` in `cache`, loaded by `load` the first time.
+fn cached<'k, T>(
+    cache: &mut HashMap<&'k str, Arc<T>>,
+    key: &'k str,
+    load: impl FnOnce() -> anyhow::Result<Arc<T>>,
+) -> anyhow::Result<Arc<T>> {
+    if let Some(value) = cache.get(key) {
+        return Ok(value.clone());
+    }
+    let value = load()?;
+    cache.insert(key, value.clone());
+    Ok(value)
 }
 
 /// The scene figures: per evaluation and ε, recall, precision, Jaccard
