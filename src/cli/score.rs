@@ -173,9 +173,11 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         reading,
     )
     .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
-    let comparison = match &compared {
-        Some((path, compared)) => Some(
-            paired::paired_bootstrap(
+    // With --compare, one bootstrap gives the paired difference and, for
+    // --bootstrap, the spread of --locs' own AUC (the same resamples).
+    let (comparison, spread) = match &compared {
+        Some((path, compared)) => {
+            let (comparison, spread) = paired::paired_bootstrap_with_spread(
                 &predictions,
                 compared,
                 &truth,
@@ -184,13 +186,11 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
                 resamples,
                 args.seed,
             )
-            .map_err(|e| input_error(format!("{}: {e}", path.display())))?,
-        ),
-        None => None,
-    };
-    let spread = if args.bootstrap {
-        Some(
-            paired::bootstrap_auc(
+            .map_err(|e| input_error(format!("{}: {e}", path.display())))?;
+            (Some(comparison), args.bootstrap.then_some(spread))
+        }
+        None if args.bootstrap => {
+            let spread = paired::bootstrap_auc(
                 &predictions,
                 &truth,
                 frames,
@@ -198,10 +198,10 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
                 resamples,
                 args.seed,
             )
-            .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?,
-        )
-    } else {
-        None
+            .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
+            (None, Some(spread))
+        }
+        None => (None, None),
     };
     if let Some(path) = &args.curve {
         io::write_atomically(path, |writer| {

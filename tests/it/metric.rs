@@ -691,6 +691,17 @@ fn score_compares_two_detectors_with_a_paired_bootstrap() {
         "{own} vs {standard_error}"
     );
     assert!(close(spread[1]["standard_error"].as_f64().unwrap(), 0.0));
+    // With --compare too, one set of resamples serves both: the same spread,
+    // and the difference from `exact` spreads as `half`'s AUC does.
+    let with_exact = ["--compare", &exact, "--compare-score-column", "score"];
+    let both = scanloc(&[&alone[..], &with_exact, &["--json"]].concat());
+    assert!(both.status.success(), "{}", stderr(&both));
+    let both: serde_json::Value = serde_json::from_str(&stdout(&both)).unwrap();
+    assert_eq!(both["spread"], json["spread"]);
+    let difference = &both["comparison"][0];
+    assert!(close(difference["difference"].as_f64().unwrap(), -0.5));
+    let paired = difference["standard_error"].as_f64().unwrap();
+    assert!((paired - own).abs() < 1e-12, "{paired} vs {own}");
     let table = stdout(&scanloc(&alone));
     assert!(table.contains("bootstrap of the AUC"), "{table}");
     assert!(!table.contains("paired comparison"), "{table}");
