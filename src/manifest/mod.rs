@@ -205,6 +205,9 @@ impl DetectorSpec {
     pub fn code_version(&self) -> &'static str {
         match self {
             DetectorSpec::CrockerGrier(_) => crate::detect::crocker_grier::CODE_VERSION,
+            DetectorSpec::Cnn(spec) if spec.training.teacher_particles > 0 => {
+                crate::detect::cnn::TEACHER_CODE_VERSION
+            }
             DetectorSpec::Cnn(_) => crate::detect::cnn::CODE_VERSION,
             DetectorSpec::Likelihood(_) => crate::detect::likelihood::CODE_VERSION,
         }

@@ -310,6 +310,24 @@ fn bad_settings_are_refused_naming_the_field() {
             "training.members",
         ),
         (
+            TrainingSettings {
+                teacher_particles: 1,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.teacher_particles",
+        ),
+        (
+            // A teacher needs the training frames' simulator parameters
+            // (None here).
+            TrainingSettings {
+                teacher_particles: 100,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.teacher_particles",
+        ),
+        (
             base.clone(),
             CnnArchitecture {
                 channels: 0,
@@ -914,4 +932,98 @@ fn train_refuses_a_member_count_out_of_range_naming_the_field() {
         assert!(text.contains("training.members"), "{text}");
         assert!(!out.exists());
     }
+}
+
+// ---- posterior targets (training.teacher_particles) ------------------------
+
+#[test]
+fn the_teachers_targets_are_posterior_means_near_the_truth_and_seeded() {
+    // Static bright QDs in small frames (the prior over the start is the
+    // 6 × 6 px inside the margin): the posterior of the centroid is narrow,
+    // so its mean lies close to the true centroid (N_qd 40, 4,000
+    // particles: within 0.3 px, far below the ≈ 2 px of a guess); a frame
+    // with two QDs keeps its truth.
+    let static_params = SimParams {
+        height: 14,
+        width: 14,
+        diffusion_um2_s: Distribution::Fixed(0.0),
+        ..params(40.0)
+    };
+    let single = sim::simulate(&static_params, 3, 0..6, &hidden()).unwrap();
+    let pair_params = SimParams {
+        emitters: sim::EmitterCount::Fixed(2),
+        ..static_params.clone()
+    };
+    let pair = sim::simulate(&pair_params, 4, 0..1, &hidden()).unwrap();
+    let mut data = single.frames.data.clone();
+    data.extend_from_slice(&pair.frames.data);
+    let mut truth = single.truth.clone();
+    truth.extend(
+        pair.truth
+            .iter()
+            .map(|row| scanloc::types::TruthRow { frame: 6, ..*row }),
+    );
+    let mixed = Dataset {
+        frames: FrameStack {
+            n: 7,
+            data,
+            ..single.frames.clone()
+        },
+        truth,
+    };
+    let teach = |seed| {
+        cnn::training::teacher_targets(&mixed, &static_params, 4000, seed, &hidden()).unwrap()
+    };
+    let targets = teach(1);
+    assert_eq!(targets.len(), 7);
+    for (frame, row) in single.truth.iter().enumerate() {
+        let [(x, y)] = targets[frame][..] else {
+            panic!("frame {frame}: {:?}", targets[frame]);
+        };
+        let off = (x - row.x).hypot(y - row.y);
+        assert!(
+            off > 0.0 && off < 0.3,
+            "frame {frame}: {off:.3} px from the truth"
+        );
+    }
+    let pair_truth: Vec<(f64, f64)> = pair.truth.iter().map(|row| (row.x, row.y)).collect();
+    assert_eq!(targets[6], pair_truth);
+    assert_eq!(teach(1), targets);
+    assert_ne!(teach(2), targets);
+}
+
+#[test]
+fn a_teacher_changes_what_is_learnt_and_the_network_still_localises() {
+    let data = dataset(40.0, 300, 11);
+    let train = |teacher_particles| {
+        cnn::train(
+            &tiny_architecture(),
+            &TrainingSettings {
+                teacher_particles,
+                ..tiny_settings(4)
+            },
+            &data,
+            Some(&params(40.0)),
+            5,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let taught = train(300);
+    assert_eq!(taught.settings.teacher_particles, 300);
+    assert_ne!(taught.to_bytes().unwrap(), train(0).to_bytes().unwrap());
+    assert_eq!(taught.to_bytes().unwrap(), train(300).to_bytes().unwrap());
+    // It learnt the QD's position (as in the first test of this file:
+    // median within 1.5 px, chance ≈ 5 px).
+    let test = dataset(40.0, 200, 12);
+    let predictions = taught.locate(&test.frames, &hidden()).unwrap();
+    let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
+        .iter()
+        .zip(&test.truth)
+        .map(|(p, t)| p.map_or(f64::INFINITY, |p| (p.x - t.x).hypot(p.y - t.y)))
+        .collect();
+    distances.sort_by(f64::total_cmp);
+    let median = distances[distances.len() / 2];
+    assert!(median < 1.5, "median distance {median:.2} px");
 }

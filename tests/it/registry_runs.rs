@@ -813,3 +813,35 @@ fn the_paper_manifests_content_keys_are_stable() {
     ];
     assert_eq!(planned, recorded);
 }
+
+/// A teacher (`training.teacher_particles`) is part of what a model is: the
+/// same manifest with one gives the CNN a model key of its own (and so new
+/// predictions and evaluations), and leaves every other step's key alone.
+#[test]
+fn a_teacher_gives_the_model_a_key_of_its_own() {
+    let keys = |text: &str| {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("paper.yaml");
+        std::fs::write(&path, text).unwrap();
+        let manifest = scanloc::manifest::load(&path).unwrap();
+        let plan = scanloc::run::Plan::from_manifest(&manifest).unwrap();
+        plan.steps
+            .iter()
+            .map(|step| (step.id.clone(), step.key.clone()))
+            .collect::<Vec<_>>()
+    };
+    let text = std::fs::read_to_string("experiments/paper.yaml").unwrap();
+    let taught = text.replacen(
+        "        validation_fraction: 0.1\n",
+        "        validation_fraction: 0.1\n        teacher_particles: 2000\n",
+        1,
+    );
+    assert_ne!(taught, text);
+    let (before, after) = (keys(&text), keys(&taught));
+    assert_eq!(before.len(), after.len());
+    for ((id, old), (same_id, new)) in before.iter().zip(&after) {
+        assert_eq!(id, same_id);
+        let renewed = id.contains("cnn");
+        assert_eq!(old != new, renewed, "{id}: {old} → {new}");
+    }
+}

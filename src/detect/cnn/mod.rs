@@ -210,6 +210,23 @@ pub struct TrainingSettings {
     /// bytes and content keys.
     #[serde(default = "one_member", skip_serializing_if = "is_one_member")]
     pub members: usize,
+    /// 0: the score map and the offsets learn the true centroids. N > 0:
+    /// on the fixed training frames that hold one QD they learn the
+    /// likelihood detector's posterior mean of the centroid instead (a
+    /// teacher computed once per training with N particles per frame,
+    /// under the training frames' own simulator parameters, their
+    /// distributions of D, brightness and background as priors); the
+    /// within-1-px head still learns from the truth, and fresh frames keep
+    /// their truth (docs/detectors.md, "Posterior targets"). Needs the
+    /// simulator parameters of the training frames. Left out of the
+    /// serialised settings when 0, so models trained without a teacher
+    /// keep their bytes and content keys.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub teacher_particles: usize,
+}
+
+fn is_zero(value: &usize) -> bool {
+    *value == 0
 }
 
 /// Most member networks of an ensemble: each costs a full training and a
@@ -240,6 +257,7 @@ impl Default for TrainingSettings {
             sigma_loss_weight: 1.0,
             within_loss_weight: 1.0,
             members: one_member(),
+            teacher_particles: 0,
         }
     }
 }
@@ -302,6 +320,18 @@ impl TrainingSettings {
             return Err(FieldError::new(
                 "training.members",
                 format!("must be in 1..={MAX_MEMBERS}, got {}", self.members),
+            ));
+        }
+        if self.teacher_particles != 0
+            && !(2..=crate::detect::likelihood::MAX_PARTICLES).contains(&self.teacher_particles)
+        {
+            return Err(FieldError::new(
+                "training.teacher_particles",
+                format!(
+                    "must be 0 (no teacher) or between 2 and {}, got {}",
+                    crate::detect::likelihood::MAX_PARTICLES,
+                    self.teacher_particles
+                ),
             ));
         }
         if self.offset_radius_px > 16 {
@@ -424,6 +454,11 @@ pub const FORMAT: &str = "scanloc-cnn/2";
 /// epoch is chosen by), so cached models made by the old code are not
 /// reused. Kept apart from [`FORMAT`], which only names the encoding.
 pub const CODE_VERSION: &str = "scanloc-cnn/2";
+/// The code version of a model trained with a teacher
+/// (`training.teacher_particles` > 0): the training's and the likelihood
+/// detector's ([`crate::detect::likelihood::CODE_VERSION`]), whose
+/// predictions became its targets, so a change to either renews it.
+pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/2+scanloc-likelihood/1";
 /// Version of the decoding (output maps → predictions: peaks, positions,
 /// scores, σ), the code version of every CNN prediction's content key:
 /// bump its second part when a change alters predictions but not the
@@ -809,6 +844,29 @@ use std::io::Write as _;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_teachers_code_version_names_both_codes_and_no_teacher_leaves_the_settings_as_they_were() {
+        // A bump of either version must renew the models trained with a
+        // teacher: the constant is written out, so this test says when it
+        // has fallen behind.
+        assert_eq!(
+            TEACHER_CODE_VERSION,
+            format!("{CODE_VERSION}+{}", crate::detect::likelihood::CODE_VERSION)
+        );
+        let json = serde_json::to_string(&TrainingSettings::default()).unwrap();
+        assert!(!json.contains("teacher"), "{json}");
+        let taught = TrainingSettings {
+            teacher_particles: 2000,
+            ..TrainingSettings::default()
+        };
+        let json = serde_json::to_string(&taught).unwrap();
+        assert!(json.contains("\"teacher_particles\":2000"), "{json}");
+        assert_eq!(
+            serde_json::from_str::<TrainingSettings>(&json).unwrap(),
+            taught
+        );
+    }
 
     #[test]
     fn a_single_network_serialises_without_a_member_count() {

@@ -2,9 +2,11 @@
 //! an L1 loss on the sub-pixel offsets, a Gaussian negative log-likelihood
 //! for the σ maps and a cross-entropy for the within-1-px head (both
 //! against the realised error of the offsets, which they do not move), with
-//! seeded shuffling, optional freshly simulated frames every epoch, and
-//! selection of the epoch with the best validation AUC.
+//! seeded shuffling, optional freshly simulated frames every epoch,
+//! optional posterior-mean targets from the likelihood detector (a
+//! teacher), and selection of the epoch with the best validation AUC.
 
+use anyhow::Context;
 use burn::optim::AdamConfig;
 use burn::prelude::*;
 use burn::tensor::activation::{log_sigmoid, sigmoid};
@@ -46,6 +48,7 @@ const STREAM_SHUFFLE: u64 = 3;
 const STREAM_FRESH: u64 = 4;
 /// The seeds of an ensemble's members 2, 3, … (index = 0-based member).
 const STREAM_MEMBER: u64 = 5;
+const STREAM_TEACHER: u64 = 6;
 
 /// A ChaCha8 stream for `purpose` (and `index`, e.g. the epoch) of `seed`.
 fn stream(seed: u64, purpose: u64, index: u64) -> ChaCha8Rng {
@@ -67,7 +70,14 @@ fn shuffle<T>(items: &mut [T], rng: &mut ChaCha8Rng) {
 /// Frames and their emitters, the unit batches are drawn from.
 struct Source<'a> {
     frames: &'a FrameStack,
+    /// Per frame, the positions the score map and the offsets learn: the
+    /// true centroids, or the teacher's posterior means.
     emitters: Vec<Vec<(f64, f64)>>,
+    /// Per frame, the true centroids when `emitters` are the teacher's
+    /// (the within-1-px head learns whether a localisation lands within
+    /// 1 px of the truth, not of the teacher); `None`: `emitters` are the
+    /// truth.
+    true_centroids: Option<Vec<Vec<(f64, f64)>>>,
 }
 
 /// Frames `indices` of `dataset` as a new dataset, frames renumbered 0…
@@ -220,7 +230,14 @@ fn batch_loss(
         .into_data()
         .try_to_vec::<f32>()
         .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
-    let within = map(within_targets(&realised, &emitters, height, width), 1);
+    let true_centroids: Vec<&[(f64, f64)]> = items
+        .iter()
+        .map(|(source, i)| match &source.true_centroids {
+            Some(truth) => truth[*i].as_slice(),
+            None => source.emitters[*i].as_slice(),
+        })
+        .collect();
+    let within = map(within_targets(&realised, &true_centroids, height, width), 1);
     let within_loss = (log_sigmoid(within_logit.clone()) * within.clone()
         + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0))
     .sum()
@@ -399,12 +416,22 @@ fn train_and_select(
             Some(params)
         }
     };
+    let teacher = match (settings.teacher_particles, fresh_frames) {
+        (0, _) => None,
+        (_, None) => crate::bail_input!(
+            "training.teacher_particles: posterior-mean targets need the simulator parameters of the training frames (a dataset the manifest simulates, or `scanloc train`)"
+        ),
+        (particles, Some(microscope)) => Some(teacher_targets(
+            training, microscope, particles, seed, progress,
+        )?),
+    };
     let job = Job {
         arch,
         settings,
         training,
         selection,
         fresh_params,
+        teacher: teacher.as_deref(),
     };
     let mut nets = Vec::with_capacity(settings.members);
     let mut records = Vec::with_capacity(settings.members);
@@ -423,6 +450,59 @@ fn train_and_select(
         records.push(record);
     }
     TrainedCnn::from_members(arch.clone(), settings.clone(), nets, records)
+}
+
+/// What the score map and the offsets of `training`'s frames learn with a
+/// teacher (`settings.teacher_particles` > 0): for every frame that holds
+/// exactly one QD, the likelihood detector's posterior mean of its
+/// trajectory centroid given the frame (`particles` particles, under
+/// `microscope`, the simulator parameters the frames were made with, its
+/// distributions of D, brightness and background as the priors), in place
+/// of the true centroid; frames with none or several QDs keep their truth.
+///
+/// The true centroid is one draw from the posterior around that mean, so
+/// the mean is the same target without the draw's noise (at D = 1.75 the
+/// draw scatters by ≈ 1.4 px): the network learns what the frame tells
+/// from fewer frames. Frame `i` draws from ChaCha8 stream `i` of a seed of
+/// its own derived from the training seed, so the targets, like the rest
+/// of the training, are fixed by the seed. `progress` counts the frames
+/// while they are computed, then is handed back with its message.
+pub fn teacher_targets(
+    training: &Dataset,
+    microscope: &SimParams,
+    particles: usize,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
+    let truth = truth_by_frame(&training.truth, training.frames.n)?;
+    let settings = crate::detect::likelihood::LikelihoodParams {
+        particles,
+        ..Default::default()
+    };
+    let task = progress.message();
+    progress.set_length(training.frames.n as u64);
+    progress.set_position(0);
+    progress.set_message(format!("{task}: posterior targets"));
+    let posterior = crate::detect::likelihood::locate_stack(
+        &training.frames,
+        microscope,
+        &settings,
+        stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+        progress,
+    )
+    .context("training.teacher_particles: the teacher's posterior targets")?;
+    progress.set_message(task);
+    Ok(truth
+        .into_iter()
+        .zip(posterior)
+        .map(|(centroids, mean)| {
+            if centroids.len() == 1 {
+                vec![(mean.x, mean.y)]
+            } else {
+                centroids
+            }
+        })
+        .collect())
 }
 
 /// The seed ensemble member `index` (0-based) trains from: the training
@@ -477,6 +557,9 @@ struct Job<'a> {
     training: &'a Dataset,
     selection: Selection<'a>,
     fresh_params: Option<&'a SimParams>,
+    /// Per frame of `training`, the positions its score map and offsets
+    /// learn instead of the truth ([`teacher_targets`]).
+    teacher: Option<&'a [Vec<(f64, f64)>]>,
 }
 
 /// Trains one network from `seed` (its initialisation, validation split,
@@ -495,6 +578,7 @@ fn train_member(
         training,
         selection,
         fresh_params,
+        teacher,
     } = job;
     let n = training.frames.n;
     let emitters = truth_by_frame(&training.truth, n)?;
@@ -533,9 +617,17 @@ fn train_member(
         );
     }
 
-    let fixed = Source {
-        frames: &training.frames,
-        emitters,
+    let fixed = match teacher {
+        Some(taught) => Source {
+            frames: &training.frames,
+            emitters: taught.to_vec(),
+            true_centroids: Some(emitters),
+        },
+        None => Source {
+            frames: &training.frames,
+            emitters,
+            true_centroids: None,
+        },
     };
     let device = super::inference_device().autodiff();
     let init_seed = stream(seed, STREAM_INIT, 0).random::<u64>();
@@ -573,6 +665,7 @@ fn train_member(
         };
         let fresh = Source {
             emitters: truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?,
+            true_centroids: None,
             frames: &fresh_dataset.frames,
         };
         let mut items: Vec<(&Source, usize)> = training_indices
