@@ -49,6 +49,21 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
                 ),
             ));
         }
+        if settings.teacher_particles > 0
+            && let Err(refusal) = crate::detect::likelihood::LikelihoodParams::default()
+                .check_microscope(&training.params)
+        {
+            return Err(problem(
+                &[
+                    "detectors",
+                    &detector.name,
+                    "cnn",
+                    "training",
+                    "teacher_particles",
+                ],
+                format!("the teacher cannot model `{}`: {refusal}", training.name),
+            ));
+        }
         if held_out > 0 {
             scored.push((
                 training.name.as_str(),
