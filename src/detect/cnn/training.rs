@@ -80,6 +80,14 @@ struct Source<'a> {
     true_centroids: Option<Vec<Vec<(f64, f64)>>>,
 }
 
+impl Source<'_> {
+    /// The true centroids of frame `i`, which the within-1-px head learns
+    /// against.
+    fn truth(&self, i: usize) -> &[(f64, f64)] {
+        self.true_centroids.as_ref().unwrap_or(&self.emitters)[i].as_slice()
+    }
+}
+
 /// Frames `indices` of `dataset` as a new dataset, frames renumbered 0…
 fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
     let frames = &dataset.frames;
@@ -230,13 +238,8 @@ fn batch_loss(
         .into_data()
         .try_to_vec::<f32>()
         .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
-    let true_centroids: Vec<&[(f64, f64)]> = items
-        .iter()
-        .map(|(source, i)| match &source.true_centroids {
-            Some(truth) => truth[*i].as_slice(),
-            None => source.emitters[*i].as_slice(),
-        })
-        .collect();
+    let true_centroids: Vec<&[(f64, f64)]> =
+        items.iter().map(|(source, i)| source.truth(*i)).collect();
     let within = map(within_targets(&realised, &true_centroids, height, width), 1);
     let within_loss = (log_sigmoid(within_logit.clone()) * within.clone()
         + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0))
@@ -617,17 +620,14 @@ fn train_member(
         );
     }
 
-    let fixed = match teacher {
-        Some(taught) => Source {
-            frames: &training.frames,
-            emitters: taught.to_vec(),
-            true_centroids: Some(emitters),
-        },
-        None => Source {
-            frames: &training.frames,
-            emitters,
-            true_centroids: None,
-        },
+    let (emitters, true_centroids) = match teacher {
+        Some(taught) => (taught.to_vec(), Some(emitters)),
+        None => (emitters, None),
+    };
+    let fixed = Source {
+        frames: &training.frames,
+        emitters,
+        true_centroids,
     };
     let device = super::inference_device().autodiff();
     let init_seed = stream(seed, STREAM_INIT, 0).random::<u64>();
