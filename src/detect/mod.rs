@@ -2,5 +2,6 @@
 //! pixel coordinates (`x` column, `y` row, pixel centres at integers).
 
 pub mod cnn;
+pub mod cpu;
 pub mod crocker_grier;
 pub mod likelihood;

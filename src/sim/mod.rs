@@ -115,11 +115,23 @@ impl Precomputed {
         if dy2 > self.cutoff2 {
             return 0.0;
         }
-        let r2 = dx * dx + dy2;
+        let (r2, exponent) = self.psf_terms(dx, dy, z);
         if r2 > self.cutoff2 {
             return 0.0;
         }
-        amplitude * (-(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2).exp()
+        amplitude * exponent.exp()
+    }
+
+    /// The squared lateral distance (µm²) of offset `(dx, dy)` µm and the
+    /// scanned PSF's exponent there at depth `z` µm: within the cut-off a
+    /// sample's photons are the amplitude times the exponent's exponential.
+    #[inline(always)]
+    fn psf_terms(&self, dx: f64, dy: f64, z: f64) -> (f64, f64) {
+        let r2 = dx * dx + dy * dy;
+        (
+            r2,
+            -(r2 * self.inv_two_sigma_xy2) - z * z * self.inv_two_sigma_z2,
+        )
     }
 }
 
@@ -184,6 +196,17 @@ impl ScanModel {
     #[inline(always)]
     pub fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
         self.pre.sample_photons(self.amplitude, dx, dy, z)
+    }
+
+    /// [`sample_photons`](Self::sample_photons) with the exponential
+    /// supplied by the caller (a vectorisable one in the likelihood
+    /// detector's inner loop): `amplitude · exp(exponent)` within the
+    /// cut-off, exactly 0 beyond it, without a branch.
+    #[inline(always)]
+    pub fn sample_photons_with(&self, dx: f64, dy: f64, z: f64, exp: impl Fn(f64) -> f64) -> f64 {
+        let (r2, exponent) = self.pre.psf_terms(dx, dy, z);
+        let photons = self.amplitude * exp(exponent);
+        if r2 <= self.pre.cutoff2 { photons } else { 0.0 }
     }
 
     /// Standard deviations (µm per axis) of the Brownian step between two

@@ -458,7 +458,7 @@ pub const CODE_VERSION: &str = "scanloc-cnn/2";
 /// (`training.teacher_particles` > 0): the training's and the likelihood
 /// detector's ([`crate::detect::likelihood::CODE_VERSION`]), whose
 /// predictions became its targets, so a change to either renews it.
-pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/2+scanloc-likelihood/1";
+pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/2+scanloc-likelihood/2";
 /// Version of the decoding (output maps → predictions: peaks, positions,
 /// scores, σ), the code version of every CNN prediction's content key:
 /// bump its second part when a change alters predictions but not the

@@ -39,10 +39,13 @@ use crate::sim::gaussian::standard_normal_from_bits;
 use crate::sim::{DetectorNoise, Distribution, ScanModel, SimParams, frame_rng};
 use crate::types::{FrameStack, Prediction};
 
+mod kernels;
+mod vector_math;
+
 /// Version of the localiser's output, part of the content key of every
 /// prediction it makes in the registry: bump it whenever a change alters
 /// any prediction.
-pub const CODE_VERSION: &str = "scanloc-likelihood/1";
+pub const CODE_VERSION: &str = "scanloc-likelihood/2";
 
 /// Resample when the effective sample size falls below this fraction of
 /// the particles (the usual choice: rare enough to keep the paths diverse,
@@ -307,13 +310,7 @@ impl Filter<'_> {
                         *z += sd * standard_normal_from_bits(bits[2], &mut rng);
                     }
                 }
-                let positions = p.x.iter().zip(&p.y).zip(&p.z);
-                let accumulators = p.sum_x.iter_mut().zip(&mut p.sum_y).zip(&mut p.signal);
-                for (((x, y), z), ((sum_x, sum_y), signal)) in positions.zip(accumulators) {
-                    *sum_x += x;
-                    *sum_y += y;
-                    *signal += self.scan.sample_photons(x - beam_x, y - beam_y, *z);
-                }
+                kernels::accumulate_sample(&self.scan, beam_x, beam_y, p);
                 if (k + 1) % substeps == 0 {
                     let count = f64::from(counts[row * width + k / substeps]);
                     self.weigh_pixel(p, count, background, &mut rng);
@@ -348,28 +345,16 @@ impl Filter<'_> {
         background: PixelBackground,
         rng: &mut ChaCha8Rng,
     ) {
-        let (mut total, mut total_squares) = (0.0, 0.0);
-        for (i, (weight, signal)) in p.weight.iter_mut().zip(p.signal.iter_mut()).enumerate() {
-            let mut s = std::mem::take(signal);
-            if let Some(scale) = p.brightness_scale.get(i) {
-                s *= scale;
+        match background {
+            PixelBackground::Known(background) if background > 0.0 => {
+                kernels::weigh_known_background(p, count, background);
             }
-            match background {
-                PixelBackground::Known(background) => {
-                    if s > 0.0 {
-                        *weight *= poisson_likelihood_ratio(count, s, background);
-                    } else if background <= 0.0 && count > 0.0 {
-                        // No light expected, yet photons counted: impossible.
-                        *weight = 0.0;
-                    }
-                }
-                PixelBackground::PerParticle { reference } => {
-                    *weight *= poisson_ratio_to_reference(count, p.background[i] + s, reference);
-                }
+            PixelBackground::Known(_) => weigh_without_background(p, count),
+            PixelBackground::PerParticle { reference } => {
+                kernels::weigh_own_background(p, count, reference);
             }
-            total += *weight;
-            total_squares += *weight * *weight;
         }
+        let (total, total_squares) = kernels::sum_and_sum_of_squares(&p.weight);
         if !(total > 0.0 && total.is_finite() && total_squares.is_finite()) {
             // No particle explains this pixel (only possible without
             // background): the pixel is ignored rather than the frame lost.
@@ -436,26 +421,22 @@ fn is_spread(distribution: &Distribution) -> bool {
     low < high
 }
 
-/// P(count | mean) / P(count | reference) for Poisson counts, `reference`
-/// > 0 (0 when `mean` is 0 and photons were counted).
-#[inline]
-fn poisson_ratio_to_reference(count: f64, mean: f64, reference: f64) -> f64 {
-    let log_ratio = if count > 0.0 {
-        count * (mean / reference).ln()
-    } else {
-        0.0
-    };
-    (log_ratio - (mean - reference)).exp()
-}
-
-/// P(count | background + signal) / P(count | background) for Poisson
-/// counts (the likelihood itself when there is no background).
-#[inline]
-fn poisson_likelihood_ratio(count: f64, signal: f64, background: f64) -> f64 {
-    if background > 0.0 {
-        (count * (signal / background).ln_1p() - signal).exp()
-    } else {
-        (count * signal.ln() - signal).exp()
+/// Multiplies each particle's weight by the Poisson likelihood of `count`
+/// photons given its signal when the pixel has no background (only a
+/// microscope without background: rare, so not vectorised), and resets the
+/// pixel accumulators. No light expected yet photons counted is impossible:
+/// weight 0.
+fn weigh_without_background(p: &mut Particles, count: f64) {
+    for (i, (weight, signal)) in p.weight.iter_mut().zip(p.signal.iter_mut()).enumerate() {
+        let mut s = std::mem::take(signal);
+        if let Some(scale) = p.brightness_scale.get(i) {
+            s *= scale;
+        }
+        if s > 0.0 {
+            *weight *= (count * s.ln() - s).exp();
+        } else if count > 0.0 {
+            *weight = 0.0;
+        }
     }
 }
 
@@ -571,10 +552,67 @@ mod tests {
                 // Without background: the probability times count!.
                 poisson(count, signal) * (1..=count).map(f64::from).product::<f64>()
             };
-            let got = poisson_likelihood_ratio(f64::from(count), signal, background);
+            let mut p = Particles {
+                weight: vec![1.0],
+                signal: vec![signal],
+                ..Particles::default()
+            };
+            if background > 0.0 {
+                kernels::weigh_known_background(&mut p, f64::from(count), background);
+            } else {
+                weigh_without_background(&mut p, f64::from(count));
+            }
+            let got = p.weight[0];
             assert!(
                 (got - expected).abs() <= 1e-12 * expected,
                 "{got} vs {expected}"
+            );
+            assert_eq!(p.signal[0], 0.0, "the pixel accumulator is reset");
+            // Each particle's own background, against a reference one.
+            let (own, reference) = (background + 1.0, 6.0);
+            let mut p = Particles {
+                weight: vec![1.0],
+                signal: vec![signal],
+                background: vec![own],
+                ..Particles::default()
+            };
+            kernels::weigh_own_background(&mut p, f64::from(count), reference);
+            let expected = poisson(count, own + signal) / poisson(count, reference);
+            assert!(
+                (p.weight[0] - expected).abs() <= 1e-12 * expected,
+                "{} vs {expected}",
+                p.weight[0]
+            );
+        }
+        // No light expected, yet photons counted: impossible.
+        let mut p = Particles {
+            weight: vec![1.0, 1.0],
+            signal: vec![0.0, 0.0],
+            background: vec![0.0, 0.0],
+            ..Particles::default()
+        };
+        kernels::weigh_own_background(&mut p, 2.0, 6.0);
+        assert_eq!(p.weight[0], 0.0);
+        let mut p = Particles {
+            weight: vec![1.0],
+            signal: vec![0.0],
+            ..Particles::default()
+        };
+        weigh_without_background(&mut p, 2.0);
+        assert_eq!(p.weight[0], 0.0);
+    }
+
+    #[test]
+    fn weight_sums_are_those_of_the_weights_in_any_length() {
+        for n in [0usize, 1, 3, 4, 5, 9, 500] {
+            let weights: Vec<f64> = (0..n).map(|i| 0.5 + i as f64).collect();
+            let (sum, squares) = kernels::sum_and_sum_of_squares(&weights);
+            let exact: f64 = weights.iter().sum();
+            let exact_squares: f64 = weights.iter().map(|w| w * w).sum();
+            assert!((sum - exact).abs() <= 1e-12 * exact.max(1.0), "{n}");
+            assert!(
+                (squares - exact_squares).abs() <= 1e-12 * exact_squares.max(1.0),
+                "{n}"
             );
         }
     }

@@ -11,7 +11,8 @@
 
 use rayon::prelude::*;
 
-use super::{Geometry, has_avx2_fma, has_avx512};
+use super::Geometry;
+use crate::detect::cpu::{has_avx2_fma, has_avx512};
 
 /// One convolution's parameters.
 #[derive(Debug, Clone, Copy)]
