@@ -113,10 +113,14 @@ pub struct TrainArgs {
     /// Posterior targets: the score map and offsets of the simulated
     /// training frames learn the likelihood detector's posterior mean of
     /// each QD's centroid, computed with this many particles per frame,
-    /// instead of the true centroid (0 = the truth; 2,000 takes ≈ 35 ms of
+    /// instead of the true centroid (0 = the truth; 2,000 takes ≈ 17 ms of
     /// CPU per 24 × 25 frame).
     #[arg(long)]
     teacher_particles: Option<usize>,
+    /// With --teacher-particles: teach every epoch's fresh frames too
+    /// (--fresh-frames-per-epoch), at the teacher's cost per fresh frame.
+    #[arg(long)]
+    teacher_fresh_frames: bool,
     /// Test frames per test diffusion coefficient (0 = no test).
     #[arg(long, default_value_t = 0)]
     test_frames: usize,
@@ -164,6 +168,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
             .unwrap_or(defaults.within_loss_weight),
         members: args.members.unwrap_or(defaults.members),
         teacher_particles: args.teacher_particles.unwrap_or(defaults.teacher_particles),
+        teacher_fresh_frames: args.teacher_fresh_frames,
     };
     architecture.validate()?;
     settings.validate()?;

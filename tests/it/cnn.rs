@@ -318,6 +318,26 @@ fn bad_settings_are_refused_naming_the_field() {
             "training.teacher_particles",
         ),
         (
+            // Teaching the fresh frames needs a teacher …
+            TrainingSettings {
+                teacher_fresh_frames: true,
+                fresh_frames_per_epoch: 10,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.teacher_fresh_frames",
+        ),
+        (
+            // … and fresh frames.
+            TrainingSettings {
+                teacher_particles: 100,
+                teacher_fresh_frames: true,
+                ..base.clone()
+            },
+            arch.clone(),
+            "training.teacher_fresh_frames",
+        ),
+        (
             // A teacher needs the training frames' simulator parameters
             // (None here).
             TrainingSettings {
@@ -1018,6 +1038,44 @@ fn a_teacher_changes_what_is_learnt_and_the_network_still_localises() {
     // median within 1.5 px, chance ≈ 5 px).
     let test = dataset(40.0, 200, 12);
     let predictions = taught.locate(&test.frames, &hidden()).unwrap();
+    let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
+        .iter()
+        .zip(&test.truth)
+        .map(|(p, t)| p.map_or(f64::INFINITY, |p| (p.x - t.x).hypot(p.y - t.y)))
+        .collect();
+    distances.sort_by(f64::total_cmp);
+    let median = distances[distances.len() / 2];
+    assert!(median < 1.5, "median distance {median:.2} px");
+}
+
+#[test]
+fn teaching_the_fresh_frames_too_changes_what_is_learnt_and_the_network_still_localises() {
+    let data = dataset(40.0, 200, 13);
+    let train = |teacher_fresh_frames| {
+        cnn::train(
+            &tiny_architecture(),
+            &TrainingSettings {
+                teacher_particles: 300,
+                teacher_fresh_frames,
+                fresh_frames_per_epoch: 150,
+                ..tiny_settings(3)
+            },
+            &data,
+            Some(&params(40.0)),
+            5,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let all_taught = train(true);
+    assert!(all_taught.settings.teacher_fresh_frames);
+    let bytes = all_taught.to_bytes().unwrap();
+    assert_ne!(bytes, train(false).to_bytes().unwrap());
+    assert_eq!(bytes, train(true).to_bytes().unwrap());
+    // It learnt the QD's position (median within 1.5 px, chance ≈ 5 px).
+    let test = dataset(40.0, 200, 14);
+    let predictions = all_taught.locate(&test.frames, &hidden()).unwrap();
     let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
         .iter()
         .zip(&test.truth)

@@ -217,16 +217,29 @@ pub struct TrainingSettings {
     /// under the training frames' own simulator parameters, their
     /// distributions of D, brightness and background as priors); the
     /// within-1-px head still learns from the truth, and fresh frames keep
-    /// their truth (docs/detectors.md, "Posterior targets"). Needs the
-    /// simulator parameters of the training frames. Left out of the
-    /// serialised settings when 0, so models trained without a teacher
-    /// keep their bytes and content keys.
+    /// their truth unless `teacher_fresh_frames` (docs/detectors.md,
+    /// "Posterior targets"). Needs the simulator parameters of the training
+    /// frames. Left out of the serialised settings when 0, so models
+    /// trained without a teacher keep their bytes and content keys.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub teacher_particles: usize,
+    /// With a teacher, also label every epoch's fresh frames that hold one
+    /// QD with its posterior means (computed for each epoch's frames as
+    /// they are simulated, from a seed of the member and the epoch): every
+    /// sample the network learns from is taught, at the teacher's cost for
+    /// `fresh_frames_per_epoch × epochs × members` more frames. Needs
+    /// `teacher_particles` > 0 and `fresh_frames_per_epoch` > 0. Left out
+    /// of the serialised settings when false.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub teacher_fresh_frames: bool,
 }
 
 fn is_zero(value: &usize) -> bool {
     *value == 0
+}
+
+fn is_false(value: &bool) -> bool {
+    !*value
 }
 
 /// Most member networks of an ensemble: each costs a full training and a
@@ -258,6 +271,7 @@ impl Default for TrainingSettings {
             within_loss_weight: 1.0,
             members: one_member(),
             teacher_particles: 0,
+            teacher_fresh_frames: false,
         }
     }
 }
@@ -333,6 +347,21 @@ impl TrainingSettings {
                     self.teacher_particles
                 ),
             ));
+        }
+        if self.teacher_fresh_frames {
+            let missing = if self.teacher_particles == 0 {
+                Some("there is no teacher (training.teacher_particles is 0)")
+            } else if self.fresh_frames_per_epoch == 0 {
+                Some("there are no fresh frames (training.fresh_frames_per_epoch is 0)")
+            } else {
+                None
+            };
+            if let Some(missing) = missing {
+                return Err(FieldError::new(
+                    "training.teacher_fresh_frames",
+                    format!("cannot teach the fresh frames: {missing}"),
+                ));
+            }
         }
         if self.offset_radius_px > 16 {
             return Err(FieldError::new(
@@ -862,9 +891,20 @@ mod tests {
         };
         let json = serde_json::to_string(&taught).unwrap();
         assert!(json.contains("\"teacher_particles\":2000"), "{json}");
+        assert!(!json.contains("teacher_fresh_frames"), "{json}");
         assert_eq!(
             serde_json::from_str::<TrainingSettings>(&json).unwrap(),
             taught
+        );
+        let all_taught = TrainingSettings {
+            teacher_fresh_frames: true,
+            ..taught
+        };
+        let json = serde_json::to_string(&all_taught).unwrap();
+        assert!(json.contains("\"teacher_fresh_frames\":true"), "{json}");
+        assert_eq!(
+            serde_json::from_str::<TrainingSettings>(&json).unwrap(),
+            all_taught
         );
     }
 

@@ -461,7 +461,8 @@ fn train_and_select(
 /// trajectory centroid given the frame (`particles` particles, under
 /// `microscope`, the simulator parameters the frames were made with, its
 /// distributions of D, brightness and background as the priors), in place
-/// of the true centroid; frames with none or several QDs keep their truth.
+/// of the true centroid; frames with none or several QDs keep their truth
+/// (and cost the teacher nothing).
 ///
 /// The true centroid is one draw from the posterior around that mean, so
 /// the mean is the same target without the draw's noise (at D = 1.75 the
@@ -469,7 +470,7 @@ fn train_and_select(
 /// from fewer frames. Frame `i` draws from ChaCha8 stream `i` of a seed of
 /// its own derived from the training seed, so the targets, like the rest
 /// of the training, are fixed by the seed. `progress` counts the frames
-/// while they are computed, then is handed back with its message.
+/// while they are computed, then is handed back as it was.
 pub fn teacher_targets(
     training: &Dataset,
     microscope: &SimParams,
@@ -478,34 +479,64 @@ pub fn teacher_targets(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let truth = truth_by_frame(&training.truth, training.frames.n)?;
+    let task = progress.message();
+    let message = if task.is_empty() {
+        "posterior targets".to_string()
+    } else {
+        format!("{task}: posterior targets")
+    };
+    posterior_targets(
+        &training.frames,
+        &truth,
+        microscope,
+        particles,
+        stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+        &message,
+        progress,
+    )
+}
+
+/// Per frame of `frames` (whose true centroids are `truth`), the teacher's
+/// posterior mean for the frames with one QD and the truth for the others,
+/// the filter seeded with `filter_seed`. The progress bar counts the
+/// teacher's frames under `message`, then shows what it showed.
+fn posterior_targets(
+    frames: &FrameStack,
+    truth: &[Vec<(f64, f64)>],
+    microscope: &SimParams,
+    particles: usize,
+    filter_seed: u64,
+    message: &str,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let settings = crate::detect::likelihood::LikelihoodParams {
         particles,
         ..Default::default()
     };
-    let task = progress.message();
-    progress.set_length(training.frames.n as u64);
+    let taught: Vec<usize> = (0..truth.len()).filter(|&i| truth[i].len() == 1).collect();
+    let (length, position, shown) = (progress.length(), progress.position(), progress.message());
+    progress.set_length(taught.len() as u64);
     progress.set_position(0);
-    progress.set_message(format!("{task}: posterior targets"));
-    let posterior = crate::detect::likelihood::locate_stack(
-        &training.frames,
+    progress.set_message(message.to_string());
+    let posterior = crate::detect::likelihood::locate_frames(
+        frames,
+        &taught,
         microscope,
         &settings,
-        stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+        filter_seed,
         progress,
     )
-    .context("training.teacher_particles: the teacher's posterior targets")?;
-    progress.set_message(task);
-    Ok(truth
-        .into_iter()
-        .zip(posterior)
-        .map(|(centroids, mean)| {
-            if centroids.len() == 1 {
-                vec![(mean.x, mean.y)]
-            } else {
-                centroids
-            }
-        })
-        .collect())
+    .context("training.teacher_particles: the teacher's posterior targets");
+    if let Some(length) = length {
+        progress.set_length(length);
+    }
+    progress.set_position(position);
+    progress.set_message(shown);
+    let mut targets = truth.to_vec();
+    for (&index, mean) in taught.iter().zip(posterior?) {
+        targets[index] = vec![(mean.x, mean.y)];
+    }
+    Ok(targets)
 }
 
 /// The seed ensemble member `index` (0-based) trains from: the training
@@ -663,9 +694,25 @@ fn train_member(
             }
             None => Dataset::default(),
         };
+        let fresh_truth = truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?;
+        let (emitters, true_centroids) = match fresh_params {
+            Some(params) if settings.teacher_fresh_frames => {
+                let taught = posterior_targets(
+                    &fresh_dataset.frames,
+                    &fresh_truth,
+                    params,
+                    settings.teacher_particles,
+                    stream(seed, STREAM_TEACHER, epoch as u64).random::<u64>(),
+                    &format!("{label}posterior targets of epoch {epoch}'s fresh frames"),
+                    progress,
+                )?;
+                (taught, Some(fresh_truth))
+            }
+            _ => (fresh_truth, None),
+        };
         let fresh = Source {
-            emitters: truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?,
-            true_centroids: None,
+            emitters,
+            true_centroids,
             frames: &fresh_dataset.frames,
         };
         let mut items: Vec<(&Source, usize)> = training_indices

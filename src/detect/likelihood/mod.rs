@@ -458,6 +458,22 @@ pub fn locate_stack(
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Prediction>> {
+    let all: Vec<usize> = (0..frames.n).collect();
+    locate_frames(frames, &all, microscope, settings, seed, progress)
+}
+
+/// [`locate_stack`] for the frames `which` of `frames` only (indices below
+/// `frames.n`), one prediction each in the order given. Frame `i` still
+/// draws from stream `i` of `seed`, so its prediction is the one
+/// `locate_stack` gives it: leaving frames out changes no other frame's.
+pub fn locate_frames(
+    frames: &FrameStack,
+    which: &[usize],
+    microscope: &SimParams,
+    settings: &LikelihoodParams,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<Prediction>> {
     settings
         .validate()
         .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
@@ -476,19 +492,19 @@ pub fn locate_stack(
             microscope.height, microscope.width, frames.height, frames.width
         )));
     }
+    if let Some(&index) = which.iter().find(|&&index| index >= frames.n) {
+        anyhow::bail!("frame {index} asked of a stack of {} frames", frames.n);
+    }
     let filter = Filter {
         scan: ScanModel::new(&microscope),
         microscope,
         settings,
         seed,
     };
-    Ok(frames
-        .data
-        .par_chunks(frames.frame_len().max(1))
-        .take(frames.n)
-        .enumerate()
-        .map_init(Particles::default, |particles, (index, counts)| {
-            let prediction = filter.locate_frame(index, counts, particles);
+    Ok(which
+        .par_iter()
+        .map_init(Particles::default, |particles, &index| {
+            let prediction = filter.locate_frame(index, frames.frame(index), particles);
             progress.inc(1);
             prediction
         })
@@ -730,6 +746,26 @@ mod tests {
         )
         .unwrap();
         assert_ne!(one, other_seed);
+        // Some frames only: each the prediction the whole stack gives it.
+        let some = locate_frames(
+            &dataset.frames,
+            &[3, 1],
+            &microscope,
+            &settings(300),
+            9,
+            &crate::progress::hidden(),
+        )
+        .unwrap();
+        assert_eq!(some, [one[3], one[1]]);
+        let beyond = locate_frames(
+            &dataset.frames,
+            &[5],
+            &microscope,
+            &settings(300),
+            9,
+            &crate::progress::hidden(),
+        );
+        assert!(beyond.is_err());
     }
 
     #[test]
