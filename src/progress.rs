@@ -46,6 +46,7 @@ pub fn logged(
         interval,
         state: Mutex::new(LogState {
             sink,
+            drawn: Vec::new(),
             pending: String::new(),
             last: Instant::now(),
         }),
@@ -119,9 +120,11 @@ pub fn hidden() -> ProgressBar {
     ProgressBar::hidden()
 }
 
-/// indicatif's terminal, turned into a log: each redraw replaces the
-/// pending line, and a flush writes it out if `interval` has passed since
-/// the last line written.
+/// indicatif's terminal, turned into a log. A redraw writes the lines
+/// printed above the bar (`ProgressBar::println`: an epoch's summary, a
+/// finished task) and then the bar's own line, and ends with a flush: the
+/// printed lines are logged at once, each once; the bar's line replaces the
+/// pending one, logged if `interval` has passed since the last bar line.
 struct LogLines {
     interval: Duration,
     state: Mutex<LogState>,
@@ -129,6 +132,8 @@ struct LogLines {
 
 struct LogState {
     sink: Box<dyn Write + Send>,
+    /// The non-blank lines of the redraw under way; the last is the bar's.
+    drawn: Vec<String>,
     pending: String,
     last: Instant,
 }
@@ -178,7 +183,7 @@ impl TermLike for LogLines {
     fn write_str(&self, text: &str) -> std::io::Result<()> {
         self.with_state(|state| {
             if !text.trim().is_empty() {
-                state.pending = text.trim().to_string();
+                state.drawn.push(text.trim().to_string());
             }
         })
     }
@@ -190,7 +195,15 @@ impl TermLike for LogLines {
     fn flush(&self) -> std::io::Result<()> {
         let interval = self.interval;
         self.with_state(|state| {
+            if let Some(bar) = state.drawn.pop() {
+                // A closed stderr must not stop the work.
+                for printed in std::mem::take(&mut state.drawn) {
+                    let _ = writeln!(state.sink, "{printed}");
+                }
+                state.pending = bar;
+            }
             if state.pending.is_empty() || state.last.elapsed() < interval {
+                let _ = state.sink.flush();
                 return;
             }
             // A closed stderr must not stop the work.
@@ -226,6 +239,30 @@ mod tests {
         fn flush(&mut self) -> std::io::Result<()> {
             Ok(())
         }
+    }
+
+    /// Lines printed above the bar (an epoch's summary) reach the log at
+    /// once and once each, however often the bar is redrawn.
+    #[test]
+    fn lines_printed_above_a_logged_bar_are_logged_at_once() {
+        let sink = Shared::default();
+        let bar = logged(
+            10,
+            "training",
+            Duration::from_secs(3600),
+            Box::new(sink.clone()),
+        );
+        bar.inc(1);
+        bar.println("epoch 1: loss 2.5");
+        bar.inc(1);
+        bar.println("epoch 2: loss 2.1");
+        for _ in 0..3 {
+            bar.inc(1);
+            bar.tick();
+        }
+        let text = sink.text();
+        // The bar's own line waits for its interval (an hour here).
+        assert_eq!(text, "epoch 1: loss 2.5\nepoch 2: loss 2.1\n");
     }
 
     #[test]
