@@ -70,6 +70,20 @@ fn top_per_frame(predictions: &[Prediction], frames: usize) -> Vec<Option<Predic
     top
 }
 
+/// The median distance (px) from each frame's top prediction by `model` to
+/// its QD's centroid, over the one-QD frames of `test` (∞ where a frame has
+/// no prediction).
+fn median_top_distance_px(model: &TrainedCnn, test: &Dataset) -> f64 {
+    let predictions = model.locate(&test.frames, &hidden()).unwrap();
+    let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
+        .iter()
+        .zip(&test.truth)
+        .map(|(p, t)| p.map_or(f64::INFINITY, |p| (p.x - t.x).hypot(p.y - t.y)))
+        .collect();
+    distances.sort_by(f64::total_cmp);
+    distances[distances.len() / 2]
+}
+
 fn is_input_error(error: &anyhow::Error) -> bool {
     error.chain().any(|cause| cause.is::<InputError>())
 }
@@ -1037,14 +1051,7 @@ fn a_teacher_changes_what_is_learnt_and_the_network_still_localises() {
     // It learnt the QD's position (as in the first test of this file:
     // median within 1.5 px, chance ≈ 5 px).
     let test = dataset(40.0, 200, 12);
-    let predictions = taught.locate(&test.frames, &hidden()).unwrap();
-    let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
-        .iter()
-        .zip(&test.truth)
-        .map(|(p, t)| p.map_or(f64::INFINITY, |p| (p.x - t.x).hypot(p.y - t.y)))
-        .collect();
-    distances.sort_by(f64::total_cmp);
-    let median = distances[distances.len() / 2];
+    let median = median_top_distance_px(&taught, &test);
     assert!(median < 1.5, "median distance {median:.2} px");
 }
 
@@ -1075,13 +1082,6 @@ fn teaching_the_fresh_frames_too_changes_what_is_learnt_and_the_network_still_lo
     assert_eq!(bytes, train(true).to_bytes().unwrap());
     // It learnt the QD's position (median within 1.5 px, chance ≈ 5 px).
     let test = dataset(40.0, 200, 14);
-    let predictions = all_taught.locate(&test.frames, &hidden()).unwrap();
-    let mut distances: Vec<f64> = top_per_frame(&predictions, test.frames.n)
-        .iter()
-        .zip(&test.truth)
-        .map(|(p, t)| p.map_or(f64::INFINITY, |p| (p.x - t.x).hypot(p.y - t.y)))
-        .collect();
-    distances.sort_by(f64::total_cmp);
-    let median = distances[distances.len() / 2];
+    let median = median_top_distance_px(&all_taught, &test);
     assert!(median < 1.5, "median distance {median:.2} px");
 }
