@@ -157,7 +157,7 @@ fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
 ///
 /// The model's N_qd is the largest `params.brightness` can take (the
 /// value, when it is fixed); a model of frames of another N_qd scales
-/// [`ScanModel::sample_photons`] by the ratio (photons are proportional to
+/// [`ScanModel::sample_photons_with`] by the ratio (photons are proportional to
 /// N_qd).
 pub struct ScanModel {
     pre: Precomputed,
@@ -192,16 +192,10 @@ impl ScanModel {
     /// Expected photons one PSF sample adds to its pixel (already divided
     /// by `substeps`, so a pixel's signal is the sum over its samples), for
     /// a QD of the model's N_qd at lateral offset `(dx, dy)` µm from the
-    /// beam and depth `z` µm; exactly 0 beyond the PSF cut-off.
-    #[inline(always)]
-    pub fn sample_photons(&self, dx: f64, dy: f64, z: f64) -> f64 {
-        self.pre.sample_photons(self.amplitude, dx, dy, z)
-    }
-
-    /// [`sample_photons`](Self::sample_photons) with the exponential
-    /// supplied by the caller (a vectorisable one in the likelihood
-    /// detector's inner loop): `amplitude · exp(exponent)` within the
-    /// cut-off, exactly 0 beyond it, without a branch.
+    /// beam and depth `z` µm: the simulator's PSF terms with the
+    /// exponential supplied by the caller (a vectorisable one in the
+    /// likelihood detector's inner loop), `amplitude · exp(exponent)` within
+    /// the cut-off, exactly 0 beyond it, without a branch.
     #[inline(always)]
     pub fn sample_photons_with(&self, dx: f64, dy: f64, z: f64, exp: impl Fn(f64) -> f64) -> f64 {
         let (r2, exponent) = self.pre.psf_terms(dx, dy, z);

@@ -95,7 +95,7 @@ fn weigh_own_portable(p: &mut Particles, count: f64, reference: f64) {
 /// Each particle's pixel signal at its own N_qd, where it has one (the
 /// model's signal is at the model's N_qd).
 #[inline(always)]
-fn scale_signals(p: &mut Particles) {
+pub(super) fn scale_signals(p: &mut Particles) {
     if !p.brightness_scale.is_empty() {
         for (signal, scale) in p.signal.iter_mut().zip(&p.brightness_scale) {
             *signal *= scale;

@@ -12,7 +12,7 @@
 //! ([`ScanModel::step_sds`]: along a row, or across a retrace); at the end
 //! of every pixel its weight is multiplied by the Poisson likelihood of the
 //! pixel's count given the expected photons of its path
-//! ([`ScanModel::sample_photons`] summed over the dwell, plus background).
+//! ([`ScanModel::sample_photons_with`] summed over the dwell, plus background).
 //! When the effective sample size falls below half the particles they are
 //! resampled (systematic resampling), carrying their position sums along:
 //! at the end of the frame each surviving particle's sum is the centroid of
@@ -427,11 +427,9 @@ fn is_spread(distribution: &Distribution) -> bool {
 /// pixel accumulators. No light expected yet photons counted is impossible:
 /// weight 0.
 fn weigh_without_background(p: &mut Particles, count: f64) {
-    for (i, (weight, signal)) in p.weight.iter_mut().zip(p.signal.iter_mut()).enumerate() {
-        let mut s = std::mem::take(signal);
-        if let Some(scale) = p.brightness_scale.get(i) {
-            s *= scale;
-        }
+    kernels::scale_signals(p);
+    for (weight, signal) in p.weight.iter_mut().zip(&mut p.signal) {
+        let s = std::mem::take(signal);
         if s > 0.0 {
             *weight *= (count * s.ln() - s).exp();
         } else if count > 0.0 {
