@@ -88,6 +88,9 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
         write_reference_spread_table(&mut artefacts, &mut markdown, &evaluations, reference)?;
     }
     write_bound_comparison_table(&mut artefacts, &mut markdown, &evaluations)?;
+    if let Some(reference) = reference {
+        write_reference_bound_table(&mut artefacts, &mut markdown, &evaluations, reference)?;
+    }
     write_scene_table(&mut markdown, &evaluations)?;
     write_calibration_table(&mut markdown, &evaluations)?;
     write_uncertainty_table(&mut markdown, &evaluations)?;
@@ -489,29 +492,7 @@ fn write_reference_spread_table<'k>(
         "| detector | dataset | ε (px) | AUC | standard error | 95 % interval | reference | difference | its standard error | verdict |"
     )?;
     writeln!(markdown, "|---|---|---|---|---|---|---|---|---|---|")?;
-    let mut inputs = Vec::with_capacity(compared.len());
-    for evaluation in compared {
-        let data = artefacts.dataset(&evaluation.dataset_key)?;
-        let located = artefacts.predictions(&evaluation.predictions_key)?;
-        inputs.push((evaluation, data, located));
-    }
-    // The bootstraps in parallel (each seeded on its own, so the figures do
-    // not depend on the thread count), the rows in the evaluations' order.
-    let spreads: Vec<Vec<AucSpread>> = inputs
-        .par_iter()
-        .map(|(evaluation, data, located)| {
-            let eps: Vec<f64> = evaluation.score.per_eps.iter().map(|s| s.eps_px).collect();
-            bootstrap_auc(
-                located,
-                &data.truth,
-                data.frames.n,
-                &eps,
-                REPORT_RESAMPLES,
-                REPORT_BOOTSTRAP_SEED,
-            )
-        })
-        .collect::<anyhow::Result<_>>()?;
-    for ((evaluation, _, _), spreads) in inputs.iter().zip(spreads) {
+    for (evaluation, spreads) in bootstrap_each(artefacts, compared)? {
         for spread in spreads {
             let Some(theirs) =
                 reference.auc(&evaluation.detector, &evaluation.dataset, spread.eps_px)
@@ -537,6 +518,41 @@ fn write_reference_spread_table<'k>(
         }
     }
     Ok(())
+}
+
+/// Each evaluation's AUC per ε with the standard error and 95 % interval of
+/// the report's bootstrap over its test set's frames, in the evaluations'
+/// order. The bootstraps run in parallel, each seeded on its own, so the
+/// figures do not depend on the thread count.
+fn bootstrap_each<'e>(
+    artefacts: &mut Artefacts<'_, 'e>,
+    evaluations: Vec<&'e Evaluation>,
+) -> anyhow::Result<Vec<(&'e Evaluation, Vec<AucSpread>)>> {
+    let mut inputs = Vec::with_capacity(evaluations.len());
+    for evaluation in evaluations {
+        let data = artefacts.dataset(&evaluation.dataset_key)?;
+        let located = artefacts.predictions(&evaluation.predictions_key)?;
+        inputs.push((evaluation, data, located));
+    }
+    let spreads: Vec<Vec<AucSpread>> = inputs
+        .par_iter()
+        .map(|(evaluation, data, located)| {
+            let eps: Vec<f64> = evaluation.score.per_eps.iter().map(|s| s.eps_px).collect();
+            bootstrap_auc(
+                located,
+                &data.truth,
+                data.frames.n,
+                &eps,
+                REPORT_RESAMPLES,
+                REPORT_BOOTSTRAP_SEED,
+            )
+        })
+        .collect::<anyhow::Result<_>>()?;
+    Ok(inputs
+        .into_iter()
+        .map(|(evaluation, _, _)| evaluation)
+        .zip(spreads)
+        .collect())
 }
 
 /// A difference from a reference judged against both figures' luck.
@@ -654,6 +670,82 @@ fn write_bound_comparison_table<'k>(
                 c.interval_95.0,
                 c.interval_95.1,
             )?;
+        }
+    }
+    Ok(())
+}
+
+/// Whether a reference figure can be beaten at all: each attainable bound
+/// (a `likelihood` detector) scored on a test set the reference has figures
+/// for, beside every reference row's figure there, judged as the reference
+/// table judges a detector (the bound's bootstrap standard error, √2 times it
+/// for the difference, twice that plus the reference's rounding as the
+/// margin). A figure the bound is level with or behind cannot be beaten by a
+/// margin on this test set by any method that sees only the frames (and is
+/// told no more than the bound). Nothing without such a bound.
+fn write_reference_bound_table<'k>(
+    artefacts: &mut Artefacts<'_, 'k>,
+    markdown: &mut String,
+    evaluations: &'k [Evaluation],
+    reference: &Reference,
+) -> anyhow::Result<()> {
+    let bounds: Vec<&Evaluation> = evaluations
+        .iter()
+        .filter(|bound| {
+            bound.detector_kind == "likelihood"
+                && bound.score.per_eps.iter().any(|s| {
+                    reference
+                        .rows
+                        .iter()
+                        .any(|row| row.auc(&bound.dataset, s.eps_px).is_some())
+                })
+        })
+        .collect();
+    if bounds.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        markdown,
+        "\n## The reference against the attainable bound\n"
+    )?;
+    writeln!(
+        markdown,
+        "Each likelihood bound's AUC on a test set the reference has figures for, with its \
+         bootstrap standard error ({REPORT_RESAMPLES} resamples, seed {REPORT_BOOTSTRAP_SEED}), \
+         beside each reference figure: the bound is *ahead* of the figure when it exceeds it by \
+         more than twice √2 times that error plus the figure's rounding (as in the reference \
+         table), *behind* when it falls short by as much, *level* otherwise. Where the bound is \
+         level with or behind a figure, no method that sees only the frames (and is told no more \
+         than the bound) can be ahead of that figure by a margin on this test set: the cell \
+         cannot be won under this simulator (docs/metric.md, \"The test set's luck\").\n"
+    )?;
+    writeln!(
+        markdown,
+        "| bound | dataset | ε (px) | bound's AUC | standard error | reference | reference's AUC | bound − reference | its standard error | the bound is |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|---|---|---|")?;
+    for (bound, spreads) in bootstrap_each(artefacts, bounds)? {
+        for spread in spreads {
+            for row in &reference.rows {
+                let Some(theirs) = row.auc(&bound.dataset, spread.eps_px) else {
+                    continue;
+                };
+                let verdict =
+                    LuckVerdict::of(spread.auc - theirs, spread.standard_error, rounding(theirs));
+                writeln!(
+                    markdown,
+                    "| {} | {} | {} | {:.3} | {:.3} | {} | {theirs} | {:+.3} | {:.3} | {} |",
+                    bound.detector,
+                    bound.dataset,
+                    spread.eps_px,
+                    spread.auc,
+                    spread.standard_error,
+                    row.label,
+                    spread.auc - theirs,
+                    verdict.standard_error,
+                    verdict.word,
+                )?;
+            }
         }
     }
     Ok(())
