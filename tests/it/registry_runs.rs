@@ -815,6 +815,51 @@ fn the_paper_manifests_content_keys_are_stable() {
     assert_eq!(planned, recorded);
 }
 
+/// The companion manifests say they reuse the paper run's artefacts (the
+/// bound's and the scenes' comparison with the paper's CNN is served from
+/// the registry after `make reproduce-paper`): every step they share with
+/// the paper manifest by name must have the paper's key, the trained CNN's
+/// among them. A detector edited in one manifest and not the other would
+/// silently train a second, different "paper CNN".
+#[test]
+fn the_companion_manifests_reuse_the_paper_runs_artefacts() {
+    let plan_of = |path: &str| {
+        let manifest = scanloc::manifest::load(std::path::Path::new(path)).unwrap();
+        scanloc::run::Plan::from_manifest(&manifest)
+            .unwrap()
+            .steps
+            .into_iter()
+            .map(|step| (step.id, step.key))
+            .collect::<std::collections::BTreeMap<String, String>>()
+    };
+    let paper = plan_of("experiments/paper.yaml");
+    for (companion, must_share) in [
+        (
+            "experiments/bound.yaml",
+            &[
+                "model/cnn",
+                "predictions/cnn@test-1.75",
+                "dataset/test-0.75",
+                "predictions/trackpy@test-1.00",
+            ][..],
+        ),
+        (
+            "experiments/scenes.yaml",
+            &["model/cnn", "dataset/train"][..],
+        ),
+    ] {
+        let plan = plan_of(companion);
+        for step in must_share {
+            assert!(plan.contains_key(*step), "{companion} has no step {step}");
+        }
+        for (step, key) in &plan {
+            if let Some(paper_key) = paper.get(step) {
+                assert_eq!(key, paper_key, "{companion}: {step}");
+            }
+        }
+    }
+}
+
 /// A teacher (`training.teacher_particles`) is part of what a model is: the
 /// same manifest with one gives the CNN a model key of its own (and so new
 /// predictions and evaluations), and leaves every other step's key alone.
