@@ -218,37 +218,39 @@ reference:
     for (row, (reference, rounding)) in rows.iter().zip([(0.99, 0.005), (0.01, 0.005), (0.5, 0.05)])
     {
         // | detector | dataset | ε | AUC | SE | interval | reference | difference | its SE | verdict |
-        let (auc, se) = (number(row[4]), number(row[5]));
+        let se = number(row[5]);
         // 120 frames: a hit rate's standard error is at most √(0.25/120) ≈ 0.046;
         // an AUC's is of that order, and not zero on frames this noisy.
         assert!(se > 0.001 && se < 0.1, "{row:?}");
-        assert_eq!(number(row[7]), reference);
-        let difference = number(row[8]);
-        assert!((difference - (auc - reference)).abs() < 0.0011, "{row:?}");
-        let combined = number(row[9]);
-        assert!((combined - 2f64.sqrt() * se).abs() < 0.0011, "{row:?}");
-        assert_eq!(
-            row[10],
-            luck_verdict(difference, combined, rounding),
-            "{row:?}"
-        );
-        verdicts.push(row[10]);
+        verdicts.push(checked_verdict(row, reference, rounding));
     }
     // Crocker–Grier is far from perfect at 1 px and far from nothing at 2 px.
     assert_eq!(&verdicts[..2], &["behind", "ahead"], "{section}");
 }
 
-/// The verdict the report's rule gives a difference from a reference:
-/// ahead or behind only beyond twice its standard error plus the
-/// reference's rounding.
-fn luck_verdict(difference: f64, standard_error: f64, rounding: f64) -> &'static str {
-    if difference > 2.0 * standard_error + rounding {
+/// Checks the judged columns of a report row laid out as both reference
+/// tables lay theirs out — `| name | dataset | ε | AUC | SE | … |
+/// reference | difference | its SE | verdict |` — against `reference`
+/// (known to ± `rounding`): the difference is AUC − reference, its standard
+/// error √2 × SE, and the verdict the rule's (ahead or behind only beyond
+/// twice that plus the rounding). Returns the verdict.
+fn checked_verdict<'r>(row: &[&'r str], reference: f64, rounding: f64) -> &'r str {
+    let number = |cell: &str| cell.parse::<f64>().unwrap_or_else(|_| panic!("{cell}"));
+    let (auc, se) = (number(row[4]), number(row[5]));
+    assert_eq!(number(row[7]), reference, "{row:?}");
+    let difference = number(row[8]);
+    assert!((difference - (auc - reference)).abs() < 0.0011, "{row:?}");
+    let combined = number(row[9]);
+    assert!((combined - 2f64.sqrt() * se).abs() < 0.0011, "{row:?}");
+    let expected = if difference > 2.0 * combined + rounding {
         "ahead"
-    } else if difference < -2.0 * standard_error - rounding {
+    } else if difference < -2.0 * combined - rounding {
         "behind"
     } else {
         "level"
-    }
+    };
+    assert_eq!(row[10], expected, "{row:?}");
+    row[10]
 }
 
 /// The reference against the bound: a likelihood detector scored on a
@@ -319,17 +321,7 @@ reference:
         assert!((auc - bound_auc(eps)).abs() < 0.0006, "{row:?}");
         assert!((0.0..0.2).contains(&se), "{row:?}");
         assert_eq!(row[6], "Published");
-        assert_eq!(number(row[7]), reference);
-        let difference = number(row[8]);
-        assert!((difference - (auc - reference)).abs() < 0.0011, "{row:?}");
-        let combined = number(row[9]);
-        assert!((combined - 2f64.sqrt() * se).abs() < 0.0011, "{row:?}");
-        assert_eq!(
-            row[10],
-            luck_verdict(difference, combined, rounding),
-            "{row:?}"
-        );
-        verdicts.push(row[10]);
+        verdicts.push(checked_verdict(row, reference, rounding));
     }
     // No method localises 40 dim, fast QDs within 1 px at 0.999; at 2 px
     // any localiser worth the name beats 0.01.
