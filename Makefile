@@ -37,8 +37,9 @@ reproduce-paper: build
 # The attainable bound on the whole of the paper's test sets beside the
 # paper's TrackPy and CNN (experiments/bound.yaml): the likelihood detector
 # told each set's D and told only the training range. After
-# reproduce-paper only the two bounds are computed, about 20 minutes on 2
-# idle cores; the report says which of the paper's cells any method can win.
+# reproduce-paper only the two bounds are computed, about 22 minutes on 2
+# idle cores (before it, the datasets and the CNN are made first, about 15
+# more); the report says which of the paper's cells any method can win.
 bound: build
 	$(BIN) run experiments/bound.yaml
 	$(BIN) report latest --out reports/bound
