@@ -499,11 +499,9 @@ fn write_reference_spread_table<'k>(
             else {
                 continue;
             };
-            let verdict =
-                LuckVerdict::of(spread.auc - theirs, spread.standard_error, rounding(theirs));
             writeln!(
                 markdown,
-                "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {theirs} | {:+.3} | {:.3} | {} |",
+                "| {} | {} | {} | {:.3} | {:.3} | [{:.3}, {:.3}] | {} |",
                 evaluation.detector,
                 evaluation.dataset,
                 spread.eps_px,
@@ -511,9 +509,7 @@ fn write_reference_spread_table<'k>(
                 spread.standard_error,
                 spread.interval_95.0,
                 spread.interval_95.1,
-                spread.auc - theirs,
-                verdict.standard_error,
-                verdict.word,
+                judged_cells(&spread, theirs),
             )?;
         }
     }
@@ -553,6 +549,19 @@ fn bootstrap_each<'e>(
         .map(|(evaluation, _, _)| evaluation)
         .zip(spreads)
         .collect())
+}
+
+/// The last four cells of a row of either reference table: the reference
+/// figure `theirs`, our AUC's difference from it, that difference's standard
+/// error and the verdict ([`LuckVerdict`], the figure's [`rounding`]
+/// allowed): one judgement for a detector and for a bound alike.
+fn judged_cells(spread: &AucSpread, theirs: f64) -> String {
+    let difference = spread.auc - theirs;
+    let verdict = LuckVerdict::of(difference, spread.standard_error, rounding(theirs));
+    format!(
+        "{theirs} | {difference:+.3} | {:.3} | {}",
+        verdict.standard_error, verdict.word
+    )
 }
 
 /// A difference from a reference judged against both figures' luck.
@@ -730,20 +739,16 @@ fn write_reference_bound_table<'k>(
                 let Some(theirs) = row.auc(&bound.dataset, spread.eps_px) else {
                     continue;
                 };
-                let verdict =
-                    LuckVerdict::of(spread.auc - theirs, spread.standard_error, rounding(theirs));
                 writeln!(
                     markdown,
-                    "| {} | {} | {} | {:.3} | {:.3} | {} | {theirs} | {:+.3} | {:.3} | {} |",
+                    "| {} | {} | {} | {:.3} | {:.3} | {} | {} |",
                     bound.detector,
                     bound.dataset,
                     spread.eps_px,
                     spread.auc,
                     spread.standard_error,
                     row.label,
-                    spread.auc - theirs,
-                    verdict.standard_error,
-                    verdict.word,
+                    judged_cells(&spread, theirs),
                 )?;
             }
         }
