@@ -46,8 +46,9 @@ bound: build
 	@echo "report: reports/bound/report.md"
 
 # Five-fold cross-validation of the paper's CNN (the manifest's
-# cross_validation block; five trainings of the two-network ensemble, about
-# an hour on 2 idle cores). Resumes
+# cross_validation block; five trainings of its network, each 8 epochs on
+# four fifths of the training frames and the fresh frames, about two hours
+# on 2 idle cores). Resumes
 # where an interrupted sweep stopped.
 # EXECUTOR=slurm runs the folds as a Slurm job array and waits for it
 # (README, "Running on a cluster"); SWEEP_ARGS passes further options
