@@ -212,7 +212,6 @@ reference:
         .map(|l| l.split('|').map(str::trim).collect())
         .collect();
     assert_eq!(rows.len(), 3, "{section}");
-    let number = |cell: &str| cell.parse::<f64>().unwrap_or_else(|_| panic!("{cell}"));
     let mut verdicts = Vec::new();
     // Each reference with half a unit of its last decimal.
     for (row, (reference, rounding)) in rows.iter().zip([(0.99, 0.005), (0.01, 0.005), (0.5, 0.05)])
@@ -228,6 +227,13 @@ reference:
     assert_eq!(&verdicts[..2], &["behind", "ahead"], "{section}");
 }
 
+/// A report table's cell read as a number (a test failure naming the cell
+/// if it is not one).
+fn number(cell: &str) -> f64 {
+    cell.parse::<f64>()
+        .unwrap_or_else(|_| panic!("not a number: {cell}"))
+}
+
 /// Checks the judged columns of a report row laid out as both reference
 /// tables lay theirs out — `| name | dataset | ε | AUC | SE | … |
 /// reference | difference | its SE | verdict |` — against `reference`
@@ -235,7 +241,6 @@ reference:
 /// error √2 × SE, and the verdict the rule's (ahead or behind only beyond
 /// twice that plus the rounding). Returns the verdict.
 fn checked_verdict<'r>(row: &[&'r str], reference: f64, rounding: f64) -> &'r str {
-    let number = |cell: &str| cell.parse::<f64>().unwrap_or_else(|_| panic!("{cell}"));
     let (auc, se) = (number(row[4]), number(row[5]));
     assert_eq!(number(row[7]), reference, "{row:?}");
     let difference = number(row[8]);
@@ -308,7 +313,6 @@ reference:
         .map(|l| l.split('|').map(str::trim).collect())
         .collect();
     assert_eq!(rows.len(), 3, "{section}");
-    let number = |cell: &str| cell.parse::<f64>().unwrap_or_else(|_| panic!("{cell}"));
     let mut verdicts = Vec::new();
     for (row, (eps, reference, rounding)) in
         rows.iter()
