@@ -46,9 +46,9 @@ bound: build
 	@echo "report: reports/bound/report.md"
 
 # Five-fold cross-validation of the paper's CNN (the manifest's
-# cross_validation block; five trainings of its network, each 8 epochs on
-# four fifths of the training frames and the fresh frames, about two hours
-# on 2 idle cores). Resumes
+# cross_validation block; five trainings of its network, each, like the
+# paper run's, 8 epochs on fresh frames only, selected on its held-out
+# fifth of the training frames: about 80 minutes on 2 idle cores). Resumes
 # where an interrupted sweep stopped.
 # EXECUTOR=slurm runs the folds as a Slurm job array and waits for it
 # (README, "Running on a cluster"); SWEEP_ARGS passes further options

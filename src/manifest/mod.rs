@@ -187,6 +187,12 @@ impl DetectorSpec {
         matches!(self, DetectorSpec::Likelihood(_))
     }
 
+    /// Whether this detector trains on fresh frames only, its training set
+    /// only selecting the epoch (a CNN with `validation_fraction: 1`).
+    pub fn trains_on_fresh_frames_only(&self) -> bool {
+        matches!(self, DetectorSpec::Cnn(spec) if spec.training.trains_on_fresh_frames_only())
+    }
+
     /// Checks the parameters; an error's path starts inside the kind's
     /// parameters (`training.epochs` for a CNN).
     pub fn validate(&self) -> Result<(), FieldError> {

@@ -8,7 +8,10 @@
 //! the detector on. The table reports mean ± standard deviation over folds.
 //! Each fold's model is selected on its held-out fold (the epoch with the
 //! best mean AUC there) and trains on all of the other k − 1 folds: the
-//! detector's `validation_fraction` is not used.
+//! detector's `validation_fraction` has nothing to hold out. At
+//! `validation_fraction: 1` (the training set only selects; fresh frames
+//! train) the fold models keep to that recipe and train on fresh frames
+//! only, under keys of their own (`run::plan`).
 
 use rand::SeedableRng;
 use rand::seq::SliceRandom;

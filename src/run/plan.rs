@@ -247,6 +247,14 @@ impl Plan {
         // their training set keep the keys they always had.
         if let Some(validation) = validation {
             description["validation"] = json!(self.steps[validation].key);
+            // Since 2026-12-01 such a model (a cross-validation's fold
+            // model) trains on fresh frames only, none of `training`'s,
+            // when the detector's recipe says so; it keeps a key apart
+            // from the models trained on both before. The key of every
+            // other model is as it always was.
+            if detector.spec.trains_on_fresh_frames_only() {
+                description["trains_on"] = json!("fresh frames only");
+            }
         }
         let step = make_step(
             format!("model/{}", detector.name),

@@ -474,6 +474,60 @@ fn all_zero_and_huge_count_frames_give_finite_scores() {
     }
 }
 
+/// With `validation_fraction: 1` the training set never trains, also when
+/// a set of its own selects (a cross-validation's held-out fold): the fresh
+/// frames alone train, so any training set of that frame size gives the
+/// same weights.
+#[test]
+fn a_recipe_of_fresh_frames_only_keeps_to_them_when_another_set_selects() {
+    let validation = dataset(40.0, 30, 74);
+    let settings = TrainingSettings {
+        fresh_frames_per_epoch: 48,
+        validation_fraction: 1.0,
+        ..tiny_settings(2)
+    };
+    let train_on = |training: &Dataset| {
+        cnn::train_selecting_on(
+            &tiny_architecture(),
+            &settings,
+            training,
+            ValidationSet {
+                dataset: &validation,
+                score: &metrics::paper_aucs,
+            },
+            Some(&params(40.0)),
+            10,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let model = train_on(&dataset(40.0, 90, 75));
+    assert_eq!(model.record.training_frames, 0);
+    assert_eq!(model.record.validation_frames, 30);
+    assert!(model.record.epochs.iter().all(|e| e.samples == 48));
+    let other = train_on(&dataset(20.0, 60, 76));
+    assert!(model.to_bytes().unwrap() == other.to_bytes().unwrap());
+    // A recipe that trains on its training set does so.
+    let mixed = cnn::train_selecting_on(
+        &tiny_architecture(),
+        &TrainingSettings {
+            validation_fraction: 0.1,
+            ..settings
+        },
+        &dataset(40.0, 90, 75),
+        ValidationSet {
+            dataset: &validation,
+            score: &metrics::paper_aucs,
+        },
+        Some(&params(40.0)),
+        10,
+        &hidden(),
+    )
+    .unwrap();
+    assert_eq!(mixed.record.training_frames, 90);
+    assert!(mixed.record.epochs.iter().all(|e| e.samples == 138));
+}
+
 #[test]
 fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
     let training = dataset(40.0, 120, 71);

@@ -893,3 +893,49 @@ fn a_teacher_gives_the_model_a_key_of_its_own() {
         assert_eq!(old != new, renewed, "{id}: {old} → {new}");
     }
 }
+
+/// A cross-validation keeps to a recipe in which the training set never
+/// trains (`validation_fraction: 1`, the paper manifest's CNN): its fold
+/// models train on fresh frames only, so their keys say so and stay apart
+/// from the fold models that also trained on their k − 1 folds. Nothing
+/// else of the plan (the folds' subsets, the test sets) changes, and a
+/// recipe that does train on the training set keeps the keys it had.
+#[test]
+fn a_cross_validation_of_fresh_frames_only_keys_its_fold_models_apart() {
+    let cv_steps = |text: &str| {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("paper.yaml");
+        std::fs::write(&path, text).unwrap();
+        let manifest = scanloc::manifest::load(&path).unwrap();
+        let cv = scanloc::registry::CrossValidationPlan {
+            detector: "cnn".into(),
+            folds: 5,
+            fold: None,
+        };
+        scanloc::run::cross_validation::plan(&manifest, &cv)
+            .unwrap()
+            .steps
+    };
+    let fresh_only = std::fs::read_to_string("experiments/paper.yaml").unwrap();
+    assert!(fresh_only.contains("        validation_fraction: 1\n"));
+    let mixed = fresh_only.replacen(
+        "        validation_fraction: 1\n",
+        "        validation_fraction: 0.1\n",
+        1,
+    );
+    let (fresh_only, mixed) = (cv_steps(&fresh_only), cv_steps(&mixed));
+    assert_eq!(fresh_only.len(), mixed.len());
+    let mut fold_models = 0;
+    for (a, b) in fresh_only.iter().zip(&mixed) {
+        assert_eq!(a.id, b.id);
+        let marked = |step: &scanloc::run::Step| step.spec.contains("fresh frames only");
+        if a.id.starts_with("model/") {
+            fold_models += 1;
+            assert!(marked(a), "{}: {}", a.id, a.spec);
+            assert!(!marked(b), "{}: {}", b.id, b.spec);
+        } else if a.id.starts_with("dataset/") {
+            assert_eq!(a.key, b.key, "{}", a.id);
+        }
+    }
+    assert_eq!(fold_models, 5);
+}

@@ -283,6 +283,14 @@ impl TrainingSettings {
         ((frames as f64) * self.validation_fraction).round() as usize
     }
 
+    /// Whether no frame of the given training set ever trains
+    /// (`validation_fraction` 1: the set only selects the epoch, fresh
+    /// frames train). A cross-validation keeps to this: its fold models
+    /// train on fresh frames only too, selected on their held-out fold.
+    pub fn trains_on_fresh_frames_only(&self) -> bool {
+        self.validation_fraction == 1.0
+    }
+
     /// Checks every field; the error names the field and says what is
     /// allowed.
     pub fn validate(&self) -> Result<(), FieldError> {

@@ -344,8 +344,11 @@ pub struct ValidationSet<'a> {
 
 /// Trains a localiser on every frame of `training` and keeps the epoch with
 /// the best mean score on `validation`, a dataset of its own (e.g. the
-/// held-out fold of a cross-validation). `settings.validation_fraction` is
-/// not used: nothing of `training` is held out. Otherwise as [`train`].
+/// held-out fold of a cross-validation). Nothing of `training` is held
+/// out: every frame of it trains, unless `settings.validation_fraction` is
+/// 1 ([`TrainingSettings::trains_on_fresh_frames_only`]), when none does
+/// and the fresh frames alone train, as they would in [`train`]. Otherwise
+/// as [`train`].
 pub fn train_selecting_on(
     arch: &CnnArchitecture,
     settings: &TrainingSettings,
@@ -622,14 +625,23 @@ fn train_member(
     let mut order: Vec<usize> = (0..n).collect();
     shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
     let n_split_off = match selection.external {
+        // The recipe in which the training set never trains keeps to it
+        // when another set selects (a cross-validation's held-out fold).
+        Some(_) if settings.trains_on_fresh_frames_only() => n,
         Some(_) => 0,
         None => settings.held_out_frames(n),
     };
-    let mut validation_indices = order[..n_split_off].to_vec();
-    validation_indices.sort_unstable();
     let training_indices = order[n_split_off..].to_vec();
-    let split_off = subset(training, &validation_indices)?;
-    let validation = selection.external.unwrap_or(&split_off);
+    let split_off;
+    let validation = match selection.external {
+        Some(external) => external,
+        None => {
+            let mut validation_indices = order[..n_split_off].to_vec();
+            validation_indices.sort_unstable();
+            split_off = subset(training, &validation_indices)?;
+            &split_off
+        }
+    };
     let n_validation = validation.frames.n;
 
     let samples_per_epoch = training_indices.len() + settings.fresh_frames_per_epoch;
