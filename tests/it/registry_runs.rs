@@ -861,16 +861,20 @@ fn the_companion_manifests_reuse_the_paper_runs_artefacts() {
     }
 }
 
+/// The manifest of a YAML text (a variant of the paper manifest's).
+fn manifest_of_text(text: &str) -> scanloc::manifest::Manifest {
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_manifest(dir.path(), "paper.yaml", text);
+    scanloc::manifest::load(&path).unwrap()
+}
+
 /// A teacher (`training.teacher_particles`) is part of what a model is: the
 /// same manifest with one gives the CNN a model key of its own (and so new
 /// predictions and evaluations), and leaves every other step's key alone.
 #[test]
 fn a_teacher_gives_the_model_a_key_of_its_own() {
     let keys = |text: &str| {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("paper.yaml");
-        std::fs::write(&path, text).unwrap();
-        let manifest = scanloc::manifest::load(&path).unwrap();
+        let manifest = manifest_of_text(text);
         let plan = scanloc::run::Plan::from_manifest(&manifest).unwrap();
         plan.steps
             .iter()
@@ -903,10 +907,7 @@ fn a_teacher_gives_the_model_a_key_of_its_own() {
 #[test]
 fn a_cross_validation_of_fresh_frames_only_keys_its_fold_models_apart() {
     let cv_steps = |text: &str| {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("paper.yaml");
-        std::fs::write(&path, text).unwrap();
-        let manifest = scanloc::manifest::load(&path).unwrap();
+        let manifest = manifest_of_text(text);
         let cv = scanloc::registry::CrossValidationPlan {
             detector: "cnn".into(),
             folds: 5,
