@@ -13,9 +13,10 @@ use scanloc::sweep::{SweepKind, SweepSpec};
 use super::sweep::{ExecutorArgs, run_sweep};
 
 /// Cross-validate a trained detector: its training set split into k folds
-/// by a recorded seeded permutation, k models each trained on k − 1 folds,
-/// each scored on its held-out fold and on every test set; the AUC table as
-/// mean ± standard deviation. Each fold's data and model are artefacts of
+/// by a recorded seeded permutation, k models each trained on k − 1 folds
+/// (on fresh frames only, for a CNN with validation_fraction 1) and
+/// selected on the remaining one, each scored on its held-out fold and on
+/// every test set; the AUC table as mean ± standard deviation. Each fold's data and model are artefacts of
 /// their own, so an interrupted sweep resumes where it stopped and one fold
 /// can be rerun alone (--fold K --force checks it against the stored one).
 ///
