@@ -16,9 +16,10 @@ use super::sweep::{ExecutorArgs, run_sweep};
 /// by a recorded seeded permutation, k models each trained on k − 1 folds
 /// (on fresh frames only, for a CNN with validation_fraction 1) and
 /// selected on the remaining one, each scored on its held-out fold and on
-/// every test set; the AUC table as mean ± standard deviation. Each fold's data and model are artefacts of
-/// their own, so an interrupted sweep resumes where it stopped and one fold
-/// can be rerun alone (--fold K --force checks it against the stored one).
+/// every test set; the AUC table as mean ± standard deviation. Each fold's
+/// data and model are artefacts of their own, so an interrupted sweep
+/// resumes where it stopped and one fold can be rerun alone (--fold K
+/// --force checks it against the stored one).
 ///
 /// The cross_validation block: docs/manifest.md; how folds are stored:
 /// docs/registry.md.
