@@ -6,7 +6,7 @@
 //! Inputs and outputs are row-major `[n, channels, height, width]` (burn's
 //! layout), so the head and the loss stay in burn.
 
-use super::norm::{NormGradients, NormStatistics, bn_relu_backward, bn_relu_forward};
+use super::norm::{NormGradients, NormStatistics, ReluGate, bn_relu_backward, bn_relu_forward};
 use super::{
     Conv3x3, Geometry, channel_statistics, conv3x3_forward, conv3x3_weight_grad, nchw_from_padded,
     padded_from_nchw,
@@ -187,6 +187,8 @@ pub struct Tape {
     pre_norm: Vec<Vec<f32>>,
     /// Each layer's batch statistics (batch norm layers).
     statistics: Vec<Option<NormStatistics>>,
+    /// Each layer's `(scale, shift)` before its ReLU (see [`ReluGate`]).
+    gates: Vec<(Vec<f32>, Vec<f32>)>,
 }
 
 impl Drop for Tape {
@@ -233,6 +235,7 @@ pub fn train_forward(
     let mut activations = vec![padded_from_nchw(input, in_channels, &geometry)];
     let mut pre_norm = Vec::with_capacity(layers.len());
     let mut statistics = Vec::with_capacity(layers.len());
+    let mut gates = Vec::with_capacity(layers.len());
     let mut running = Vec::with_capacity(layers.len());
     for layer in layers {
         let x = activations.last().expect("the input is first");
@@ -265,6 +268,7 @@ pub fn train_forward(
                     .map(|c| norm.beta[c] - stats.mean[c] * scale[c])
                     .collect();
                 bn_relu_forward(&z, &mut a, layer.out_channels, &geometry, &scale, &shift);
+                gates.push((scale, shift));
                 let keep = (1.0 - norm.momentum) as f32;
                 let take = norm.momentum as f32;
                 let update = |old: &[f32], new: &[f32]| -> Vec<f32> {
@@ -283,6 +287,7 @@ pub fn train_forward(
                 let ones = vec![1.0; layer.out_channels];
                 let zeros = vec![0.0; layer.out_channels];
                 bn_relu_forward(&z, &mut a, layer.out_channels, &geometry, &ones, &zeros);
+                gates.push((ones, zeros));
                 running.push(None);
                 statistics.push(None);
             }
@@ -306,6 +311,7 @@ pub fn train_forward(
             activations,
             pre_norm,
             statistics,
+            gates,
         },
         running,
     )
@@ -347,8 +353,11 @@ pub fn backward(layers: &[BodyLayer], tape: &Tape, output_grad: &[f32]) -> Vec<L
             beta_grad,
         } = bn_relu_backward(
             &grad,
-            &tape.activations[index + 1],
             &tape.pre_norm[index],
+            ReluGate {
+                scale: &tape.gates[index].0,
+                shift: &tape.gates[index].1,
+            },
             layer.out_channels,
             geometry,
             norm,

@@ -28,7 +28,7 @@ mod norm;
 
 pub use conv::{Conv3x3, conv3x3_forward, conv3x3_weight_grad};
 pub use norm::{
-    NormGradients, NormStatistics, bn_relu_backward, bn_relu_forward, channel_statistics,
+    NormGradients, NormStatistics, ReluGate, bn_relu_backward, bn_relu_forward, channel_statistics,
 };
 
 /// The shape of a zero-padded channels-last batch of maps (see the module

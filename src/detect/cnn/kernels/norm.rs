@@ -6,12 +6,320 @@
 //! not depend on the thread count. Statistics match burn's
 //! `batch_norm_train`: the mean, then the biased variance from the centred
 //! values.
+//!
+//! The loops over a row's pixels ([`RowKernel`]) are compiled for the
+//! widest vector instructions the CPU has and for the usual channel counts
+//! (see [`vectorised`]). They use no fused multiply-add, so every build
+//! gives the same bits.
 
 use std::ops::Range;
 
 use rayon::prelude::*;
 
 use super::Geometry;
+
+/// A loop over the pixels of one interior row (`channels` floats a pixel,
+/// channels innermost), the unit [`vectorised`] compiles per instruction
+/// set. Each runs [`RowKernel::run`] on the loop's function of the same
+/// name.
+enum RowKernel<'a> {
+    /// `sum[c] += v[c]`.
+    Sum {
+        values: &'a [f32],
+        sum: &'a mut [f32],
+    },
+    /// `squares[c] += (v[c] − mean[c])²`.
+    Squares {
+        values: &'a [f32],
+        mean: &'a [f32],
+        squares: &'a mut [f32],
+    },
+    /// `out = max(z · scale + shift, 0)`.
+    BnRelu {
+        z: &'a [f32],
+        out: &'a mut [f32],
+        scale: &'a [f32],
+        shift: &'a [f32],
+    },
+    /// The two sums of batch norm's backward pass.
+    BackwardSums {
+        output_grad: &'a [f32],
+        z: &'a [f32],
+        gate: ReluGate<'a>,
+        statistics: Standardise<'a>,
+        sum_grad: &'a mut [f32],
+        sum_grad_normalised: &'a mut [f32],
+    },
+    /// The gradient through a ReLU alone.
+    ReluGrad {
+        output_grad: &'a [f32],
+        z: &'a [f32],
+        gate: ReluGate<'a>,
+        out: &'a mut [f32],
+    },
+    /// The gradient with respect to batch norm's input.
+    BnReluGrad {
+        output_grad: &'a [f32],
+        z: &'a [f32],
+        gate: ReluGate<'a>,
+        statistics: Standardise<'a>,
+        coefficients: BackwardCoefficients<'a>,
+        out: &'a mut [f32],
+    },
+}
+
+/// The forward pass's map before its ReLU, per channel: the ReLU passed
+/// the gradient of a value where `z · scale + shift > 0`, exactly where its
+/// output `max(z · scale + shift, 0)` was positive (NaN fails both tests).
+/// The backward pass reads this from `z`, which it reads anyway, instead of
+/// reading the activations too: the loops are bound by memory.
+#[derive(Clone, Copy)]
+pub struct ReluGate<'a> {
+    pub scale: &'a [f32],
+    pub shift: &'a [f32],
+}
+
+/// Per channel: `(z − mean) · inv_std` standardises a value.
+#[derive(Clone, Copy)]
+struct Standardise<'a> {
+    mean: &'a [f32],
+    inv_std: &'a [f32],
+}
+
+/// Per channel: `scale = γ · inv_std` and the batch means of the gradient
+/// and of the gradient times the standardised value.
+#[derive(Clone, Copy)]
+struct BackwardCoefficients<'a> {
+    scale: &'a [f32],
+    mean_grad: &'a [f32],
+    mean_grad_normalised: &'a [f32],
+}
+
+impl RowKernel<'_> {
+    /// The loop, with `channels` floats a pixel (a constant where inlined
+    /// with one, so the channel loops unroll into whole vectors). The
+    /// loops are functions of their slices, which so arrive as arguments
+    /// the compiler knows do not overlap, and vectorise.
+    #[inline(always)]
+    fn run(self, channels: usize) {
+        match self {
+            Self::Sum { values, sum } => sum_row(values, sum, channels),
+            Self::Squares {
+                values,
+                mean,
+                squares,
+            } => squares_row(values, mean, squares, channels),
+            Self::BnRelu {
+                z,
+                out,
+                scale,
+                shift,
+            } => bn_relu_row(z, out, scale, shift, channels),
+            Self::BackwardSums {
+                output_grad,
+                z,
+                gate,
+                statistics,
+                sum_grad,
+                sum_grad_normalised,
+            } => backward_sums_row(
+                [output_grad, z],
+                gate,
+                statistics,
+                [sum_grad, sum_grad_normalised],
+                channels,
+            ),
+            Self::ReluGrad {
+                output_grad,
+                z,
+                gate,
+                out,
+            } => relu_grad_row([output_grad, z], gate, out, channels),
+            Self::BnReluGrad {
+                output_grad,
+                z,
+                gate,
+                statistics,
+                coefficients,
+                out,
+            } => bn_relu_grad_row(
+                [output_grad, z],
+                gate,
+                statistics,
+                coefficients,
+                out,
+                channels,
+            ),
+        }
+    }
+}
+
+/// Runs `kernel` compiled for AVX-512 or AVX2 if the CPU has it (the
+/// crate's baseline build is SSE2, four lanes) and for the channel counts
+/// 16, 32 and 64 as constants. Without fused multiply-adds (Rust does not
+/// contract `a * b + c`) and with each channel's values combined in the
+/// same order, every build gives the same bits.
+#[inline(always)]
+fn vectorised(kernel: RowKernel, channels: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use crate::detect::cpu::{has_avx2_fma, has_avx512};
+        if has_avx512() {
+            // SAFETY: the CPU has AVX-512F.
+            return unsafe { run_avx512(kernel, channels) };
+        }
+        if has_avx2_fma() {
+            // SAFETY: the CPU has AVX2 and FMA.
+            return unsafe { run_avx2(kernel, channels) };
+        }
+    }
+    run_specialised(kernel, channels)
+}
+
+/// `kernel` with its channel count as a constant for the usual widths.
+#[inline(always)]
+fn run_specialised(kernel: RowKernel, channels: usize) {
+    match channels {
+        16 => kernel.run(16),
+        32 => kernel.run(32),
+        64 => kernel.run(64),
+        channels => kernel.run(channels),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn run_avx512(kernel: RowKernel, channels: usize) {
+    run_specialised(kernel, channels)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn run_avx2(kernel: RowKernel, channels: usize) {
+    run_specialised(kernel, channels)
+}
+
+#[inline(always)]
+fn sum_row(values: &[f32], sum: &mut [f32], channels: usize) {
+    let sum = &mut sum[..channels];
+    for v in values.chunks_exact(channels) {
+        for (s, &v) in sum.iter_mut().zip(v) {
+            *s += v;
+        }
+    }
+}
+
+#[inline(always)]
+fn squares_row(values: &[f32], mean: &[f32], squares: &mut [f32], channels: usize) {
+    let squares = &mut squares[..channels];
+    let mean = &mean[..channels];
+    for v in values.chunks_exact(channels) {
+        for ((s, &v), &m) in squares.iter_mut().zip(v).zip(mean) {
+            let centred = v - m;
+            *s += centred * centred;
+        }
+    }
+}
+
+#[inline(always)]
+fn bn_relu_row(z: &[f32], out: &mut [f32], scale: &[f32], shift: &[f32], channels: usize) {
+    let (scale, shift) = (&scale[..channels], &shift[..channels]);
+    for (out, z) in out.chunks_exact_mut(channels).zip(z.chunks_exact(channels)) {
+        for (((o, &z), &a), &b) in out.iter_mut().zip(z).zip(scale).zip(shift) {
+            *o = super::relu(z * a + b);
+        }
+    }
+}
+
+/// With `g` the output gradient passed by the ReLU: `sum_grad[c] += g` and
+/// `sum_grad_normalised[c] += g · (z − mean) · inv_std`.
+#[inline(always)]
+fn backward_sums_row(
+    [output_grad, z]: [&[f32]; 2],
+    gate: ReluGate,
+    statistics: Standardise,
+    [sum_grad, sum_grad_normalised]: [&mut [f32]; 2],
+    channels: usize,
+) {
+    let sum_g = &mut sum_grad[..channels];
+    let sum_gx = &mut sum_grad_normalised[..channels];
+    let (mean, inv_std) = (
+        &statistics.mean[..channels],
+        &statistics.inv_std[..channels],
+    );
+    let (scale, shift) = (&gate.scale[..channels], &gate.shift[..channels]);
+    let pixels = output_grad
+        .chunks_exact(channels)
+        .zip(z.chunks_exact(channels));
+    for (g, z) in pixels {
+        let lanes = sum_g
+            .iter_mut()
+            .zip(sum_gx.iter_mut())
+            .zip(g.iter().zip(scale.iter().zip(shift)))
+            .zip(z.iter().zip(mean.iter().zip(inv_std)));
+        for (((sg, sgx), (&g, (&a, &b))), (&z, (&m, &s))) in lanes {
+            let g = if z * a + b > 0.0 { g } else { 0.0 };
+            *sg += g;
+            *sgx += g * ((z - m) * s);
+        }
+    }
+}
+
+/// `out = g` where the ReLU passed it, else 0.
+#[inline(always)]
+fn relu_grad_row([output_grad, z]: [&[f32]; 2], gate: ReluGate, out: &mut [f32], channels: usize) {
+    let (scale, shift) = (&gate.scale[..channels], &gate.shift[..channels]);
+    let pixels = out
+        .chunks_exact_mut(channels)
+        .zip(output_grad.chunks_exact(channels))
+        .zip(z.chunks_exact(channels));
+    for ((out, g), z) in pixels {
+        let lanes = out
+            .iter_mut()
+            .zip(g.iter().zip(z))
+            .zip(scale.iter().zip(shift));
+        for ((o, (&g, &z)), (&a, &b)) in lanes {
+            *o = if z * a + b > 0.0 { g } else { 0.0 };
+        }
+    }
+}
+
+/// `out = scale · ((g − mean_grad) − (z − mean) · inv_std ·
+/// mean_grad_normalised)`, with `g` the output gradient passed by the ReLU.
+#[inline(always)]
+fn bn_relu_grad_row(
+    [output_grad, z]: [&[f32]; 2],
+    gate: ReluGate,
+    statistics: Standardise,
+    coefficients: BackwardCoefficients,
+    out: &mut [f32],
+    channels: usize,
+) {
+    let (mean, inv_std) = (
+        &statistics.mean[..channels],
+        &statistics.inv_std[..channels],
+    );
+    let (gate_scale, gate_shift) = (&gate.scale[..channels], &gate.shift[..channels]);
+    let scale = &coefficients.scale[..channels];
+    let mean_grad = &coefficients.mean_grad[..channels];
+    let mean_grad_normalised = &coefficients.mean_grad_normalised[..channels];
+    let pixels = out
+        .chunks_exact_mut(channels)
+        .zip(output_grad.chunks_exact(channels))
+        .zip(z.chunks_exact(channels));
+    for ((out, g), z) in pixels {
+        let lanes = out
+            .iter_mut()
+            .zip(g.iter().zip(gate_scale.iter().zip(gate_shift)))
+            .zip(z.iter().zip(mean.iter().zip(inv_std)))
+            .zip(scale.iter().zip(mean_grad.iter().zip(mean_grad_normalised)));
+        for (((o, (&g, (&a, &b))), (&z, (&m, &s))), (&k, (&mg, &mgn))) in lanes {
+            let g = if z * a + b > 0.0 { g } else { 0.0 };
+            let normalised = (z - m) * s;
+            *o = k * ((g - mg) - normalised * mgn);
+        }
+    }
+}
 
 /// Per-channel statistics of one batch: the mean and the biased variance
 /// over the batch's interior pixels.
@@ -89,20 +397,24 @@ pub fn channel_statistics(values: &[f32], channels: usize, geometry: &Geometry) 
     assert_eq!(values.len(), geometry.pixels() * channels);
     let count = geometry.interior_pixels().max(1) as f64;
     let [sum] = batch_sums::<1>(geometry, channels, |row, [sum]| {
-        for v in values[row].chunks_exact(channels) {
-            for (s, &v) in sum.iter_mut().zip(v) {
-                *s += v;
-            }
-        }
+        vectorised(
+            RowKernel::Sum {
+                values: &values[row],
+                sum,
+            },
+            channels,
+        )
     });
     let mean: Vec<f32> = sum.iter().map(|&s| (s / count) as f32).collect();
     let [squares] = batch_sums::<1>(geometry, channels, |row, [squares]| {
-        for v in values[row].chunks_exact(channels) {
-            for ((s, &v), &m) in squares.iter_mut().zip(v).zip(&mean) {
-                let centred = v - m;
-                *s += centred * centred;
-            }
-        }
+        vectorised(
+            RowKernel::Squares {
+                values: &values[row],
+                mean: &mean,
+                squares,
+            },
+            channels,
+        )
     });
     let variance = squares.iter().map(|&s| (s / count) as f32).collect();
     NormStatistics { mean, variance }
@@ -121,14 +433,15 @@ pub fn bn_relu_forward(
     assert_eq!(z.len(), geometry.pixels() * channels);
     assert_eq!(output.len(), z.len());
     for_each_output_row(output, geometry, channels, |row, out| {
-        for (out, z) in out
-            .chunks_exact_mut(channels)
-            .zip(z[row].chunks_exact(channels))
-        {
-            for (((o, &z), &a), &b) in out.iter_mut().zip(z).zip(scale).zip(shift) {
-                *o = super::relu(z * a + b);
-            }
-        }
+        vectorised(
+            RowKernel::BnRelu {
+                z: &z[row],
+                out,
+                scale,
+                shift,
+            },
+            channels,
+        )
     });
 }
 
@@ -145,14 +458,15 @@ pub struct NormGradients {
 
 /// The backward pass of ReLU after batch norm (`norm = Some((stats,
 /// gamma, epsilon))`) or after a plain bias (`norm = None`): `output_grad`
-/// is the gradient with respect to the ReLU's output `activation`, `z` the
-/// batch norm's input (all padded, `channels` per pixel). `z_grad` is
+/// is the gradient with respect to the ReLU's output, `z` the batch norm's
+/// input (both padded, `channels` per pixel), `gate` the forward pass's
+/// `scale` and `shift` (those given to [`bn_relu_forward`]). `z_grad` is
 /// written into `z_grad_buffer` (padded, border zero; every interior value
 /// is overwritten).
 pub fn bn_relu_backward(
     output_grad: &[f32],
-    activation: &[f32],
     z: &[f32],
+    gate: ReluGate,
     channels: usize,
     geometry: &Geometry,
     norm: Option<(&NormStatistics, &[f32], f64)>,
@@ -160,7 +474,8 @@ pub fn bn_relu_backward(
 ) -> NormGradients {
     let floats = geometry.pixels() * channels;
     assert_eq!(output_grad.len(), floats);
-    assert_eq!(activation.len(), floats);
+    assert_eq!(gate.scale.len(), channels);
+    assert_eq!(gate.shift.len(), channels);
     assert_eq!(z.len(), floats);
     assert_eq!(z_grad.len(), floats);
     let count = geometry.interior_pixels().max(1) as f64;
@@ -174,34 +489,38 @@ pub fn bn_relu_backward(
     };
     let zeros = vec![0.0f32; channels];
     let mean = norm.map_or(zeros.as_slice(), |(stats, _, _)| stats.mean.as_slice());
-    let [sum_grad, sum_grad_normalised] =
-        batch_sums::<2>(geometry, channels, |row, [sum_g, sum_gx]| {
-            let pixels = output_grad[row.clone()]
-                .chunks_exact(channels)
-                .zip(activation[row.clone()].chunks_exact(channels))
-                .zip(z[row].chunks_exact(channels));
-            for ((g, a), z) in pixels {
-                let lanes = sum_g
-                    .iter_mut()
-                    .zip(sum_gx.iter_mut())
-                    .zip(g.iter().zip(a))
-                    .zip(z.iter().zip(mean.iter().zip(&inv_std)));
-                for (((sg, sgx), (&g, &a)), (&z, (&m, &s))) in lanes {
-                    let g = if a > 0.0 { g } else { 0.0 };
-                    *sg += g;
-                    *sgx += g * ((z - m) * s);
-                }
-            }
-        });
+    let statistics = Standardise {
+        mean,
+        inv_std: &inv_std,
+    };
+    let [sum_grad, sum_grad_normalised] = batch_sums::<2>(
+        geometry,
+        channels,
+        |row, [sum_grad, sum_grad_normalised]| {
+            vectorised(
+                RowKernel::BackwardSums {
+                    output_grad: &output_grad[row.clone()],
+                    z: &z[row],
+                    gate,
+                    statistics,
+                    sum_grad,
+                    sum_grad_normalised,
+                },
+                channels,
+            )
+        },
+    );
     let Some((_, gamma, _)) = norm else {
         for_each_output_row(&mut z_grad, geometry, channels, |row, out| {
-            let lanes = out
-                .iter_mut()
-                .zip(&output_grad[row.clone()])
-                .zip(&activation[row]);
-            for ((o, &g), &a) in lanes {
-                *o = if a > 0.0 { g } else { 0.0 };
-            }
+            vectorised(
+                RowKernel::ReluGrad {
+                    output_grad: &output_grad[row.clone()],
+                    z: &z[row],
+                    gate,
+                    out,
+                },
+                channels,
+            )
         });
         return NormGradients {
             z_grad,
@@ -215,32 +534,131 @@ pub fn bn_relu_backward(
         .map(|&s| (s / count) as f32)
         .collect();
     let scale: Vec<f32> = gamma.iter().zip(&inv_std).map(|(&g, &s)| g * s).collect();
+    let coefficients = BackwardCoefficients {
+        scale: &scale,
+        mean_grad: &mean_grad,
+        mean_grad_normalised: &mean_grad_normalised,
+    };
     for_each_output_row(&mut z_grad, geometry, channels, |row, out| {
-        let pixels = out
-            .chunks_exact_mut(channels)
-            .zip(output_grad[row.clone()].chunks_exact(channels))
-            .zip(activation[row.clone()].chunks_exact(channels))
-            .zip(z[row].chunks_exact(channels));
-        for (((out, g), a), z) in pixels {
-            let lanes = out
-                .iter_mut()
-                .zip(g.iter().zip(a))
-                .zip(z.iter().zip(mean.iter().zip(&inv_std)))
-                .zip(
-                    scale
-                        .iter()
-                        .zip(mean_grad.iter().zip(&mean_grad_normalised)),
-                );
-            for (((o, (&g, &a)), (&z, (&m, &s))), (&k, (&mg, &mgn))) in lanes {
-                let g = if a > 0.0 { g } else { 0.0 };
-                let normalised = (z - m) * s;
-                *o = k * ((g - mg) - normalised * mgn);
-            }
-        }
+        vectorised(
+            RowKernel::BnReluGrad {
+                output_grad: &output_grad[row.clone()],
+                z: &z[row],
+                gate,
+                statistics,
+                coefficients,
+                out,
+            },
+            channels,
+        )
     });
     NormGradients {
         z_grad,
         gamma_grad: sum_grad_normalised.iter().map(|&s| s as f32).collect(),
         beta_grad: sum_grad.iter().map(|&s| s as f32).collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+
+    /// Every row kernel gives the same bits on the CPU's widest vector
+    /// build (what training runs) as on the baseline build, for channel
+    /// counts with and without a constant build, and for values around
+    /// the ReLU's threshold (zeros, negative zeros and NaN included).
+    #[test]
+    fn the_vector_builds_give_the_baseline_bits() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for channels in [1, 3, 16, 32, 48, 64] {
+            let pixels = 27;
+            let mut random = |len: usize| -> Vec<f32> {
+                (0..len)
+                    .map(|i| match i % 23 {
+                        0 => 0.0,
+                        1 => -0.0,
+                        2 if channels > 1 => f32::NAN,
+                        _ => rng.random_range(-2.0f32..2.0),
+                    })
+                    .collect()
+            };
+            let [values, grad] = [random(pixels * channels), random(pixels * channels)];
+            let [mean, inv_std, scale, shift, k, mg, mgn] =
+                std::array::from_fn(|_| random(channels));
+            let gate = ReluGate {
+                scale: &scale,
+                shift: &shift,
+            };
+            let statistics = Standardise {
+                mean: &mean,
+                inv_std: &inv_std,
+            };
+            let coefficients = BackwardCoefficients {
+                scale: &k,
+                mean_grad: &mg,
+                mean_grad_normalised: &mgn,
+            };
+            // Each kernel's outputs, run through `run` (the vector build,
+            // where the CPU has one) or the baseline.
+            let outputs = |vector: bool| -> Vec<Vec<u32>> {
+                let run = |kernel: RowKernel| {
+                    if vector {
+                        vectorised(kernel, channels)
+                    } else {
+                        run_specialised(kernel, channels)
+                    }
+                };
+                let (mut sum, mut squares) = (vec![0.5f32; channels], vec![0.25f32; channels]);
+                let (mut sum_g, mut sum_gx) = (vec![0.0f32; channels], vec![0.0f32; channels]);
+                let mut out = [(); 3].map(|_| vec![0.0f32; pixels * channels]);
+                run(RowKernel::Sum {
+                    values: &values,
+                    sum: &mut sum,
+                });
+                run(RowKernel::Squares {
+                    values: &values,
+                    mean: &mean,
+                    squares: &mut squares,
+                });
+                let [bn_relu, relu_grad, bn_relu_grad] = &mut out;
+                run(RowKernel::BnRelu {
+                    z: &values,
+                    out: bn_relu,
+                    scale: &scale,
+                    shift: &shift,
+                });
+                run(RowKernel::BackwardSums {
+                    output_grad: &grad,
+                    z: &values,
+                    gate,
+                    statistics,
+                    sum_grad: &mut sum_g,
+                    sum_grad_normalised: &mut sum_gx,
+                });
+                run(RowKernel::ReluGrad {
+                    output_grad: &grad,
+                    z: &values,
+                    gate,
+                    out: relu_grad,
+                });
+                run(RowKernel::BnReluGrad {
+                    output_grad: &grad,
+                    z: &values,
+                    gate,
+                    statistics,
+                    coefficients,
+                    out: bn_relu_grad,
+                });
+                [sum, squares, sum_g, sum_gx]
+                    .into_iter()
+                    .chain(out)
+                    .map(|v| v.iter().map(|x| x.to_bits()).collect())
+                    .collect()
+            };
+            assert_eq!(outputs(true), outputs(false), "{channels} channels");
+        }
     }
 }

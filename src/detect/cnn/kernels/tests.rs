@@ -203,8 +203,11 @@ fn batch_norm_relu_and_its_gradients_match_burn() {
         let padded_grad = padded_from_nchw(&output_grad, channels, &geometry);
         let gradients = bn_relu_backward(
             &padded_grad,
-            &a,
             &padded_z,
+            ReluGate {
+                scale: &scale,
+                shift: &shift,
+            },
             channels,
             &geometry,
             Some((&stats, &gamma, epsilon)),
