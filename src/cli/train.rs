@@ -80,6 +80,10 @@ pub struct TrainArgs {
     /// Fraction of the fixed dataset held out for selecting the best epoch.
     #[arg(long)]
     validation_fraction: Option<f64>,
+    /// The first epoch whose network is validated and may be kept (1 =
+    /// every epoch; the epochs before it train without being scored).
+    #[arg(long)]
+    validate_from_epoch: Option<usize>,
     /// Frames simulated anew every epoch (0 = fixed dataset only).
     #[arg(long)]
     fresh_frames_per_epoch: Option<usize>,
@@ -153,6 +157,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
         validation_fraction: args
             .validation_fraction
             .unwrap_or(defaults.validation_fraction),
+        validate_from_epoch: args
+            .validate_from_epoch
+            .unwrap_or(defaults.validate_from_epoch),
         fresh_frames_per_epoch: args
             .fresh_frames_per_epoch
             .unwrap_or(defaults.fresh_frames_per_epoch),

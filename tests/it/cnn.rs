@@ -293,6 +293,22 @@ fn bad_settings_are_refused_naming_the_field() {
         ),
         (
             TrainingSettings {
+                validate_from_epoch: 0,
+                ..base.clone()
+            },
+            arch.clone(),
+            "validate_from_epoch",
+        ),
+        (
+            TrainingSettings {
+                validate_from_epoch: 2,
+                ..base.clone()
+            },
+            arch.clone(),
+            "validate_from_epoch",
+        ),
+        (
+            TrainingSettings {
                 score_floor: 1.0,
                 ..base.clone()
             },
@@ -585,6 +601,59 @@ fn selection_on_a_validation_set_of_its_own_keeps_its_best_epoch() {
     )
     .unwrap_err();
     assert!(is_input_error(&error), "{error:#}");
+}
+
+#[test]
+fn validating_from_a_later_epoch_scores_and_keeps_only_those_epochs() {
+    let data = dataset(40.0, 120, 74);
+    let train_from = |validate_from_epoch: usize| {
+        cnn::train(
+            &tiny_architecture(),
+            &TrainingSettings {
+                validate_from_epoch,
+                ..tiny_settings(4)
+            },
+            &data,
+            None,
+            9,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let every = train_from(1);
+    let late = train_from(3);
+    // Epochs 1 and 2 are not scored; 3 and 4 are, as in the run that
+    // scores every epoch: leaving the validation out changes no weights.
+    for (record, full) in late.record.epochs.iter().zip(&every.record.epochs) {
+        assert_eq!(record.loss, full.loss, "epoch {}", record.epoch);
+        if record.epoch < 3 {
+            assert!(record.validation_auc.is_empty(), "epoch {}", record.epoch);
+            assert_eq!(record.validation_mean_auc, None);
+        } else {
+            assert_eq!(record.validation_auc, full.validation_auc);
+            assert!(record.validation_mean_auc.is_some());
+        }
+    }
+    assert_eq!(late.record.epochs.len(), 4);
+    // The best of epochs 3 and 4 is kept (the earlier on a tie).
+    let mean = |epoch: usize| late.record.epochs[epoch - 1].validation_mean_auc.unwrap();
+    let best = if mean(4) > mean(3) { 4 } else { 3 };
+    assert_eq!(late.record.best_epoch, best);
+    // The setting travels with the model; the default is left out, so
+    // models trained before it keep their bytes.
+    assert!(late.to_bytes().unwrap() != every.to_bytes().unwrap());
+    let settings = |model: &TrainedCnn| serde_json::to_string(&model.settings).unwrap();
+    assert!(
+        settings(&late).contains("\"validate_from_epoch\":3"),
+        "{}",
+        settings(&late)
+    );
+    assert!(
+        !settings(&every).contains("validate_from_epoch"),
+        "{}",
+        settings(&every)
+    );
 }
 
 /// Mean over frames of `what` of each frame's top prediction (frames

@@ -183,6 +183,14 @@ pub struct TrainingSettings {
     /// epoch is kept); 1 = the whole dataset validates and training uses
     /// fresh frames only.
     pub validation_fraction: f64,
+    /// The first epoch whose network is validated and may be kept: the
+    /// epochs before it train without being scored (with the cosine decay
+    /// the best epoch comes late, and scoring the validation frames after
+    /// every epoch costs time). 1 = every epoch. At most `epochs`. Left out
+    /// of the serialised settings when 1, so models trained before it
+    /// existed keep their bytes and content keys.
+    #[serde(default = "first_epoch", skip_serializing_if = "is_first_epoch")]
+    pub validate_from_epoch: usize,
     /// Frames simulated anew for every epoch (0 = the fixed dataset only).
     /// Needs simulator parameters (`fresh_frames` of [`train`]).
     pub fresh_frames_per_epoch: usize,
@@ -234,6 +242,14 @@ pub struct TrainingSettings {
     pub teacher_fresh_frames: bool,
 }
 
+fn first_epoch() -> usize {
+    1
+}
+
+fn is_first_epoch(epoch: &usize) -> bool {
+    *epoch == 1
+}
+
 fn is_zero(value: &usize) -> bool {
     *value == 0
 }
@@ -262,6 +278,7 @@ impl Default for TrainingSettings {
             learning_rate: 2e-3,
             cosine_decay: true,
             validation_fraction: 0.1,
+            validate_from_epoch: first_epoch(),
             fresh_frames_per_epoch: 0,
             score_floor: 0.02,
             heatmap_sigma_px: 1.0,
@@ -296,6 +313,15 @@ impl TrainingSettings {
     pub fn validate(&self) -> Result<(), FieldError> {
         if self.epochs == 0 {
             return Err(FieldError::new("training.epochs", "must be ≥ 1, got 0"));
+        }
+        if !(1..=self.epochs).contains(&self.validate_from_epoch) {
+            return Err(FieldError::new(
+                "training.validate_from_epoch",
+                format!(
+                    "must be between 1 and training.epochs ({}), got {}",
+                    self.epochs, self.validate_from_epoch
+                ),
+            ));
         }
         if self.batch_size == 0 || self.batch_size > crate::limits::MAX_FRAMES {
             return Err(FieldError::new(

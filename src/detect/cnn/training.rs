@@ -298,7 +298,8 @@ fn validate(
 /// Each epoch ends with a validation pass scored by `score` (the paper's
 /// metric: `metrics::paper_aucs`, the AUC at ε = 1, 2, 3 px); the weights
 /// of the epoch with the best mean score are kept (the earliest on ties; the
-/// last epoch without validation frames). `progress` counts optimiser steps
+/// last epoch without validation frames). With `settings.validate_from_epoch`
+/// = E > 1, only epochs E and later are scored and may be kept. `progress` counts optimiser steps
 /// and shows the latest loss and validation AUC after its message as the
 /// training began (the caller's name for it, e.g. "train cnn"; give each
 /// training a bar of its own). Fails with an error naming the epoch and
@@ -766,8 +767,15 @@ fn train_member(
         }
         let batches = steps_per_epoch as f64;
         let valid_net = net.valid();
+        // Epochs before `validate_from_epoch` are neither scored nor kept.
+        let candidate = epoch >= settings.validate_from_epoch;
+        let scored = if candidate {
+            validation
+        } else {
+            &Dataset::default()
+        };
         let validation_auc =
-            validate(&valid_net, arch, settings, validation, selection.score).map_err(|error| {
+            validate(&valid_net, arch, settings, scored, selection.score).map_err(|error| {
                 if error.is::<NonFiniteOutput>() {
                     // The last step blew the weights up; the loss that
                     // step saw was still finite.
@@ -829,7 +837,7 @@ fn train_member(
                 criterion > *best_criterion || validation_mean_auc.is_none()
             }
         };
-        if better {
+        if candidate && better {
             best = Some((criterion, epoch, valid_net));
         }
         epochs.push(record);
