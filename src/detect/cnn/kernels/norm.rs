@@ -20,51 +20,51 @@ use super::Geometry;
 
 /// A loop over the pixels of one interior row (`channels` floats a pixel,
 /// channels innermost), the unit [`vectorised`] compiles per instruction
-/// set. Each runs [`RowKernel::run`] on the loop's function of the same
-/// name.
-enum RowKernel<'a> {
+/// set: inputs borrowed for `'d`, outputs for `'o`. Each runs
+/// [`RowKernel::run`] on the loop's function of the same name.
+enum RowKernel<'d, 'o> {
     /// `sum[c] += v[c]`.
     Sum {
-        values: &'a [f32],
-        sum: &'a mut [f32],
+        values: &'d [f32],
+        sum: &'o mut [f32],
     },
     /// `squares[c] += (v[c] − mean[c])²`.
     Squares {
-        values: &'a [f32],
-        mean: &'a [f32],
-        squares: &'a mut [f32],
+        values: &'d [f32],
+        mean: &'d [f32],
+        squares: &'o mut [f32],
     },
     /// `out = max(z · scale + shift, 0)`.
     BnRelu {
-        z: &'a [f32],
-        out: &'a mut [f32],
-        scale: &'a [f32],
-        shift: &'a [f32],
+        z: &'d [f32],
+        out: &'o mut [f32],
+        scale: &'d [f32],
+        shift: &'d [f32],
     },
     /// The two sums of batch norm's backward pass.
     BackwardSums {
-        output_grad: &'a [f32],
-        z: &'a [f32],
-        gate: ReluGate<'a>,
-        statistics: Standardise<'a>,
-        sum_grad: &'a mut [f32],
-        sum_grad_normalised: &'a mut [f32],
+        output_grad: &'d [f32],
+        z: &'d [f32],
+        gate: ReluGate<'d>,
+        statistics: Standardise<'d>,
+        sum_grad: &'o mut [f32],
+        sum_grad_normalised: &'o mut [f32],
     },
     /// The gradient through a ReLU alone.
     ReluGrad {
-        output_grad: &'a [f32],
-        z: &'a [f32],
-        gate: ReluGate<'a>,
-        out: &'a mut [f32],
+        output_grad: &'d [f32],
+        z: &'d [f32],
+        gate: ReluGate<'d>,
+        out: &'o mut [f32],
     },
     /// The gradient with respect to batch norm's input.
     BnReluGrad {
-        output_grad: &'a [f32],
-        z: &'a [f32],
-        gate: ReluGate<'a>,
-        statistics: Standardise<'a>,
-        coefficients: BackwardCoefficients<'a>,
-        out: &'a mut [f32],
+        output_grad: &'d [f32],
+        z: &'d [f32],
+        gate: ReluGate<'d>,
+        statistics: Standardise<'d>,
+        coefficients: BackwardCoefficients<'d>,
+        out: &'o mut [f32],
     },
 }
 
@@ -95,7 +95,7 @@ struct BackwardCoefficients<'a> {
     mean_grad_normalised: &'a [f32],
 }
 
-impl RowKernel<'_> {
+impl RowKernel<'_, '_> {
     /// The loop, with `channels` floats a pixel (a constant where inlined
     /// with one, so the channel loops unroll into whole vectors). The
     /// loops are functions of their slices, which so arrive as arguments
@@ -342,20 +342,20 @@ fn interior_rows(
     })
 }
 
-/// Per-channel sums of `term(row floats, channel sums)` over each map's
-/// interior rows (maps in parallel, rows in order), then over maps in map
-/// order, in f64.
-fn batch_sums<const K: usize>(
+/// Per-channel sums over each map's interior rows (maps in parallel, rows
+/// in order) by the row kernel `kernel(row floats, the map's channel sums)`
+/// makes, then over maps in map order, in f64.
+fn batch_sums<'d, const K: usize>(
     geometry: &Geometry,
     channels: usize,
-    term: impl Fn(Range<usize>, &mut [Vec<f32>; K]) + Sync,
+    kernel: impl for<'o> Fn(Range<usize>, &'o mut [Vec<f32>; K]) -> RowKernel<'d, 'o> + Sync,
 ) -> [Vec<f64>; K] {
     let per_map: Vec<[Vec<f32>; K]> = (0..geometry.n)
         .into_par_iter()
         .map(|map| {
             let mut sums: [Vec<f32>; K] = std::array::from_fn(|_| vec![0.0f32; channels]);
             for row in interior_rows(geometry, map, channels) {
-                term(row, &mut sums);
+                vectorised(kernel(row, &mut sums), channels);
             }
             sums
         })
@@ -371,13 +371,14 @@ fn batch_sums<const K: usize>(
     total
 }
 
-/// Writes `f(row floats, that row of the map's output)` for each interior
-/// row of every map of `output` (maps in parallel).
-fn for_each_output_row(
+/// Runs the row kernel `kernel(row floats, that row of the map's output)`
+/// makes for each interior row of every map of `output` (maps in
+/// parallel).
+fn for_each_output_row<'d>(
     output: &mut [f32],
     geometry: &Geometry,
     channels: usize,
-    f: impl Fn(Range<usize>, &mut [f32]) + Sync,
+    kernel: impl for<'o> Fn(Range<usize>, &'o mut [f32]) -> RowKernel<'d, 'o> + Sync,
 ) {
     let map_floats = geometry.map_pixels() * channels;
     output
@@ -387,7 +388,7 @@ fn for_each_output_row(
             let base = map * map_floats;
             for row in interior_rows(geometry, map, channels) {
                 let out = &mut out_map[row.start - base..row.end - base];
-                f(row, out);
+                vectorised(kernel(row, out), channels);
             }
         });
 }
@@ -396,25 +397,15 @@ fn for_each_output_row(
 pub fn channel_statistics(values: &[f32], channels: usize, geometry: &Geometry) -> NormStatistics {
     assert_eq!(values.len(), geometry.pixels() * channels);
     let count = geometry.interior_pixels().max(1) as f64;
-    let [sum] = batch_sums::<1>(geometry, channels, |row, [sum]| {
-        vectorised(
-            RowKernel::Sum {
-                values: &values[row],
-                sum,
-            },
-            channels,
-        )
+    let [sum] = batch_sums::<1>(geometry, channels, |row, [sum]| RowKernel::Sum {
+        values: &values[row],
+        sum,
     });
     let mean: Vec<f32> = sum.iter().map(|&s| (s / count) as f32).collect();
-    let [squares] = batch_sums::<1>(geometry, channels, |row, [squares]| {
-        vectorised(
-            RowKernel::Squares {
-                values: &values[row],
-                mean: &mean,
-                squares,
-            },
-            channels,
-        )
+    let [squares] = batch_sums::<1>(geometry, channels, |row, [squares]| RowKernel::Squares {
+        values: &values[row],
+        mean: &mean,
+        squares,
     });
     let variance = squares.iter().map(|&s| (s / count) as f32).collect();
     NormStatistics { mean, variance }
@@ -432,16 +423,11 @@ pub fn bn_relu_forward(
 ) {
     assert_eq!(z.len(), geometry.pixels() * channels);
     assert_eq!(output.len(), z.len());
-    for_each_output_row(output, geometry, channels, |row, out| {
-        vectorised(
-            RowKernel::BnRelu {
-                z: &z[row],
-                out,
-                scale,
-                shift,
-            },
-            channels,
-        )
+    for_each_output_row(output, geometry, channels, |row, out| RowKernel::BnRelu {
+        z: &z[row],
+        out,
+        scale,
+        shift,
     });
 }
 
@@ -496,31 +482,23 @@ pub fn bn_relu_backward(
     let [sum_grad, sum_grad_normalised] = batch_sums::<2>(
         geometry,
         channels,
-        |row, [sum_grad, sum_grad_normalised]| {
-            vectorised(
-                RowKernel::BackwardSums {
-                    output_grad: &output_grad[row.clone()],
-                    z: &z[row],
-                    gate,
-                    statistics,
-                    sum_grad,
-                    sum_grad_normalised,
-                },
-                channels,
-            )
+        |row, [sum_grad, sum_grad_normalised]| RowKernel::BackwardSums {
+            output_grad: &output_grad[row.clone()],
+            z: &z[row],
+            gate,
+            statistics,
+            sum_grad,
+            sum_grad_normalised,
         },
     );
     let Some((_, gamma, _)) = norm else {
         for_each_output_row(&mut z_grad, geometry, channels, |row, out| {
-            vectorised(
-                RowKernel::ReluGrad {
-                    output_grad: &output_grad[row.clone()],
-                    z: &z[row],
-                    gate,
-                    out,
-                },
-                channels,
-            )
+            RowKernel::ReluGrad {
+                output_grad: &output_grad[row.clone()],
+                z: &z[row],
+                gate,
+                out,
+            }
         });
         return NormGradients {
             z_grad,
@@ -540,17 +518,14 @@ pub fn bn_relu_backward(
         mean_grad_normalised: &mean_grad_normalised,
     };
     for_each_output_row(&mut z_grad, geometry, channels, |row, out| {
-        vectorised(
-            RowKernel::BnReluGrad {
-                output_grad: &output_grad[row.clone()],
-                z: &z[row],
-                gate,
-                statistics,
-                coefficients,
-                out,
-            },
-            channels,
-        )
+        RowKernel::BnReluGrad {
+            output_grad: &output_grad[row.clone()],
+            z: &z[row],
+            gate,
+            statistics,
+            coefficients,
+            out,
+        }
     });
     NormGradients {
         z_grad,
