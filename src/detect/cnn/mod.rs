@@ -439,9 +439,11 @@ pub struct EpochRecord {
     pub sigma_loss: f64,
     /// Mean within-1-px cross-entropy (per target centre).
     pub within_loss: f64,
-    /// Validation AUC at ε = 1, 2, 3 px (empty without validation).
+    /// Validation AUC at ε = 1, 2, 3 px (empty without validation frames
+    /// and for epochs before `validate_from_epoch`).
     pub validation_auc: Vec<f64>,
-    /// Mean of `validation_auc`, the selection criterion (None without validation).
+    /// Mean of `validation_auc`, the selection criterion (None where it is
+    /// empty).
     pub validation_mean_auc: Option<f64>,
 }
 

@@ -299,9 +299,9 @@ fn validate(
 /// metric: `metrics::paper_aucs`, the AUC at ε = 1, 2, 3 px); the weights
 /// of the epoch with the best mean score are kept (the earliest on ties; the
 /// last epoch without validation frames). With `settings.validate_from_epoch`
-/// = E > 1, only epochs E and later are scored and may be kept. `progress` counts optimiser steps
-/// and shows the latest loss and validation AUC after its message as the
-/// training began (the caller's name for it, e.g. "train cnn"; give each
+/// = E > 1, only epochs E and later are scored and may be kept. `progress`
+/// counts optimiser steps and shows the latest loss and validation AUC after
+/// its message as the training began (the caller's name for it, e.g. "train cnn"; give each
 /// training a bar of its own). Fails with an error naming the epoch and
 /// batch if the loss is not finite.
 ///
