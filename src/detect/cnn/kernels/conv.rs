@@ -83,9 +83,44 @@ pub fn conv3x3_forward(input: &[f32], output: &mut [f32], geometry: &Geometry, c
 pub(super) enum Isa {
     /// The fastest the CPU has.
     Detect,
+    /// The AVX2 kernels even where the CPU has AVX-512 (portable where it
+    /// has neither), so that tests on an AVX-512 machine check them too.
+    #[cfg_attr(not(test), allow(dead_code))]
+    Avx2,
     /// Plain Rust (for checking that the paths agree bit for bit).
     #[cfg_attr(not(test), allow(dead_code))]
     Portable,
+}
+
+/// The vector kernels a convolution with `out_channels` can take on `isa`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Path {
+    /// The tiled AVX-512 kernels.
+    Avx512,
+    /// The tiled AVX2 kernels.
+    Avx2,
+    /// The portable loops compiled for AVX2 and FMA (channel counts that
+    /// are not whole registers; the compiler vectorises what it can).
+    Avx2Loops,
+    /// The portable loops as the crate is built (SSE2 on x86-64).
+    Portable,
+}
+
+impl Isa {
+    /// The path for `out_channels` output channels: the tiled kernels need
+    /// whole registers of them (16 lanes with AVX-512, 8 with AVX2).
+    fn path(self, out_channels: usize) -> Path {
+        let avx2 = self != Isa::Portable && has_avx2_fma();
+        if self == Isa::Detect && has_avx512() && out_channels.is_multiple_of(16) {
+            Path::Avx512
+        } else if avx2 && out_channels.is_multiple_of(8) {
+            Path::Avx2
+        } else if avx2 {
+            Path::Avx2Loops
+        } else {
+            Path::Portable
+        }
+    }
 }
 
 /// [`conv3x3_forward`] on the path `isa`.
@@ -102,9 +137,7 @@ pub(super) fn conv3x3_forward_on(
     let offsets = conv.tap_offsets(geometry);
     let row_floats = geometry.padded_width() * conv.out_channels;
     let padded_height = geometry.padded_height();
-    let detect = isa == Isa::Detect;
-    let avx512 = detect && has_avx512() && conv.out_channels.is_multiple_of(16);
-    let avx2 = detect && has_avx2_fma();
+    let path = isa.path(conv.out_channels);
     output
         .par_chunks_mut(row_floats)
         .enumerate()
@@ -116,28 +149,37 @@ pub(super) fn conv3x3_forward_on(
             // Pixel index of this row's first interior pixel.
             let first = padded_row_index * geometry.padded_width() + geometry.pad;
             let out = &mut out_row[geometry.pad * conv.out_channels..];
+            let width = geometry.width;
+            // SAFETY (both vector paths): the CPU has the path's features
+            // (`Isa::path`) and the channel count is whole registers; every
+            // tap of every interior pixel lies inside `input` because the
+            // padding is at least the dilation (checked in `check`).
             #[cfg(target_arch = "x86_64")]
-            if avx512 {
-                // SAFETY: the CPU has AVX-512F (checked above); every tap of
-                // every interior pixel lies inside `input` because the
-                // padding is at least the dilation (checked in `check`).
-                unsafe { avx512::conv_row(input, out, first, geometry.width, &offsets, conv) };
-                return;
+            match path {
+                Path::Avx512 => {
+                    return unsafe {
+                        tiled::conv_row_avx512(input, out, first, width, &offsets, conv)
+                    };
+                }
+                Path::Avx2 => {
+                    return unsafe {
+                        tiled::conv_row_avx2(input, out, first, width, &offsets, conv)
+                    };
+                }
+                Path::Avx2Loops => {
+                    return unsafe {
+                        conv_row_avx2_loops(input, out, first, width, &offsets, conv)
+                    };
+                }
+                Path::Portable => {}
             }
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: the CPU has AVX2 and FMA (checked above).
-                unsafe { conv_row_avx2(input, out, first, geometry.width, &offsets, conv) };
-                return;
-            }
-            let _ = (avx512, avx2);
-            conv_row_portable(input, out, first, geometry.width, &offsets, conv);
+            conv_row_portable(input, out, first, width, &offsets, conv);
         });
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn conv_row_avx2(
+unsafe fn conv_row_avx2_loops(
     input: &[f32],
     out: &mut [f32],
     first: usize,
@@ -211,9 +253,7 @@ pub(super) fn conv3x3_weight_grad_on(
     assert_eq!(input.len(), geometry.pixels() * ci_n);
     assert_eq!(output_grad.len(), geometry.pixels() * co_n);
     let offsets = conv.tap_offsets(geometry);
-    let detect = isa == Isa::Detect;
-    let avx512 = detect && has_avx512() && co_n.is_multiple_of(16);
-    let avx2 = detect && has_avx2_fma();
+    let path = isa.path(co_n);
     let job = WeightGradJob {
         input,
         output_grad,
@@ -225,20 +265,17 @@ pub(super) fn conv3x3_weight_grad_on(
         .into_par_iter()
         .map(|map| {
             let mut grad = vec![0.0f32; 9 * ci_n * co_n];
+            // SAFETY (both vector paths): the CPU has the path's features
+            // and the channel count is whole registers; taps stay inside
+            // the map's padded area (padding ≥ dilation).
             #[cfg(target_arch = "x86_64")]
-            if avx512 {
-                // SAFETY: AVX-512F is present; taps stay inside the map's
-                // padded area (padding ≥ dilation).
-                unsafe { avx512::weight_grad_map(&job, map, &mut grad) };
-                return grad;
+            match path {
+                Path::Avx512 => unsafe { tiled::weight_grad_map_avx512(&job, map, &mut grad) },
+                Path::Avx2 => unsafe { tiled::weight_grad_map_avx2(&job, map, &mut grad) },
+                Path::Avx2Loops => unsafe { weight_grad_map_avx2_loops(&job, map, &mut grad) },
+                Path::Portable => weight_grad_map_portable(&job, map, &mut grad),
             }
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: AVX2 and FMA are present.
-                unsafe { weight_grad_map_avx2(&job, map, &mut grad) };
-                return grad;
-            }
-            let _ = (avx512, avx2);
+            #[cfg(not(target_arch = "x86_64"))]
             weight_grad_map_portable(&job, map, &mut grad);
             grad
         })
@@ -263,7 +300,7 @@ struct WeightGradJob<'a> {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn weight_grad_map_avx2(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+unsafe fn weight_grad_map_avx2_loops(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
     weight_grad_map_portable(job, map, grad)
 }
 
@@ -298,22 +335,164 @@ fn weight_grad_map_portable(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
 }
 
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
-    //! AVX-512 micro-kernels: output channels 16 or 32 at a time (one or two
-    //! registers), several pixels at a time so each weight load feeds
-    //! several FMAs. Same summation order as the portable kernels.
+mod tiled {
+    //! Register-tiled micro-kernels, written once over [`Vector`] and
+    //! compiled for AVX-512 (16 lanes) and AVX2 (8 lanes) by the entry
+    //! points at the bottom: output channels two registers (or one) at a
+    //! time, several pixels (forward) or input channels (weight gradient)
+    //! at a time, so that each load feeds several FMAs from registers.
+    //! Every output sums its terms in the portable kernels' order, so each
+    //! build gives their bits.
 
     use std::arch::x86_64::*;
 
     use super::{Conv3x3, Geometry, WeightGradJob};
 
-    /// Pixels per forward tile.
-    const PIXELS: usize = 8;
-    /// Input channels per weight-gradient tile.
-    const IN_BLOCK: usize = 8;
+    /// One SIMD register of f32 lanes. The methods are `unsafe` because they
+    /// need the CPU feature of their type; they are only ever inlined into
+    /// the `#[target_feature]` entry points below.
+    pub(super) trait Vector: Copy {
+        /// Lanes per register.
+        const WIDTH: usize;
+        unsafe fn zero() -> Self;
+        unsafe fn load(from: *const f32) -> Self;
+        unsafe fn store(self, to: *mut f32);
+        unsafe fn splat(value: f32) -> Self;
+        /// `a · b + c`, fused.
+        unsafe fn mul_add(a: Self, b: Self, c: Self) -> Self;
+        unsafe fn add(self, other: Self) -> Self;
+        /// max(0, v), NaN and −0 passing as in [`super::super::relu`] (MAXPS
+        /// returns its second operand when either is NaN or both are zero).
+        unsafe fn relu(self) -> Self;
+    }
 
+    impl Vector for __m512 {
+        const WIDTH: usize = 16;
+        #[inline(always)]
+        unsafe fn zero() -> Self {
+            unsafe { _mm512_setzero_ps() }
+        }
+        #[inline(always)]
+        unsafe fn load(from: *const f32) -> Self {
+            unsafe { _mm512_loadu_ps(from) }
+        }
+        #[inline(always)]
+        unsafe fn store(self, to: *mut f32) {
+            unsafe { _mm512_storeu_ps(to, self) }
+        }
+        #[inline(always)]
+        unsafe fn splat(value: f32) -> Self {
+            unsafe { _mm512_set1_ps(value) }
+        }
+        #[inline(always)]
+        unsafe fn mul_add(a: Self, b: Self, c: Self) -> Self {
+            unsafe { _mm512_fmadd_ps(a, b, c) }
+        }
+        #[inline(always)]
+        unsafe fn add(self, other: Self) -> Self {
+            unsafe { _mm512_add_ps(self, other) }
+        }
+        #[inline(always)]
+        unsafe fn relu(self) -> Self {
+            unsafe { _mm512_max_ps(_mm512_setzero_ps(), self) }
+        }
+    }
+
+    impl Vector for __m256 {
+        const WIDTH: usize = 8;
+        #[inline(always)]
+        unsafe fn zero() -> Self {
+            unsafe { _mm256_setzero_ps() }
+        }
+        #[inline(always)]
+        unsafe fn load(from: *const f32) -> Self {
+            unsafe { _mm256_loadu_ps(from) }
+        }
+        #[inline(always)]
+        unsafe fn store(self, to: *mut f32) {
+            unsafe { _mm256_storeu_ps(to, self) }
+        }
+        #[inline(always)]
+        unsafe fn splat(value: f32) -> Self {
+            unsafe { _mm256_set1_ps(value) }
+        }
+        #[inline(always)]
+        unsafe fn mul_add(a: Self, b: Self, c: Self) -> Self {
+            unsafe { _mm256_fmadd_ps(a, b, c) }
+        }
+        #[inline(always)]
+        unsafe fn add(self, other: Self) -> Self {
+            unsafe { _mm256_add_ps(self, other) }
+        }
+        #[inline(always)]
+        unsafe fn relu(self) -> Self {
+            unsafe { _mm256_max_ps(_mm256_setzero_ps(), self) }
+        }
+    }
+
+    /// Pixels per forward tile with AVX-512 (32 registers: 8 × 2
+    /// accumulators, 2 weights, 1 input).
+    const AVX512_PIXELS: usize = 8;
+    /// Input channels per weight-gradient tile with AVX-512.
+    const AVX512_IN_BLOCK: usize = 8;
+    /// Pixels per forward tile with AVX2 (16 registers: 6 × 2 accumulators,
+    /// 2 weights, 1 input).
+    const AVX2_PIXELS: usize = 6;
+    /// Input channels per weight-gradient tile with AVX2.
+    const AVX2_IN_BLOCK: usize = 6;
+
+    /// One output row with AVX-512; `out_channels` a multiple of 16.
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn conv_row(
+    pub(super) unsafe fn conv_row_avx512(
+        input: &[f32],
+        out: &mut [f32],
+        first: usize,
+        width: usize,
+        offsets: &[isize; 9],
+        conv: &Conv3x3,
+    ) {
+        // SAFETY: the caller's contract, and AVX-512F is enabled here.
+        unsafe {
+            conv_row::<__m512, AVX512_PIXELS>(input, out, first, width, offsets, conv);
+        }
+    }
+
+    /// One output row with AVX2 and FMA; `out_channels` a multiple of 8.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn conv_row_avx2(
+        input: &[f32],
+        out: &mut [f32],
+        first: usize,
+        width: usize,
+        offsets: &[isize; 9],
+        conv: &Conv3x3,
+    ) {
+        // SAFETY: the caller's contract, and AVX2 and FMA are enabled here.
+        unsafe {
+            conv_row::<__m256, AVX2_PIXELS>(input, out, first, width, offsets, conv);
+        }
+    }
+
+    /// One map's weight gradient with AVX-512; `out_channels` a multiple
+    /// of 16.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn weight_grad_map_avx512(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+        // SAFETY: the caller's contract, and AVX-512F is enabled here.
+        unsafe { weight_grad_map::<__m512, AVX512_IN_BLOCK>(job, map, grad) }
+    }
+
+    /// One map's weight gradient with AVX2 and FMA; `out_channels` a
+    /// multiple of 8.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn weight_grad_map_avx2(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
+        // SAFETY: the caller's contract, and AVX2 and FMA are enabled here.
+        unsafe { weight_grad_map::<__m256, AVX2_IN_BLOCK>(job, map, grad) }
+    }
+
+    /// The forward row: tiles of `PIXELS` pixels (then single pixels) by
+    /// two registers of output channels (then one).
+    #[inline(always)]
+    unsafe fn conv_row<V: Vector, const PIXELS: usize>(
         input: &[f32],
         out: &mut [f32],
         first: usize,
@@ -322,36 +501,38 @@ mod avx512 {
         conv: &Conv3x3,
     ) {
         let co_n = conv.out_channels;
+        debug_assert!(co_n.is_multiple_of(V::WIDTH));
         let mut co = 0;
         while co < co_n {
-            let pair = co_n - co >= 32;
+            let pair = co_n - co >= 2 * V::WIDTH;
             let mut col = 0;
             while col < width {
-                let rest = width - col;
+                let whole = width - col >= PIXELS;
                 // SAFETY (all calls): pixels col..col + NB are inside the row
                 // and their taps inside `input` (caller's contract).
                 unsafe {
-                    match (rest >= PIXELS, pair) {
+                    match (whole, pair) {
                         (true, true) => {
-                            tile::<PIXELS, 2>(input, out, first, col, co, offsets, conv)
+                            tile::<V, PIXELS, 2>(input, out, first, col, co, offsets, conv)
                         }
                         (true, false) => {
-                            tile::<PIXELS, 1>(input, out, first, col, co, offsets, conv)
+                            tile::<V, PIXELS, 1>(input, out, first, col, co, offsets, conv)
                         }
-                        (false, true) => tile::<1, 2>(input, out, first, col, co, offsets, conv),
-                        (false, false) => tile::<1, 1>(input, out, first, col, co, offsets, conv),
+                        (false, true) => tile::<V, 1, 2>(input, out, first, col, co, offsets, conv),
+                        (false, false) => {
+                            tile::<V, 1, 1>(input, out, first, col, co, offsets, conv)
+                        }
                     }
                 }
-                col += if rest >= PIXELS { PIXELS } else { 1 };
+                col += if whole { PIXELS } else { 1 };
             }
-            co += if pair { 32 } else { 16 };
+            co += if pair { 2 } else { 1 } * V::WIDTH;
         }
     }
 
-    /// Output channels `co..co + 16·LANES` of pixels `col..col + NB`.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    unsafe fn tile<const NB: usize, const LANES: usize>(
+    /// Output channels `co..co + LANES · V::WIDTH` of pixels `col..col + NB`.
+    #[inline(always)]
+    unsafe fn tile<V: Vector, const NB: usize, const LANES: usize>(
         input: &[f32],
         out: &mut [f32],
         first: usize,
@@ -361,11 +542,11 @@ mod avx512 {
         conv: &Conv3x3,
     ) {
         let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
-        let mut acc = [[_mm512_setzero_ps(); LANES]; NB];
+        let mut acc = [[unsafe { V::zero() }; LANES]; NB];
         if let Some(bias) = conv.bias {
             for lane in 0..LANES {
-                // SAFETY: co + 16·LANES ≤ out_channels = bias.len().
-                let b = unsafe { _mm512_loadu_ps(bias.as_ptr().add(co + 16 * lane)) };
+                // SAFETY: co + LANES · WIDTH ≤ out_channels = bias.len().
+                let b = unsafe { V::load(bias.as_ptr().add(co + V::WIDTH * lane)) };
                 for a in acc.iter_mut() {
                     a[lane] = b;
                 }
@@ -379,127 +560,122 @@ mod avx512 {
             let x = unsafe { in_ptr.add(pixel * ci_n) };
             let w_tap = unsafe { w_ptr.add(tap * ci_n * co_n + co) };
             for ci in 0..ci_n {
-                let mut w = [_mm512_setzero_ps(); LANES];
+                let mut w = [unsafe { V::zero() }; LANES];
                 for (lane, w) in w.iter_mut().enumerate() {
-                    *w = unsafe { _mm512_loadu_ps(w_tap.add(ci * co_n + 16 * lane)) };
+                    *w = unsafe { V::load(w_tap.add(ci * co_n + V::WIDTH * lane)) };
                 }
                 for (p, a) in acc.iter_mut().enumerate() {
-                    let value = unsafe { _mm512_set1_ps(*x.add(p * ci_n + ci)) };
+                    let value = unsafe { V::splat(*x.add(p * ci_n + ci)) };
                     for lane in 0..LANES {
-                        a[lane] = _mm512_fmadd_ps(value, w[lane], a[lane]);
+                        a[lane] = unsafe { V::mul_add(value, w[lane], a[lane]) };
                     }
                 }
             }
         }
-        let zero = _mm512_setzero_ps();
         for (p, a) in acc.iter().enumerate() {
             for (lane, &v) in a.iter().enumerate() {
-                // max(0, v): NaN passes, as in `super::relu`.
-                let v = if conv.relu { _mm512_max_ps(zero, v) } else { v };
-                let index = (col + p) * co_n + co + 16 * lane;
-                debug_assert!(index + 16 <= out.len());
+                let v = if conv.relu { unsafe { v.relu() } } else { v };
+                let index = (col + p) * co_n + co + V::WIDTH * lane;
+                debug_assert!(index + V::WIDTH <= out.len());
                 // SAFETY: pixel col + p < width, channel block inside co_n.
-                unsafe { _mm512_storeu_ps(out.as_mut_ptr().add(index), v) };
+                unsafe { v.store(out.as_mut_ptr().add(index)) };
             }
         }
     }
 
-    #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn weight_grad_map(job: &WeightGradJob, map: usize, grad: &mut [f32]) {
-        let &WeightGradJob {
-            input,
-            output_grad,
-            geometry,
-            offsets,
-            conv,
-        } = job;
-        let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
-        for (tap, &offset) in offsets.iter().enumerate() {
+    /// One map's weight gradient: for every tap, blocks of `IN_BLOCK` input
+    /// channels (then 4, 2, 1) by two registers of output channels (then
+    /// one).
+    #[inline(always)]
+    unsafe fn weight_grad_map<V: Vector, const IN_BLOCK: usize>(
+        job: &WeightGradJob,
+        map: usize,
+        grad: &mut [f32],
+    ) {
+        let (ci_n, co_n) = (job.conv.in_channels, job.conv.out_channels);
+        debug_assert!(co_n.is_multiple_of(V::WIDTH));
+        for tap in 0..9 {
             let mut ci = 0;
             while ci < ci_n {
-                let rest = ci_n - ci;
-                let mut co = 0;
-                while co < co_n {
-                    let pair = co_n - co >= 32;
-                    // SAFETY (all calls): taps inside the padded map.
-                    unsafe {
-                        let args = (input, output_grad, geometry, map, offset, conv, tap, ci, co);
-                        match (rest, pair) {
-                            (IN_BLOCK.., true) => grad_tile::<IN_BLOCK, 2>(args, grad),
-                            (IN_BLOCK.., false) => grad_tile::<IN_BLOCK, 1>(args, grad),
-                            (4.., true) => grad_tile::<4, 2>(args, grad),
-                            (4.., false) => grad_tile::<4, 1>(args, grad),
-                            (2.., true) => grad_tile::<2, 2>(args, grad),
-                            (2.., false) => grad_tile::<2, 1>(args, grad),
-                            (_, true) => grad_tile::<1, 2>(args, grad),
-                            (_, false) => grad_tile::<1, 1>(args, grad),
-                        }
-                    }
-                    co += if pair { 32 } else { 16 };
-                }
-                ci += match rest {
-                    IN_BLOCK.. => IN_BLOCK,
+                let block = match ci_n - ci {
+                    rest if rest >= IN_BLOCK => IN_BLOCK,
                     4.. => 4,
                     2.. => 2,
                     _ => 1,
                 };
+                let mut co = 0;
+                while co < co_n {
+                    let pair = co_n - co >= 2 * V::WIDTH;
+                    let at = GradTile { map, tap, ci, co };
+                    // SAFETY (all calls): taps inside the padded map.
+                    unsafe {
+                        match (block, pair) {
+                            (4, true) => grad_tile::<V, 4, 2>(job, at, grad),
+                            (4, false) => grad_tile::<V, 4, 1>(job, at, grad),
+                            (2, true) => grad_tile::<V, 2, 2>(job, at, grad),
+                            (2, false) => grad_tile::<V, 2, 1>(job, at, grad),
+                            (1, true) => grad_tile::<V, 1, 2>(job, at, grad),
+                            (1, false) => grad_tile::<V, 1, 1>(job, at, grad),
+                            (_, true) => grad_tile::<V, IN_BLOCK, 2>(job, at, grad),
+                            (_, false) => grad_tile::<V, IN_BLOCK, 1>(job, at, grad),
+                        }
+                    }
+                    co += if pair { 2 } else { 1 } * V::WIDTH;
+                }
+                ci += block;
             }
         }
     }
 
-    type GradArgs<'a> = (
-        &'a [f32],
-        &'a [f32],
-        &'a Geometry,
-        usize,
-        isize,
-        &'a Conv3x3<'a>,
-        usize,
-        usize,
-        usize,
-    );
+    /// Where a weight-gradient tile lies.
+    #[derive(Clone, Copy)]
+    struct GradTile {
+        map: usize,
+        tap: usize,
+        ci: usize,
+        co: usize,
+    }
 
-    /// Input channels `ci..ci + CB` × output channels `co..co + 16·LANES`
-    /// of tap `tap`, summed over the map's interior pixels in raster order
-    /// and added to `grad`.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    unsafe fn grad_tile<const CB: usize, const LANES: usize>(
-        (input, output_grad, geometry, map, offset, conv, tap, ci, co): GradArgs,
+    /// Input channels `ci..ci + CB` × output channels `co..co + LANES ·
+    /// V::WIDTH` of tap `tap`, summed over the map's interior pixels in
+    /// raster order and added to `grad`.
+    #[inline(always)]
+    unsafe fn grad_tile<V: Vector, const CB: usize, const LANES: usize>(
+        job: &WeightGradJob,
+        GradTile { map, tap, ci, co }: GradTile,
         grad: &mut [f32],
     ) {
+        let (geometry, conv): (&Geometry, &Conv3x3) = (job.geometry, job.conv);
         let (ci_n, co_n) = (conv.in_channels, conv.out_channels);
-        let mut acc = [[_mm512_setzero_ps(); LANES]; CB];
-        let in_ptr = input.as_ptr();
-        let g_ptr = output_grad.as_ptr();
+        let offset = job.offsets[tap];
+        let mut acc = [[unsafe { V::zero() }; LANES]; CB];
+        let in_ptr = job.input.as_ptr();
+        let g_ptr = job.output_grad.as_ptr();
         for row in 0..geometry.height {
             let start = geometry.pixel(map, row, 0);
             for pixel in start..start + geometry.width {
-                let mut g = [_mm512_setzero_ps(); LANES];
+                let mut g = [unsafe { V::zero() }; LANES];
                 for (lane, g) in g.iter_mut().enumerate() {
                     // SAFETY: interior pixel, channel block inside co_n.
-                    *g = unsafe { _mm512_loadu_ps(g_ptr.add(pixel * co_n + co + 16 * lane)) };
+                    *g = unsafe { V::load(g_ptr.add(pixel * co_n + co + V::WIDTH * lane)) };
                 }
                 let source = pixel.wrapping_add_signed(offset);
                 // SAFETY: the tap of an interior pixel is inside the map.
                 let x = unsafe { in_ptr.add(source * ci_n + ci) };
                 for (c, a) in acc.iter_mut().enumerate() {
-                    let value = unsafe { _mm512_set1_ps(*x.add(c)) };
+                    let value = unsafe { V::splat(*x.add(c)) };
                     for lane in 0..LANES {
-                        a[lane] = _mm512_fmadd_ps(value, g[lane], a[lane]);
+                        a[lane] = unsafe { V::mul_add(value, g[lane], a[lane]) };
                     }
                 }
             }
         }
         for (c, a) in acc.iter().enumerate() {
             for (lane, &v) in a.iter().enumerate() {
-                let index = (tap * ci_n + ci + c) * co_n + co + 16 * lane;
-                let slot = &mut grad[index..index + 16];
-                // SAFETY: `slot` holds 16 floats.
-                unsafe {
-                    let sum = _mm512_add_ps(_mm512_loadu_ps(slot.as_ptr()), v);
-                    _mm512_storeu_ps(slot.as_mut_ptr(), sum);
-                }
+                let index = (tap * ci_n + ci + c) * co_n + co + V::WIDTH * lane;
+                let slot = &mut grad[index..index + V::WIDTH];
+                // SAFETY: `slot` holds WIDTH floats.
+                unsafe { V::load(slot.as_ptr()).add(v).store(slot.as_mut_ptr()) };
             }
         }
     }
