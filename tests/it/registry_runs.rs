@@ -642,10 +642,10 @@ fn reproduce_compares_the_numbers_inside_an_altered_evaluation() {
 
 /// The content keys of the paper manifest's 38 steps, as the cold
 /// `make reproduce-paper` of commit a12a08c recorded them (the bound's since
-/// `scanloc-likelihood/2`, the CNN's since the manifest's recipe of
-/// 2026-12-01: one network, 8 epochs on fresh frames only). A change that
-/// alters any of them makes every user's cached paper run recompute (about
-/// ten minutes), and a change to what an artefact holds that leaves its key
+/// `scanloc-likelihood/2`, the CNN's since `scanloc-cnn/3` on the manifest's
+/// recipe of 2026-12-01: one network, 8 epochs on fresh frames only). A
+/// change that alters any of them makes every user's cached paper run
+/// recompute (tens of minutes), and a change to what an artefact holds that leaves its key
 /// alone would serve stale results: so a key may only change together with a
 /// deliberate version bump (`GENERATOR_VERSION`, a detector's
 /// `CODE_VERSION`, `FORMAT_VERSION`, …) or a manifest edit, and then this
@@ -702,31 +702,31 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "model/cnn",
-            "2c47fa922a960de938b3e78d7fdf17bde28125fddef33ca80476c77a49fd7ff5",
+            "2da18c21cb92fe60492064f6d6f5d8980ea8c4c9c0adc027f722094bed237099",
         ),
         (
             "predictions/cnn@test-0.75",
-            "a3ed8c89b5d1cca285debbae1a2fa9dfcb93cd100b4958db70a29362f6097fe1",
+            "76169e0986c98812139802be356cf4c5fe330d979dd6c23138fe2a8fa17b16f1",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "38a7b5103e98c536c2d6c8240a9a75708e1f97e7add82d9e37b851c96a0ec744",
+            "05dec26f4ccc67eb190a40873d727b7e463a3a9b9ab4659ece6dbb185cd71d12",
         ),
         (
             "predictions/cnn@test-1.00",
-            "6fae8ec8dff953d639b133a0068ca460153aa3bd652d1cecb4933fbd7b222da8",
+            "c64bb5ec52872a75927373d86cc38d27f3fa0853a0b45cfa4bfe665f2f49c7d6",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "20d5ceafdab05a63e654abaf68e680a6943384e29ee7c1e9422a706495b14848",
+            "33139eaa4b3c177c66bbf6975fe973e46795a2b7de0268a6400437d79ef78f8a",
         ),
         (
             "predictions/cnn@test-1.75",
-            "d3011f73e094d6a3c9398a8df8b0ae147210ca828125167a62ed1b98e7147d06",
+            "9db9498cd425aeea933d544d8cf2f4058c3deebc38c96a6f6e34579f7588e5d3",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "ee905715ebde1cbc7e6e8e341b4d8643e58bc7ecd1e200bfc75f4078bd696b4a",
+            "bba4f119c9d5e1f841428865a28409e4fb682c58326cef0782ddc531b2291b08",
         ),
         (
             "dataset/test-0.75+first300",
@@ -790,27 +790,27 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "4be3f906f67f30c0581385d2af3579a6cd5982554be92ee6420be0e81811c187",
+            "d72cd558555cf5dd956f51a7d55159d77acbf5d10366f7018d2068a06cbabbc2",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "f38ff6f1c890d2bcf82c7621367b06fff9f21810b523eaf71b66ab44923860aa",
+            "d1e654add965a370e75cb45f2b50b78df381df2f762a809a6cda0d8f7d16b140",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "ebdd149f89785c8ebc0c8deb32593d1d20d3b730f8fae547e7135a7fc9faa571",
+            "2e9c8de59611bb7e3fc487cf76e99ea5c6beb70e7a3249f68d9e28dc1cc04d63",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "6fd995a74261f62df7c6bf6dbf2f717d9527692d5be41d6ec8ee5ccf619160f4",
+            "7a18c6a40af28063116b2f1d396a4fa6eafb66faf4f67a42049fa2bee993152f",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "99d94e4b0d581463820c4ee96395c28014d1734547889914e2cea9888910beab",
+            "ab80c699b7eab7f41d5302f59d5fe824a228cc03e65724c6d6943062b7ed0bde",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "0c4420b8259c6f2966e4cec2ffc209b915db16a731cb1dfacdaa823cac8f90c0",
+            "15cc412e1b7756fd625ce0d5665d6e259ccfe2ea6a851f537546feb3c92d7a18",
         ),
     ];
     assert_eq!(planned, recorded);

@@ -518,12 +518,17 @@ pub const FORMAT: &str = "scanloc-cnn/2";
 /// data augmentation, selection, and the validation predictions the best
 /// epoch is chosen by), so cached models made by the old code are not
 /// reused. Kept apart from [`FORMAT`], which only names the encoding.
-pub const CODE_VERSION: &str = "scanloc-cnn/2";
+///
+/// `scanloc-cnn/3`: the head's forward and backward passes and the loss's
+/// reported sums moved from burn to the kernels' fixed summation order, so
+/// a seed trains the same weights on every x86-64 CPU (before, burn's
+/// reductions followed the CPU's vector width and caches).
+pub const CODE_VERSION: &str = "scanloc-cnn/3";
 /// The code version of a model trained with a teacher
 /// (`training.teacher_particles` > 0): the training's and the likelihood
 /// detector's ([`crate::detect::likelihood::CODE_VERSION`]), whose
 /// predictions became its targets, so a change to either renews it.
-pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/2+scanloc-likelihood/2";
+pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2";
 /// Version of the decoding (output maps → predictions: peaks, positions,
 /// scores, σ), the code version of every CNN prediction's content key:
 /// bump its second part when a change alters predictions but not the
@@ -534,7 +539,7 @@ pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/2+scanloc-likelihood/2";
 /// `decode/1`: σ from the within-1-px head (docs/detectors.md,
 /// "Uncertainty"); before it, the predictions' key had [`CODE_VERSION`]
 /// alone.
-pub const DECODE_VERSION: &str = "scanloc-cnn/2+decode/1";
+pub const DECODE_VERSION: &str = "scanloc-cnn/3+decode/1";
 /// First bytes of a [`TrainedCnn::to_bytes`] blob.
 const MAGIC: &[u8] = b"SCANLOC-CNN\n";
 /// File names inside a saved model folder: member 1's weights and training

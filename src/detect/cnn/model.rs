@@ -26,6 +26,7 @@ use rand_distr::{Distribution as _, Normal};
 
 use super::CnnArchitecture;
 use super::kernels::body::{self, BodyLayer, LayerNorm, Tape};
+use super::kernels::{Head, head_backward, head_forward};
 
 /// Output channel holding the centre score logit.
 pub const SCORE_CHANNEL: usize = 0;
@@ -161,9 +162,30 @@ impl Net {
         self.head.forward(x)
     }
 
-    /// The head: body features `[batch, channels, H, W]` to the raw output.
-    pub fn head_forward(&self, features: Tensor<4>) -> Tensor<4> {
-        self.head.forward(features)
+    /// The head's parameters as plain vectors, for the kernels.
+    fn head_parameters(&self) -> HeadParameters {
+        let [out_channels, in_channels, _, _] = self.head.weight.dims();
+        let values = |tensor: Tensor<1>| tensor.into_data().try_to_vec::<f32>();
+        let weights = self
+            .head
+            .weight
+            .val()
+            .reshape([out_channels * in_channels])
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("float parameters");
+        let bias = self
+            .head
+            .bias
+            .as_ref()
+            .map_or(Ok(vec![0.0; out_channels]), |b| values(b.val()))
+            .expect("float parameters");
+        HeadParameters {
+            weights,
+            bias,
+            in_channels,
+            out_channels,
+        }
     }
 
     /// The hidden layers' parameters as plain vectors, for the kernels.
@@ -217,11 +239,13 @@ impl Net {
         let layers = self.body_layers();
         let channels = layers.last().map_or(0, |l| l.out_channels);
         let features = body::infer(&layers, input, n, height, width);
-        let features = Tensor::from_data(
-            TensorData::new(features, [n, channels, height, width]),
+        let head = self.head_parameters();
+        debug_assert_eq!(head.in_channels, channels);
+        let output = head_forward(&head.kernel(), &features, n, height * width);
+        Tensor::from_data(
+            TensorData::new(output, [n, head.out_channels, height, width]),
             device,
-        );
-        self.head_forward(features)
+        )
     }
 
     /// A training forward pass on row-major input `[n, input_channels,
@@ -252,52 +276,105 @@ impl Net {
                 ));
             }
         }
-        let features = Tensor::<4>::from_data(
-            TensorData::new(features, [n, channels, height, width]),
+        let head = self.head_parameters();
+        debug_assert_eq!(head.in_channels, channels);
+        let pixels = height * width;
+        let output = head_forward(&head.kernel(), &features, n, pixels);
+        let output = Tensor::<4>::from_data(
+            TensorData::new(output, [n, head.out_channels, height, width]),
             device,
         )
         .require_grad();
-        let output = self.head_forward(features.clone());
         (
-            output,
+            output.clone(),
             BodyStep {
                 layers,
                 tape,
+                head,
                 features,
+                shape: [n, pixels],
+                output,
             },
         )
     }
 }
 
-/// The body's part of one training step (see [`Net::forward_training`]).
+/// The head's parameters as plain vectors (see [`Head`]).
+struct HeadParameters {
+    /// `[out_channels][in_channels]`.
+    weights: Vec<f32>,
+    bias: Vec<f32>,
+    in_channels: usize,
+    out_channels: usize,
+}
+
+impl HeadParameters {
+    fn kernel(&self) -> Head<'_> {
+        Head {
+            weights: &self.weights,
+            bias: &self.bias,
+            in_channels: self.in_channels,
+            out_channels: self.out_channels,
+        }
+    }
+}
+
+/// The network's part of one training step (see
+/// [`Net::forward_training`]): the body and the head ran on the kernels;
+/// burn computes the loss from the output and its gradient with respect to
+/// the output, and [`BodyStep::gradients`] takes it back through the head
+/// and the body.
 pub struct BodyStep {
     layers: Vec<BodyLayer>,
     tape: Tape,
-    /// The body's output as the head saw it (a leaf that records its
+    head: HeadParameters,
+    /// The body's output `[n, channels, pixels]`, the head's input.
+    features: Vec<f32>,
+    /// `[n, pixels]`.
+    shape: [usize; 2],
+    /// The network's output as the loss saw it (a leaf that records its
     /// gradient).
-    features: Tensor<4>,
+    output: Tensor<4>,
 }
 
 impl BodyStep {
     /// The gradients of every parameter of `net` from the gradients of a
-    /// loss computed from this step's output: the head's from burn, the
-    /// body's from the kernels' backward pass.
+    /// loss computed from this step's output, by the kernels' backward
+    /// passes of the head and the body (sums in a fixed order, so the same
+    /// bits on every CPU and thread count).
     pub fn gradients(self, mut grads: burn::tensor::Gradients, net: &Net) -> GradientsParams {
-        let features_grad = self
-            .features
+        let output_grad = self
+            .output
             .grad_remove(&mut grads)
             .map(|g| g.into_data().try_to_vec::<f32>().expect("float gradients"));
         let mut params = GradientsParams::from_grads(grads, net);
-        let Some(features_grad) = features_grad else {
-            // The loss does not depend on the body.
+        let Some(output_grad) = output_grad else {
+            // The loss does not depend on the network.
             return params;
         };
         let device = super::inference_device();
-        let layer_grads = body::backward(&self.layers, &self.tape, &features_grad);
+        let head_grads = head_backward(
+            &self.head.kernel(),
+            &self.features,
+            &output_grad,
+            self.shape,
+        );
         let vector = |values: Vec<f32>| {
             let len = values.len();
             Tensor::<1>::from_data(TensorData::new(values, [len]), &device)
         };
+        let (ci_n, co_n) = (self.head.in_channels, self.head.out_channels);
+        params.register(
+            net.head.weight.id,
+            Tensor::<4>::from_data(
+                TensorData::new(head_grads.weights, [co_n, ci_n, 1, 1]),
+                &device,
+            ),
+        );
+        if let Some(bias) = &net.head.bias {
+            params.register(bias.id, vector(head_grads.bias));
+        }
+        let layer_grads = body::backward(&self.layers, &self.tape, &head_grads.features);
         for ((block, layer), grads) in net.blocks.iter().zip(&self.layers).zip(layer_grads) {
             let (ci_n, co_n) = (layer.in_channels, layer.out_channels);
             let weights = body::oihw_from_weights(&grads.weights, ci_n, co_n);

@@ -16,6 +16,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{NonFiniteOutput, inference_batch, locate_with};
+use super::kernels::fixed_order_sum;
 use super::model::{
     BodyStep, LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, OFFSET_X_CHANNEL, SCORE_CHANNEL,
     WITHIN_1PX_CHANNEL,
@@ -113,15 +114,36 @@ fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
     })
 }
 
-/// The loss of one batch, in total and by part (each part before its
-/// weight), and the network body's step that completes the backward pass.
+/// The loss of one batch: the total to take the gradient of, its value
+/// and its parts' (each part before its weight), and the network's step
+/// that completes the backward pass.
 struct BatchLoss {
     total: Tensor<1>,
-    score: Tensor<1>,
-    offset: Tensor<1>,
-    sigma: Tensor<1>,
-    within: Tensor<1>,
+    values: LossValues,
     body: BodyStep,
+}
+
+/// A batch's loss values, each summed over its pixels in a fixed order
+/// ([`fixed_order_sum`]): the backend's own reductions sum in an order that
+/// depends on the CPU's vector width, and these values are recorded with
+/// the model.
+#[derive(Debug, Clone, Copy)]
+struct LossValues {
+    total: f64,
+    score: f64,
+    offset: f64,
+    sigma: f64,
+    within: f64,
+}
+
+/// The fixed-order sum of a loss map's elements.
+fn map_sum(map: &Tensor<4>) -> anyhow::Result<f64> {
+    let values = map
+        .clone()
+        .into_data()
+        .try_to_vec::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading a loss map: {e:?}"))?;
+    Ok(fixed_order_sum(&values))
 }
 
 /// Largest distance (pixels) between a localisation and a centroid for the
@@ -209,18 +231,17 @@ fn batch_loss(
     let log_not_p = log_sigmoid(logit.neg());
     let positive_term = probability.clone().neg().add_scalar(1.0).powi_scalar(2) * log_p * positive;
     let negative_term = probability.powi_scalar(2) * log_not_p * negative_weight;
-    let score_loss = (positive_term + negative_term)
-        .sum()
-        .neg()
-        .div_scalar(positives.max(1) as f64);
+    let score_map = positive_term + negative_term;
+    let score_count = positives.max(1) as f64;
+    let score_loss = score_map.clone().sum().neg().div_scalar(score_count);
     // The uncertainty heads learn the error the offsets make, not the
     // other way round: through detached offsets, the offsets keep the L1
     // loss's gradient alone.
     let realised_offset = offset.clone().detach();
     // L1 offset loss per supervised pixel (|dx| + |dy|).
-    let offset_loss = ((offset - offset_target.clone()).abs() * offset_mask)
-        .sum()
-        .div_scalar(masked.max(1) as f64);
+    let offset_map = (offset - offset_target.clone()).abs() * offset_mask;
+    let offset_count = masked.max(1) as f64;
+    let offset_loss = offset_map.clone().sum().div_scalar(offset_count);
     // Gaussian NLL of the offsets' error at each target centre's pixel, per
     // axis: ln σ + e² / 2σ² (DECODE's σ maps). Only there: over the whole
     // offset window the error mostly says how far a pixel is from the
@@ -228,12 +249,12 @@ fn batch_loss(
     let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
     let squared_error = (realised_offset.clone() - offset_target).powi_scalar(2);
     let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
-    let sigma_loss = ((log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre)
-        .sum()
-        .div_scalar((2 * positives).max(1) as f64);
+    let sigma_map = (log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre;
+    let sigma_count = (2 * positives).max(1) as f64;
+    let sigma_loss = sigma_map.clone().sum().div_scalar(sigma_count);
     // Cross-entropy of the within-1-px head against whether each pixel's
-    // localisation did land within 1 px, per target centre (as the focal
-    // loss).
+    // localisation did land within 1 px of a centroid, per target centre
+    // (as the focal loss).
     let realised = realised_offset
         .into_data()
         .try_to_vec::<f32>()
@@ -241,21 +262,27 @@ fn batch_loss(
     let true_centroids: Vec<&[(f64, f64)]> =
         items.iter().map(|(source, i)| source.truth(*i)).collect();
     let within = map(within_targets(&realised, &true_centroids, height, width), 1);
-    let within_loss = (log_sigmoid(within_logit.clone()) * within.clone()
-        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0))
-    .sum()
-    .neg()
-    .div_scalar(positives.max(1) as f64);
-    let total = score_loss.clone()
-        + offset_loss.clone().mul_scalar(settings.offset_loss_weight)
-        + sigma_loss.clone().mul_scalar(settings.sigma_loss_weight)
-        + within_loss.clone().mul_scalar(settings.within_loss_weight);
+    let within_map = log_sigmoid(within_logit.clone()) * within.clone()
+        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0);
+    let within_loss = within_map.clone().sum().neg().div_scalar(score_count);
+    let total = score_loss
+        + offset_loss.mul_scalar(settings.offset_loss_weight)
+        + sigma_loss.mul_scalar(settings.sigma_loss_weight)
+        + within_loss.mul_scalar(settings.within_loss_weight);
+    let mut values = LossValues {
+        total: 0.0,
+        score: -map_sum(&score_map)? / score_count,
+        offset: map_sum(&offset_map)? / offset_count,
+        sigma: map_sum(&sigma_map)? / sigma_count,
+        within: -map_sum(&within_map)? / score_count,
+    };
+    values.total = values.score
+        + values.offset * settings.offset_loss_weight
+        + values.sigma * settings.sigma_loss_weight
+        + values.within * settings.within_loss_weight;
     Ok(BatchLoss {
         total,
-        score: score_loss,
-        offset: offset_loss,
-        sigma: sigma_loss,
-        within: within_loss,
+        values,
         body,
     })
 }
@@ -741,13 +768,10 @@ fn train_member(
         for (batch_index, batch) in items.chunks(settings.batch_size).enumerate() {
             let BatchLoss {
                 total: loss,
-                score: score_loss,
-                offset: offset_loss,
-                sigma: sigma_loss,
-                within: within_loss,
+                values,
                 body,
             } = batch_loss(&net, arch, settings, batch, &device)?;
-            let loss_value = loss.clone().into_scalar::<f32>() as f64;
+            let loss_value = values.total;
             if !loss_value.is_finite() {
                 // The settings (usually the learning rate) are at fault: bad input.
                 crate::bail_input!(
@@ -756,10 +780,10 @@ fn train_member(
                 );
             }
             sum_loss += loss_value;
-            sum_score += score_loss.into_scalar::<f32>() as f64;
-            sum_offset += offset_loss.into_scalar::<f32>() as f64;
-            sum_sigma += sigma_loss.into_scalar::<f32>() as f64;
-            sum_within += within_loss.into_scalar::<f32>() as f64;
+            sum_score += values.score;
+            sum_offset += values.offset;
+            sum_sigma += values.sigma;
+            sum_within += values.within;
             let gradients = body.gradients(loss.backward(), &net);
             net = optimiser.step(learning_rate(settings, step, total_steps), net, gradients);
             step += 1;

@@ -1,6 +1,8 @@
 //! Deterministic CPU kernels for the CNN's body (dilated 3×3 convolutions,
 //! batch norm and ReLU) on a zero-padded channels-last layout, used instead
-//! of burn's im2col convolutions where the network spends its time.
+//! of burn's im2col convolutions where the network spends its time, and
+//! for its 1×1 head ([`head_forward`], on plain channels-first maps; see
+//! its module for why the head is not left to burn either).
 //!
 //! Layout: a batch of `n` maps of `height × width` pixels is stored as
 //! `[n, height + 2·pad, width + 2·pad, channels]` (row-major, channels
@@ -14,7 +16,7 @@
 //! summation order (taps in raster order, then input channels in order,
 //! or pixels in raster order for reductions; per-map partial sums are
 //! combined in map order), so results do not depend on the thread count or
-//! on scheduling. Every multiply-add is fused (`f32::mul_add`, or the
+//! on scheduling. Every multiply-add of the body is fused (`f32::mul_add`, or the
 //! vector FMA instructions), so the AVX-512, AVX2 and portable paths give
 //! the same bits.
 //!
@@ -24,9 +26,11 @@
 
 pub mod body;
 mod conv;
+mod head;
 mod norm;
 
 pub use conv::{Conv3x3, conv3x3_forward, conv3x3_weight_grad};
+pub use head::{Head, HeadGradients, fixed_order_sum, head_backward, head_forward};
 pub use norm::{
     NormGradients, NormStatistics, ReluGate, bn_relu_backward, bn_relu_forward, channel_statistics,
 };
