@@ -15,6 +15,8 @@
 //! tree, and per-map partial sums are added in map order. Work is
 //! split over maps only, so the thread count does not matter either.
 
+use std::ops::AddAssign;
+
 use rayon::prelude::*;
 
 /// Interleaved partial sums of a reduction over pixels: pixel `p` goes to
@@ -170,11 +172,12 @@ fn sum(a: &[f32]) -> f32 {
 
 /// The partial sums added pairwise: lanes `i` and `i + half`, halving
 /// until one is left.
-fn combine(mut partial: [f32; LANES]) -> f32 {
+fn combine<T: Copy + AddAssign>(mut partial: [T; LANES]) -> T {
     let mut half = LANES / 2;
     while half > 0 {
         for i in 0..half {
-            partial[i] += partial[i + half];
+            let upper = partial[i + half];
+            partial[i] += upper;
         }
         half /= 2;
     }
@@ -191,14 +194,7 @@ pub fn fixed_order_sum(values: &[f32]) -> f64 {
             *s += f64::from(v);
         }
     }
-    let mut half = LANES / 2;
-    while half > 0 {
-        for i in 0..half {
-            partial[i] += partial[i + half];
-        }
-        half /= 2;
-    }
-    partial[0]
+    combine(partial)
 }
 
 #[cfg(test)]
@@ -206,16 +202,17 @@ mod tests {
     use super::*;
 
     /// The order the module docs promise, written out one term at a time.
-    fn reference_dot(a: &[f32], b: &[f32]) -> f32 {
-        let mut partial = [0.0f32; LANES];
-        for (p, (&a, &b)) in a.iter().zip(b).enumerate() {
-            partial[p % LANES] += a * b;
+    fn reference_sum<T: Copy + AddAssign>(terms: &[T], zero: T) -> T {
+        let mut partial = [zero; LANES];
+        for (p, &term) in terms.iter().enumerate() {
+            partial[p % LANES] += term;
         }
         let mut width = LANES;
         while width > 1 {
             width /= 2;
             for i in 0..width {
-                partial[i] += partial[i + width];
+                let upper = partial[i + width];
+                partial[i] += upper;
             }
         }
         partial[0]
@@ -233,32 +230,19 @@ mod tests {
         for len in [0, 1, 5, 15, 16, 17, 33, 100, 4096] {
             let a: Vec<f32> = (0..len).map(|_| next() * 1e3).collect();
             let b: Vec<f32> = (0..len).map(|_| next()).collect();
-            let ones = vec![1.0f32; len];
+            let products: Vec<f32> = a.iter().zip(&b).map(|(a, b)| a * b).collect();
+            let wide: Vec<f64> = a.iter().map(|&v| f64::from(v)).collect();
             assert_eq!(
                 dot(&a, &b).to_bits(),
-                reference_dot(&a, &b).to_bits(),
+                reference_sum(&products, 0.0).to_bits(),
                 "{len}"
             );
+            assert_eq!(sum(&a).to_bits(), reference_sum(&a, 0.0).to_bits(), "{len}");
             assert_eq!(
-                sum(&a).to_bits(),
-                reference_dot(&a, &ones).to_bits(),
+                fixed_order_sum(&a).to_bits(),
+                reference_sum(&wide, 0.0).to_bits(),
                 "{len}"
             );
-            let want: f64 = {
-                let mut partial = [0.0f64; LANES];
-                for (p, &v) in a.iter().enumerate() {
-                    partial[p % LANES] += f64::from(v);
-                }
-                let mut width = LANES;
-                while width > 1 {
-                    width /= 2;
-                    for i in 0..width {
-                        partial[i] += partial[i + width];
-                    }
-                }
-                partial[0]
-            };
-            assert_eq!(fixed_order_sum(&a).to_bits(), want.to_bits(), "{len}");
         }
     }
 }
