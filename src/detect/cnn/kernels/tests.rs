@@ -445,7 +445,7 @@ fn training_gives_the_same_bits_on_one_and_two_threads() {
 
 /// The SHA-256 of the tiny training's model bytes and of its output's
 /// bits (little-endian), as recorded on an AVX2-only CPU (AMD EPYC, Zen
-/// 1). CI runs on AVX-512 CPUs, so this test is what holds the promise
+/// 3). CI runs on AVX-512 CPUs, so this test is what holds the promise
 /// that a seed trains the same model on every x86-64 CPU. Change the
 /// values only with a deliberate change to training or to the model's
 /// format (and then bump the CNN's code version).
