@@ -163,26 +163,16 @@ impl Net {
     }
 
     /// The head's parameters as plain vectors, for the kernels.
-    fn head_parameters(&self) -> HeadParameters {
+    fn head_parameters(&self) -> Head {
         let [out_channels, in_channels, _, _] = self.head.weight.dims();
-        let values = |tensor: Tensor<1>| tensor.into_data().try_to_vec::<f32>();
-        let weights = self
-            .head
-            .weight
-            .val()
-            .reshape([out_channels * in_channels])
-            .into_data()
-            .try_to_vec::<f32>()
-            .expect("float parameters");
-        let bias = self
-            .head
-            .bias
-            .as_ref()
-            .map_or(Ok(vec![0.0; out_channels]), |b| values(b.val()))
-            .expect("float parameters");
-        HeadParameters {
-            weights,
-            bias,
+        Head {
+            // `[out, in, 1, 1]` row-major is `[out][in]`.
+            weights: float_values(self.head.weight.val()),
+            bias: self
+                .head
+                .bias
+                .as_ref()
+                .map_or_else(|| vec![0.0; out_channels], |b| float_values(b.val())),
             in_channels,
             out_channels,
         }
@@ -190,34 +180,22 @@ impl Net {
 
     /// The hidden layers' parameters as plain vectors, for the kernels.
     pub(crate) fn body_layers(&self) -> Vec<BodyLayer> {
-        let values = |tensor: Tensor<1>| -> Vec<f32> {
-            tensor
-                .into_data()
-                .try_to_vec::<f32>()
-                .expect("float parameters")
-        };
         self.blocks
             .iter()
             .map(|block| {
                 let [out_channels, in_channels, _, _] = block.conv.weight.dims();
-                let oihw = block
-                    .conv
-                    .weight
-                    .val()
-                    .into_data()
-                    .try_to_vec::<f32>()
-                    .expect("float parameters");
+                let oihw = float_values(block.conv.weight.val());
                 BodyLayer {
                     dilation: block.conv.dilation[0],
                     in_channels,
                     out_channels,
                     weights: body::weights_from_oihw(&oihw, in_channels, out_channels),
-                    bias: block.conv.bias.as_ref().map(|b| values(b.val())),
+                    bias: block.conv.bias.as_ref().map(|b| float_values(b.val())),
                     norm: block.norm.as_ref().map(|norm| LayerNorm {
-                        gamma: values(norm.gamma.val()),
-                        beta: values(norm.beta.val()),
-                        running_mean: values(norm.running_mean.value()),
-                        running_var: values(norm.running_var.value()),
+                        gamma: float_values(norm.gamma.val()),
+                        beta: float_values(norm.beta.val()),
+                        running_mean: float_values(norm.running_mean.value()),
+                        running_var: float_values(norm.running_var.value()),
                         epsilon: norm.epsilon,
                         momentum: norm.momentum,
                     }),
@@ -241,7 +219,7 @@ impl Net {
         let features = body::infer(&layers, input, n, height, width);
         let head = self.head_parameters();
         debug_assert_eq!(head.in_channels, channels);
-        let output = head_forward(&head.kernel(), &features, n, height * width);
+        let output = head_forward(&head, &features, n, height * width);
         Tensor::from_data(
             TensorData::new(output, [n, head.out_channels, height, width]),
             device,
@@ -252,14 +230,14 @@ impl Net {
     /// height, width]` (`self` on an autodiff device): the body on the
     /// deterministic kernels (batch norm with the batch's statistics, the
     /// running statistics updated), the head in burn. Returns the output
-    /// and the step whose [`BodyStep::gradients`] completes the backward
+    /// and the step whose [`NetworkStep::gradients`] completes the backward
     /// pass.
     pub fn forward_training(
         &self,
         input: &[f32],
         [n, height, width]: [usize; 3],
         device: &Device,
-    ) -> (Tensor<4>, BodyStep) {
+    ) -> (Tensor<4>, NetworkStep) {
         let layers = self.body_layers();
         let channels = layers.last().map_or(0, |l| l.out_channels);
         let (features, tape, running) = body::train_forward(&layers, input, n, height, width);
@@ -279,7 +257,7 @@ impl Net {
         let head = self.head_parameters();
         debug_assert_eq!(head.in_channels, channels);
         let pixels = height * width;
-        let output = head_forward(&head.kernel(), &features, n, pixels);
+        let output = head_forward(&head, &features, n, pixels);
         let output = Tensor::<4>::from_data(
             TensorData::new(output, [n, head.out_channels, height, width]),
             device,
@@ -287,7 +265,7 @@ impl Net {
         .require_grad();
         (
             output.clone(),
-            BodyStep {
+            NetworkStep {
                 layers,
                 tape,
                 head,
@@ -299,35 +277,23 @@ impl Net {
     }
 }
 
-/// The head's parameters as plain vectors (see [`Head`]).
-struct HeadParameters {
-    /// `[out_channels][in_channels]`.
-    weights: Vec<f32>,
-    bias: Vec<f32>,
-    in_channels: usize,
-    out_channels: usize,
-}
-
-impl HeadParameters {
-    fn kernel(&self) -> Head<'_> {
-        Head {
-            weights: &self.weights,
-            bias: &self.bias,
-            in_channels: self.in_channels,
-            out_channels: self.out_channels,
-        }
-    }
+/// A parameter's values as a row-major vector.
+fn float_values<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
+    tensor
+        .into_data()
+        .try_to_vec::<f32>()
+        .expect("float parameters")
 }
 
 /// The network's part of one training step (see
 /// [`Net::forward_training`]): the body and the head ran on the kernels;
 /// burn computes the loss from the output and its gradient with respect to
-/// the output, and [`BodyStep::gradients`] takes it back through the head
+/// the output, and [`NetworkStep::gradients`] takes it back through the head
 /// and the body.
-pub struct BodyStep {
+pub struct NetworkStep {
     layers: Vec<BodyLayer>,
     tape: Tape,
-    head: HeadParameters,
+    head: Head,
     /// The body's output `[n, channels, pixels]`, the head's input.
     features: Vec<f32>,
     /// `[n, pixels]`.
@@ -337,7 +303,7 @@ pub struct BodyStep {
     output: Tensor<4>,
 }
 
-impl BodyStep {
+impl NetworkStep {
     /// The gradients of every parameter of `net` from the gradients of a
     /// loss computed from this step's output, by the kernels' backward
     /// passes of the head and the body (sums in a fixed order, so the same
@@ -353,12 +319,7 @@ impl BodyStep {
             return params;
         };
         let device = super::inference_device();
-        let head_grads = head_backward(
-            &self.head.kernel(),
-            &self.features,
-            &output_grad,
-            self.shape,
-        );
+        let head_grads = head_backward(&self.head, &self.features, &output_grad, self.shape);
         let vector = |values: Vec<f32>| {
             let len = values.len();
             Tensor::<1>::from_data(TensorData::new(values, [len]), &device)

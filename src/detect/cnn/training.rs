@@ -18,7 +18,7 @@ use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
 use super::inference::{NonFiniteOutput, inference_batch, locate_with};
 use super::kernels::fixed_order_sum;
 use super::model::{
-    BodyStep, LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, OFFSET_X_CHANNEL, SCORE_CHANNEL,
+    LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, NetworkStep, OFFSET_X_CHANNEL, SCORE_CHANNEL,
     WITHIN_1PX_CHANNEL,
 };
 use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
@@ -120,7 +120,7 @@ fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
 struct BatchLoss {
     total: Tensor<1>,
     values: LossValues,
-    body: BodyStep,
+    network_step: NetworkStep,
 }
 
 /// A batch's loss values, each summed over its pixels in a fixed order
@@ -220,7 +220,7 @@ fn batch_loss(
     let offset_target = map(target.offset, 2);
     let offset_mask = map(target.offset_mask, 1);
 
-    let (output, body) = net.forward_training(&input, [n, height, width], device);
+    let (output, network_step) = net.forward_training(&input, [n, height, width], device);
     let logit = output.clone().narrow(1, SCORE_CHANNEL, 1);
     let offset = output.clone().narrow(1, OFFSET_X_CHANNEL, 2);
     let log_sigma = output.clone().narrow(1, LOG_SIGMA_X_CHANNEL, 2);
@@ -283,7 +283,7 @@ fn batch_loss(
     Ok(BatchLoss {
         total,
         values,
-        body,
+        network_step,
     })
 }
 
@@ -769,7 +769,7 @@ fn train_member(
             let BatchLoss {
                 total: loss,
                 values,
-                body,
+                network_step,
             } = batch_loss(&net, arch, settings, batch, &device)?;
             let loss_value = values.total;
             if !loss_value.is_finite() {
@@ -784,7 +784,7 @@ fn train_member(
             sum_offset += values.offset;
             sum_sigma += values.sigma;
             sum_within += values.within;
-            let gradients = body.gradients(loss.backward(), &net);
+            let gradients = network_step.gradients(loss.backward(), &net);
             net = optimiser.step(learning_rate(settings, step, total_steps), net, gradients);
             step += 1;
             progress.inc(1);

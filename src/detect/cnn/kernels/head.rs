@@ -26,10 +26,10 @@ const LANES: usize = 16;
 
 /// The head's parameters: `weights[o · in_channels + c]` (output channel
 /// `o`, input channel `c`) and one bias per output channel.
-#[derive(Debug, Clone, Copy)]
-pub struct Head<'a> {
-    pub weights: &'a [f32],
-    pub bias: &'a [f32],
+#[derive(Debug, Clone, PartialEq)]
+pub struct Head {
+    pub weights: Vec<f32>,
+    pub bias: Vec<f32>,
     pub in_channels: usize,
     pub out_channels: usize,
 }

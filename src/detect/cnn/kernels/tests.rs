@@ -253,8 +253,8 @@ fn head_and_its_gradients_match_burn() {
         let grads = loss.backward();
 
         let head = Head {
-            weights: &weights,
-            bias: &bias,
+            weights: weights.clone(),
+            bias: bias.clone(),
             in_channels: ci_n,
             out_channels: co_n,
         };
@@ -340,13 +340,13 @@ fn a_training_step_on_the_kernels_matches_burns() {
         let grads = GradientsParams::from_grads(loss_of(output).backward(), &reference_net);
         let reference_net = SgdConfig::new().init().step(1.0, reference_net, grads);
         // The kernels for the body.
-        let (output, body) = net.forward_training(&input, [n, height, width], &device);
+        let (output, network_step) = net.forward_training(&input, [n, height, width], &device);
         assert_close(
             &format!("batch norm {batch_norm}: output"),
             &values(output.clone()),
             &want_output,
         );
-        let grads = body.gradients(loss_of(output).backward(), &net);
+        let grads = network_step.gradients(loss_of(output).backward(), &net);
         let net = SgdConfig::new().init().step(1.0, net, grads);
         for (index, (got, want)) in net
             .body_layers()
