@@ -147,7 +147,7 @@ fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
 
 /// The simulator's forward model one PSF sample at a time, for models that
 /// follow a QD through a frame in scan order (the likelihood detector,
-/// `docs/detectors.md`): the same code the simulator renders frames with,
+/// `docs/likelihood.md`): the same code the simulator renders frames with,
 /// so the two cannot drift apart.
 ///
 /// Positions are in µm as inside the simulator (the beam of pixel (r, c) at

@@ -329,7 +329,7 @@ pub(crate) fn locate_with(
     Ok(predictions)
 }
 
-/// Where a prediction's `sigma_x`, `sigma_y` come from (docs/detectors.md,
+/// Where a prediction's `sigma_x`, `sigma_y` come from (docs/cnn.md,
 /// "Uncertainty").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum SigmaSource {

@@ -1,4 +1,4 @@
-//! The CNN localiser (detector `cnn`, `docs/detectors.md`): a small fully
+//! The CNN localiser (detector `cnn`, `docs/cnn.md`): a small fully
 //! convolutional network, trained on simulated frames, that outputs a
 //! per-pixel centre score and a sub-pixel offset to the QD's *trajectory
 //! centroid* (the label of the simulator's ground truth), not to the
@@ -21,7 +21,7 @@
 //!
 //! A model may be a deep ensemble (`training.members` > 1): several
 //! networks trained from seeds of their own, whose output maps are
-//! combined per pixel before the peaks are found (docs/detectors.md,
+//! combined per pixel before the peaks are found (docs/cnn.md,
 //! "Ensembles"); a single network is stored and predicts exactly as before
 //! ensembles existed.
 
@@ -43,7 +43,7 @@ pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
 /// The network's shape. Serialised with the model; every field has a
 /// default: the network `bench train` compares with PyTorch. The paper
-/// manifest trains two more layers (docs/detectors.md, "Architecture").
+/// manifest trains two more layers (docs/cnn.md, "Architecture").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CnnArchitecture {
@@ -213,7 +213,7 @@ pub struct TrainingSettings {
     pub within_loss_weight: f64,
     /// Networks of the deep ensemble (1..=[`MAX_MEMBERS`]), trained one
     /// after another from seeds of their own and averaged per pixel at
-    /// inference (docs/detectors.md, "Ensembles"). Left out of the
+    /// inference (docs/cnn.md, "Ensembles"). Left out of the
     /// serialised settings when 1, so single-network models keep their
     /// bytes and content keys.
     #[serde(default = "one_member", skip_serializing_if = "is_one_member")]
@@ -225,7 +225,7 @@ pub struct TrainingSettings {
     /// under the training frames' own simulator parameters, their
     /// distributions of D, brightness and background as priors); the
     /// within-1-px head still learns from the truth, and fresh frames keep
-    /// their truth unless `teacher_fresh_frames` (docs/detectors.md,
+    /// their truth unless `teacher_fresh_frames` (docs/cnn.md,
     /// "Posterior targets"). Needs the simulator parameters of the training
     /// frames. Left out of the serialised settings when 0, so models
     /// trained without a teacher keep their bytes and content keys.
@@ -536,7 +536,7 @@ pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2";
 /// are made anew. It names [`CODE_VERSION`] too, so a training change
 /// also renews the predictions.
 ///
-/// `decode/1`: σ from the within-1-px head (docs/detectors.md,
+/// `decode/1`: σ from the within-1-px head (docs/cnn.md,
 /// "Uncertainty"); before it, the predictions' key had [`CODE_VERSION`]
 /// alone.
 pub const DECODE_VERSION: &str = "scanloc-cnn/3+decode/1";

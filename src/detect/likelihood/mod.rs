@@ -1,6 +1,5 @@
 //! The likelihood localiser: the posterior over a QD's hidden path given one
-//! frame, under the simulator's exact forward model (`docs/detectors.md`,
-//! "likelihood").
+//! frame, under the simulator's exact forward model (`docs/likelihood.md`).
 //!
 //! A bootstrap particle filter runs along the scan, one PSF sample at a
 //! time, in the order the beam visits them. Each particle is one QD path:
