@@ -199,15 +199,12 @@ pub fn check_memory(name: &str, bytes: u64, available: Option<u64>) -> Result<()
     Ok(())
 }
 
-/// Checks `RAYON_NUM_THREADS` (the size of the thread pool, built at the
-/// first parallel step): a number above [`MAX_THREADS`] is refused rather
-/// than a billion threads started. Unset, empty, 0 or not a number leave
-/// rayon's default (one thread per CPU), as rayon itself does.
-pub fn check_thread_variable() -> anyhow::Result<()> {
-    let name = crate::env_vars::RAYON_NUM_THREADS;
-    let Some(value) = std::env::var_os(name) else {
-        return Ok(());
-    };
+/// Checks the value of the thread-count variable `name`
+/// (`RAYON_NUM_THREADS`, the size of the pool built at the first parallel
+/// step): a number above [`MAX_THREADS`] is refused rather than a billion
+/// threads started. Empty, 0 or not a number leave rayon's default (one
+/// thread per CPU), as rayon itself does.
+pub fn check_thread_count(name: &str, value: &std::ffi::OsStr) -> anyhow::Result<()> {
     let text = value.to_string_lossy();
     match text.parse::<u128>() {
         Ok(threads) if threads > MAX_THREADS as u128 => Err(input_error(format!(
@@ -260,5 +257,22 @@ mod tests {
         let error = check_memory("--frames", MAX_IN_MEMORY_BYTES + 1, None).unwrap_err();
         assert!(error.to_string().contains("limit"), "{error}");
         assert!(check_memory("--frames", u64::MAX, Some(u64::MAX)).is_err());
+    }
+
+    #[test]
+    fn thread_counts_above_the_bound_are_refused_and_others_left_to_rayon() {
+        let check = |text: &str| check_thread_count("T", std::ffi::OsStr::new(text));
+        for refused in [
+            "1025",
+            "1000000000",
+            "340282366920938463463374607431768211455",
+        ] {
+            let error = check(refused).unwrap_err();
+            assert!(error.to_string().starts_with("T="), "{error}");
+            assert_eq!(crate::error::exit_code(&error), 2);
+        }
+        for left in ["", "0", "1", "1024", "1e9", "-3", "many"] {
+            assert!(check(left).is_ok(), "{left}");
+        }
     }
 }

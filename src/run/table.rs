@@ -54,7 +54,12 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
             Some(d) => format!("D = {d} µm²/s"),
             None => display_cell(name).into_owned(),
         };
-        out.push_str(&format!("  {:<w$}", title, w = group - 2));
+        // Padded by hand: the group's width grows with the ε list, which
+        // a format width (at most 65,535) must not be trusted with.
+        out.push_str("  ");
+        out.push_str(&title);
+        let shown = title.chars().count();
+        out.extend(std::iter::repeat_n(' ', (group - 2).saturating_sub(shown)));
     }
     out.push('\n');
     out.push_str(&format!("{:<label_width$}", "ε (px)"));

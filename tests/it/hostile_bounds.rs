@@ -12,6 +12,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use common::*;
+use scanloc::env_vars::{RAYON_NUM_THREADS, SCANLOC_FONT};
 
 /// A manifest that runs in well under a second.
 const TINY: &str = "\
@@ -496,11 +497,11 @@ fn absurd_thread_counts_are_refused_and_odd_fonts_are_not_read() {
     ];
     let limit = Duration::from_secs(60);
     for threads in ["1000000000", "1025", "18446744073709551616"] {
-        let output = scanloc_with_env(&locate, "RAYON_NUM_THREADS", threads, limit);
-        assert_refused(&output, &["RAYON_NUM_THREADS", "at most 1024"]);
+        let output = scanloc_with_env(&locate, RAYON_NUM_THREADS, threads, limit);
+        assert_refused(&output, &[RAYON_NUM_THREADS, "at most 1024"]);
     }
     for threads in ["3", "0", "not-a-number"] {
-        let output = scanloc_with_env(&locate, "RAYON_NUM_THREADS", threads, limit);
+        let output = scanloc_with_env(&locate, RAYON_NUM_THREADS, threads, limit);
         assert!(output.status.success(), "{threads}: {}", stderr(&output));
     }
 
@@ -522,7 +523,7 @@ fn absurd_thread_counts_are_refused_and_odd_fonts_are_not_read() {
             "--out",
             out.to_str().unwrap(),
         ];
-        let output = scanloc_with_env(&args, "SCANLOC_FONT", font, limit);
+        let output = scanloc_with_env(&args, SCANLOC_FONT, font, limit);
         assert!(output.status.success(), "{font}: {}", stderr(&output));
         assert!(
             stderr(&output).contains("not a regular file"),
