@@ -16,8 +16,10 @@ pub const SCANLOC_REGISTRY: &str = "SCANLOC_REGISTRY";
 /// (`warn` by default; e.g. `info` or `scanloc=debug`).
 pub const SCANLOC_LOG: &str = "SCANLOC_LOG";
 
-/// A TrueType font file for the text of figures, tried before the fonts
-/// scanloc looks for itself.
+/// A TrueType font file for the text of figures, tried before the font
+/// embedded in scanloc: a regular file of at most 64 MiB
+/// (`report::figures::MAX_FONT_BYTES`); anything else is not read, with a
+/// one-line warning.
 pub const SCANLOC_FONT: &str = "SCANLOC_FONT";
 
 /// Cases per property of the fuzzing tests (`make fuzz` sets it; without
@@ -35,5 +37,7 @@ pub const SCANLOC_REQUIRE_SLURM: &str = "SCANLOC_REQUIRE_SLURM";
 
 /// The number of threads of the pool scanloc computes on (rayon's own
 /// variable; default: every CPU). A sweep sets it for each of its local
-/// processes, and its Slurm batch script to the task's CPUs.
+/// processes, and its Slurm batch script to the task's CPUs. A number
+/// above `limits::MAX_THREADS` (1,024) is refused before any command runs
+/// (exit code 2).
 pub const RAYON_NUM_THREADS: &str = "RAYON_NUM_THREADS";

@@ -22,6 +22,24 @@ pub const MAX_FRAME_SIDE: usize = 16_384;
 /// pixels across; this bound keeps the per-feature masks small.
 pub const MAX_FEATURE_PX: usize = 1_001;
 
+/// Longest cell, in characters, of a table printed for people (`registry
+/// runs`, `registry sql`, the AUC table): longer text is cut with an
+/// ellipsis by [`display_cell`], so a recorded name of any length prints as
+/// one bounded line. `--json` prints cells whole.
+pub const MAX_CELL_CHARS: usize = 200;
+/// Longest record (row) of a CSV table, in bytes: a row of truth or
+/// localisations is a few hundred bytes, so a longer one is a file that is
+/// not such a table, refused before it is read into memory.
+pub const MAX_CSV_RECORD_BYTES: usize = 1 << 20;
+/// Most memory one command may plan to hold for a dataset it makes
+/// (`simulate`'s frames and ground truth), checked before allocating;
+/// [`check_memory`] also checks the machine's available memory.
+pub const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
+/// Most threads of the pool scanloc computes on (`RAYON_NUM_THREADS`):
+/// far more than the CPUs of any machine this runs on, few enough to start
+/// at once.
+pub const MAX_THREADS: usize = 1024;
+
 /// Checks a frame count (`name` names the field or flag): 1 to
 /// [`MAX_FRAMES`].
 pub fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {
@@ -129,6 +147,73 @@ pub fn check_feature_px(name: &str, pixels: f64) -> Result<(), FieldError> {
     Ok(())
 }
 
+/// `text` as a table cell shows it: whole up to [`MAX_CELL_CHARS`]
+/// characters, else its first `MAX_CELL_CHARS − 1` and `…`.
+pub fn display_cell(text: &str) -> std::borrow::Cow<'_, str> {
+    match text.char_indices().nth(MAX_CELL_CHARS - 1) {
+        Some((cut, _)) if text[cut..].chars().nth(1).is_some() => {
+            std::borrow::Cow::Owned(format!("{}…", &text[..cut]))
+        }
+        _ => std::borrow::Cow::Borrowed(text),
+    }
+}
+
+/// The memory the kernel says can be allocated without swapping
+/// (`MemAvailable` of `/proc/meminfo`, in bytes); `None` where there is no
+/// such file or line.
+pub fn available_memory_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
+/// Checks that `bytes`, the memory a command estimates it will hold for
+/// what flag or field `name` asks, stays within [`MAX_IN_MEMORY_BYTES`] and
+/// within `available` (the machine's available memory, when known), so
+/// that an oversized request is refused before anything is allocated.
+pub fn check_memory(name: &str, bytes: u64, available: Option<u64>) -> Result<(), FieldError> {
+    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    if bytes > MAX_IN_MEMORY_BYTES {
+        return Err(FieldError::new(
+            name,
+            format!(
+                "needs about {:.1} GiB of memory, more than the limit of {:.0} GiB",
+                gib(bytes),
+                gib(MAX_IN_MEMORY_BYTES)
+            ),
+        ));
+    }
+    if let Some(available) = available
+        && bytes > available
+    {
+        return Err(FieldError::new(
+            name,
+            format!(
+                "needs about {:.1} GiB of memory, more than the {:.1} GiB this machine has available (MemAvailable)",
+                gib(bytes),
+                gib(available)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the value of the thread-count variable `name`
+/// (`RAYON_NUM_THREADS`, the size of the pool built at the first parallel
+/// step): a number above [`MAX_THREADS`] is refused rather than a billion
+/// threads started. Empty, 0 or not a number leave rayon's default (one
+/// thread per CPU), as rayon itself does.
+pub fn check_thread_count(name: &str, value: &std::ffi::OsStr) -> anyhow::Result<()> {
+    let text = value.to_string_lossy();
+    match text.parse::<u128>() {
+        Ok(threads) if threads > MAX_THREADS as u128 => Err(input_error(format!(
+            "{name}={text}: at most {MAX_THREADS} threads (0 or unset: one per CPU)"
+        ))),
+        _ => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,5 +233,46 @@ mod tests {
         assert!(check_stack_shape("x", 3, 5, 5).is_ok());
         assert!(check_feature_px("d", MAX_FEATURE_PX as f64).is_ok());
         assert!(check_feature_px("d", 4_000_000_001.0).is_err());
+    }
+
+    #[test]
+    fn cells_are_cut_to_their_bound_with_an_ellipsis() {
+        let at_bound = "é".repeat(MAX_CELL_CHARS);
+        assert_eq!(display_cell(&at_bound), at_bound.as_str());
+        for length in [MAX_CELL_CHARS + 1, 70_000] {
+            let shown = display_cell(&"x".repeat(length)).into_owned();
+            assert_eq!(shown.chars().count(), MAX_CELL_CHARS);
+            assert!(shown.ends_with('…'));
+        }
+        assert_eq!(display_cell(""), "");
+    }
+
+    #[test]
+    fn memory_beyond_the_limit_or_the_machine_is_refused_naming_the_flag() {
+        assert!(check_memory("--frames", 1 << 20, None).is_ok());
+        assert!(check_memory("--frames", 1 << 20, Some(2 << 20)).is_ok());
+        let error = check_memory("--frames", 3 << 20, Some(2 << 20)).unwrap_err();
+        assert!(error.to_string().contains("--frames"), "{error}");
+        assert!(error.to_string().contains("available"), "{error}");
+        let error = check_memory("--frames", MAX_IN_MEMORY_BYTES + 1, None).unwrap_err();
+        assert!(error.to_string().contains("limit"), "{error}");
+        assert!(check_memory("--frames", u64::MAX, Some(u64::MAX)).is_err());
+    }
+
+    #[test]
+    fn thread_counts_above_the_bound_are_refused_and_others_left_to_rayon() {
+        let check = |text: &str| check_thread_count("T", std::ffi::OsStr::new(text));
+        for refused in [
+            "1025",
+            "1000000000",
+            "340282366920938463463374607431768211455",
+        ] {
+            let error = check(refused).unwrap_err();
+            assert!(error.to_string().starts_with("T="), "{error}");
+            assert_eq!(crate::error::exit_code(&error), 2);
+        }
+        for left in ["", "0", "1", "1024", "1e9", "-3", "many"] {
+            assert!(check(left).is_ok(), "{left}");
+        }
     }
 }

@@ -24,6 +24,9 @@ pub struct CheckArgs {
 
 pub fn run(args: CheckArgs) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
+    // Its `sweep:` block as `sweep run` reads it: a grid that would be
+    // refused there (two axes on one path) is refused here too.
+    scanloc::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
     let plan = Plan::from_manifest(&manifest)?;
     let steps: Vec<_> = plan
         .steps

@@ -110,6 +110,12 @@ where
 
 /// Runs the parsed command; results it prints go to `stdout`.
 pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    // Before the thread pool is first built: rayon would try to start
+    // every thread RAYON_NUM_THREADS asks for.
+    let threads = scanloc::env_vars::RAYON_NUM_THREADS;
+    if let Some(value) = std::env::var_os(threads) {
+        scanloc::limits::check_thread_count(threads, &value)?;
+    }
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Bench(args) => bench::run(args),

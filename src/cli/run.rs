@@ -43,6 +43,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     // Parse and validate before touching the registry: bad input leaves it
     // unchanged.
     let manifest = manifest::load(&args.manifest)?;
+    // Its `sweep:` block as `sweep run` reads it: a grid that would be
+    // refused there (two axes on one path) is refused here too.
+    scanloc::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
     let mut registry = Registry::open(&args.registry)?;
     let outcome = run::run_manifest(
         &mut registry,

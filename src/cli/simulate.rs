@@ -118,18 +118,35 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     // The manifest's limits, checked by the same functions.
     scanloc::limits::check_dataset_size("--frames", args.frames, args.height, args.width)?;
+    // The memory the dataset takes, before any of it is allocated: a
+    // failed allocation would end the process without a word.
+    scanloc::limits::check_memory(
+        "--frames",
+        sim::dataset_bytes(&params, args.frames),
+        scanloc::limits::available_memory_bytes(),
+    )?;
     io::FrameFormat::from_path(&args.out)?;
     let mut outputs = vec![("--out", args.out.as_path())];
     outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));
     io::refuse_shared_paths(&[], &outputs)?;
-    // Open every output before simulating: an unwritable destination fails
-    // now, and nothing is renamed into place unless everything succeeded.
-    let mut frames_out = PendingFile::create(&args.out)?;
-    let mut truth_out = args.truth.as_deref().map(PendingFile::create).transpose()?;
+    // Every output is opened (and dropped) before simulating, so that an
+    // unwritable destination fails now; the files are opened again only
+    // once the frames are made, so that a simulation stopped part way (by
+    // an error or a signal) leaves no partial file behind, and nothing is
+    // renamed into place unless everything succeeded.
+    let open_outputs = || -> anyhow::Result<(PendingFile, Option<PendingFile>)> {
+        Ok((
+            PendingFile::create(&args.out)?,
+            args.truth.as_deref().map(PendingFile::create).transpose()?,
+        ))
+    };
+    drop(open_outputs()?);
 
     let bar = scanloc::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(&params, args.seed, 0..args.frames, &bar)?;
     bar.finish_and_clear();
+
+    let (mut frames_out, mut truth_out) = open_outputs()?;
 
     io::fill_frames(&mut frames_out, &dataset.frames)?;
     if let Some(pending) = truth_out.as_mut() {

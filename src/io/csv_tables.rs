@@ -343,8 +343,8 @@ fn open_table<R: Read>(
     reader: R,
     source: &str,
     required: &[&str],
-) -> anyhow::Result<(csv::Reader<R>, csv::StringRecord)> {
-    let mut reader = csv::Reader::from_reader(reader);
+) -> anyhow::Result<(csv::Reader<BoundedRecords<R>>, csv::StringRecord)> {
+    let mut reader = csv::Reader::from_reader(BoundedRecords::new(reader));
     let headers = reader
         .headers()
         .map_err(|e| input_error(format!("{source}: cannot read the CSV header: {e}")))?
@@ -362,6 +362,85 @@ fn open_table<R: Read>(
         )));
     }
     Ok((reader, headers))
+}
+
+/// Where a [`BoundedRecords`] is within the CSV it reads, as far as
+/// record boundaries go (the `csv` crate's defaults: `,` between fields,
+/// `"` quotes a field that starts with it, `""` is a quote inside one).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum CsvPosition {
+    FieldStart,
+    Unquoted,
+    Quoted,
+    /// A `"` inside a quoted field: its end, or the first of `""`.
+    QuoteInQuoted,
+}
+
+/// A reader that refuses a CSV record (a row, which a quoted field may
+/// spread over several lines) longer than
+/// [`MAX_CSV_RECORD_BYTES`](crate::limits::MAX_CSV_RECORD_BYTES): the `csv`
+/// crate holds a whole record in memory, so a file of one endless line
+/// would otherwise be read whole before any check. The error names the
+/// line at which the record passed the bound.
+struct BoundedRecords<R> {
+    inner: R,
+    position: CsvPosition,
+    record_bytes: usize,
+    line: u64,
+}
+
+impl<R> BoundedRecords<R> {
+    fn new(inner: R) -> Self {
+        Self {
+            inner,
+            position: CsvPosition::FieldStart,
+            record_bytes: 0,
+            line: 1,
+        }
+    }
+
+    /// Follows `bytes` through the record structure; an error if a record
+    /// grows past the bound.
+    fn follow(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        use CsvPosition::*;
+        let limit = crate::limits::MAX_CSV_RECORD_BYTES;
+        for &byte in bytes {
+            self.record_bytes += 1;
+            let ends_record = byte == b'\n' && self.position != Quoted;
+            if byte == b'\n' {
+                self.line += 1;
+            }
+            self.position = match (self.position, byte) {
+                (_, b'\n') if ends_record => FieldStart,
+                (FieldStart, b'"') | (QuoteInQuoted, b'"') => Quoted,
+                (Quoted, b'"') => QuoteInQuoted,
+                (Quoted, _) => Quoted,
+                (_, b',') => FieldStart,
+                _ => Unquoted,
+            };
+            if ends_record {
+                self.record_bytes = 0;
+            } else if self.record_bytes > limit {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidData,
+                    format!(
+                        "line {}: a row longer than {} MiB (the limit of one row; is this a CSV table?)",
+                        self.line,
+                        limit >> 20
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl<R: Read> Read for BoundedRecords<R> {
+    fn read(&mut self, buffer: &mut [u8]) -> std::io::Result<usize> {
+        let read = self.inner.read(buffer)?;
+        self.follow(&buffer[..read])?;
+        Ok(read)
+    }
 }
 
 #[cfg(test)]
@@ -398,6 +477,51 @@ mod tests {
         assert_eq!(back, predictions);
         let sigma = back[0].sigma.unwrap();
         assert_eq!(sigma.x.to_bits(), (0.1f64 + 0.2).to_bits());
+    }
+
+    #[test]
+    fn rows_past_the_bound_are_refused_naming_the_line_and_quoted_lines_join() {
+        let limit = crate::limits::MAX_CSV_RECORD_BYTES;
+        let long = "9".repeat(limit + 1);
+        let cases = [
+            (format!("frame,x,y,score\n0,1,1,{long}\n"), "line 2"),
+            (format!("frame,x,y,score{long}\n0,1,1,1\n"), "line 1"),
+            // A quoted field's lines are one row.
+            (
+                format!(
+                    "frame,x,y,score,note\n0,1,1,1,\"{}\"\n",
+                    "a\n".repeat(limit / 2 + 1)
+                ),
+                "line",
+            ),
+        ];
+        for (text, line) in &cases {
+            let error = read_predictions_from(text.as_bytes(), "long.csv").unwrap_err();
+            let message = format!("{error:#}");
+            assert!(message.starts_with("long.csv: "), "{message:.200}");
+            assert!(
+                message.contains(line) && message.contains("longer than"),
+                "{message:.200}"
+            );
+            assert_eq!(crate::error::exit_code(&error), 2);
+        }
+        // Rows just within the bound, and many short rows, still read;
+        // quotes (`""` inside) do not end a row early or late.
+        let note = "x".repeat(limit - 40);
+        let text = format!("frame,x,y,score,note\n0,1,1,0.5,\"a\"\"b,\n{note}\"\n");
+        assert_eq!(
+            read_predictions_from(text.as_bytes(), "ok.csv")
+                .unwrap()
+                .len(),
+            1
+        );
+        let many = "frame,x,y,score\n".to_string() + &"0,1,1,0.5\n".repeat(200_000);
+        assert_eq!(
+            read_predictions_from(many.as_bytes(), "many.csv")
+                .unwrap()
+                .len(),
+            200_000
+        );
     }
 
     #[test]

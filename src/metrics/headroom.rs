@@ -32,9 +32,17 @@ pub struct Headroom {
     /// `(AUC − random) / (oracle − random)`, where AUC is the detector's
     /// own AUC over all its predictions (so it can exceed 1 when
     /// predictions other than the top ones find QDs). `None` when
-    /// `oracle = random` (no top prediction, or all of them, within ε).
+    /// `oracle − random` is below [`MIN_HEADROOM`] (no top prediction, or
+    /// all of them, within ε): a share of no headroom is undefined, and
+    /// dividing by a difference of rounding errors would give any number.
     pub share_used: Option<f64>,
 }
+
+/// The smallest `oracle − random` a share of the headroom is computed
+/// over. A real gap is at least of order 1/G (one top prediction more or
+/// less within ε); rounding in the sums is of order 1e-16 per term, so
+/// this separates the two for any test set below 10⁷ truths.
+pub const MIN_HEADROOM: f64 = 1e-9;
 
 /// The headroom of predictions `ranked` (in the metric's order) whose AUC
 /// at `eps` is `auc`, against a set of `ground_truths` truths.
@@ -58,15 +66,25 @@ pub(super) fn headroom(
     let oracle = walk(&oracle_order, truth_by_frame, ground_truths, eps, false);
     let n = tops.len();
     let m = oracle.true_positives;
-    let random_auc = expected_random_rank_auc(n, m, ground_truths);
+    // m / G in one division: the walk's sum of m terms 1/G can round to
+    // just above 1 when m = G. A true positive is matched to its own
+    // truth, so m ≤ G.
+    let oracle_auc = if ground_truths == 0 {
+        0.0
+    } else {
+        m.min(ground_truths) as f64 / ground_truths as f64
+    };
+    // The expectation lies between 0 and the oracle's; clamped so that
+    // rounding cannot put it outside.
+    let random_auc = expected_random_rank_auc(n, m, ground_truths).clamp(0.0, oracle_auc);
+    let gap = oracle_auc - random_auc;
     Headroom {
         top_predictions: n,
         top_within_eps: m,
         fraction_top_within_eps: (n > 0).then(|| m as f64 / n as f64),
-        oracle_auc: oracle.auc,
+        oracle_auc,
         random_auc,
-        share_used: (oracle.auc > random_auc)
-            .then(|| (auc - random_auc) / (oracle.auc - random_auc)),
+        share_used: (gap >= MIN_HEADROOM).then(|| (auc - random_auc) / gap),
     }
 }
 

@@ -3,8 +3,10 @@
 //! a paired bootstrap over frames.
 //!
 //! Both detectors' predictions are scored on the same resampled frames:
-//! each resample draws the set's frames with replacement (a frame drawn
-//! twice counts twice, with its truth and both detectors' predictions), so
+//! each resample draws the set's frames with data (a truth or a prediction
+//! of either detector; a frame with neither adds nothing to an AUC), as
+//! many as there are, with replacement (a frame drawn twice counts twice,
+//! with its truth and both detectors' predictions), so
 //! what varies from resample to resample is which frames the set happens to
 //! hold, and the difference's spread says how much of it a new test set of
 //! the same size would change. Frames hard for both detectors move both
@@ -77,8 +79,9 @@ pub struct AucSpread {
 /// The bootstrap of the AUC of `predictions`, made on a test set of
 /// `frames` frames with `truth`, at each radius of `eps_px`: the frames
 /// resampled exactly as [`paired_bootstrap`] resamples them (same seed,
-/// same resamples), so this is the spread of either side of that paired
-/// difference.
+/// same resamples, as long as the other detector has no prediction on a
+/// frame where this one has none and there is no truth), so this is the
+/// spread of either side of that paired difference.
 ///
 /// Refuses what [`paired_bootstrap`] refuses.
 pub fn bootstrap_auc(
@@ -225,21 +228,43 @@ fn resampled_aucs(
         .map(|predictions| aucs_of(predictions, truth))
         .collect::<anyhow::Result<Vec<_>>>()?;
 
-    // Rows of each frame, so that a resample is assembled in time
-    // proportional to its size.
+    // Only frames with data (truth or a prediction) are resampled: a frame
+    // with neither adds nothing to any AUC, so leaving them out changes no
+    // figure's meaning and makes each resample cost the frames with data,
+    // not the largest frame number. Rows are grouped by their frame's
+    // place among them, so a resample is assembled in time proportional to
+    // its size. When every frame has data, the draws are those of a
+    // resample of all frames.
+    let mut data_frames: Vec<usize> = truth
+        .iter()
+        .map(|t| t.frame)
+        .chain(
+            detectors
+                .iter()
+                .flat_map(|rows| rows.iter().map(|p| p.frame)),
+        )
+        .collect();
+    data_frames.sort_unstable();
+    data_frames.dedup();
+    let place = |frame: usize| {
+        data_frames
+            .binary_search(&frame)
+            .expect("every row's frame is among the frames with data")
+    };
+    let count = data_frames.len();
     let by_frame: Vec<Vec<Vec<Prediction>>> = detectors
         .iter()
         .map(|rows| {
-            let mut grouped: Vec<Vec<Prediction>> = vec![Vec::new(); frames];
+            let mut grouped: Vec<Vec<Prediction>> = vec![Vec::new(); count];
             for p in rows.iter() {
-                grouped[p.frame].push(*p);
+                grouped[place(p.frame)].push(*p);
             }
             grouped
         })
         .collect();
-    let mut truth_by_frame: Vec<Vec<TruthRow>> = vec![Vec::new(); frames];
+    let mut truth_by_frame: Vec<Vec<TruthRow>> = vec![Vec::new(); count];
     for t in truth {
-        truth_by_frame[t.frame].push(*t);
+        truth_by_frame[place(t.frame)].push(*t);
     }
 
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -247,12 +272,12 @@ fn resampled_aucs(
         vec![vec![Vec::with_capacity(resamples); eps_px.len()]; detectors.len()];
     let mut drawn: Vec<Vec<Prediction>> = vec![Vec::new(); detectors.len()];
     let mut drawn_truth = Vec::new();
-    let mut draws = Vec::with_capacity(frames);
+    let mut draws = Vec::with_capacity(count);
     for _ in 0..resamples {
         // Draw j of the resample becomes frame j: a frame drawn twice is
         // two frames of the resample.
         draws.clear();
-        draws.extend((0..frames).map(|_| rng.random_range(0..frames)));
+        draws.extend((0..count).map(|_| rng.random_range(0..count)));
         drawn_truth.clear();
         for (j, &frame) in draws.iter().enumerate() {
             drawn_truth.extend(

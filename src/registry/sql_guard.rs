@@ -12,8 +12,10 @@
 //!   runs;
 //! - a progress handler stops a statement after [`SQL_TIME_LIMIT`], SQLite's
 //!   own heap is capped at [`SQL_HEAP_LIMIT_BYTES`], and at most
-//!   [`SQL_MAX_ROWS`] rows are collected, so a runaway recursive CTE ends
-//!   with a clear error instead of running or growing forever.
+//!   [`SQL_MAX_ROWS`] rows, [`SQL_MAX_CELL_BYTES`] per cell and
+//!   [`SQL_MAX_RESULT_BYTES`] in all are collected, so a runaway recursive
+//!   CTE or a huge computed string ends with a clear error instead of
+//!   running or growing forever.
 
 use std::path::Path;
 use std::sync::{Arc, Mutex};
@@ -32,6 +34,12 @@ use crate::error::input_error;
 pub const SQL_TIME_LIMIT: Duration = Duration::from_secs(10);
 /// Most rows a `registry sql` statement may return.
 pub const SQL_MAX_ROWS: usize = 1_000_000;
+/// Most bytes of text one cell of a `registry sql` result may hold (a
+/// blob is shown by its size, whatever it holds).
+pub const SQL_MAX_CELL_BYTES: usize = 1 << 20;
+/// Most bytes of text a whole `registry sql` result may hold, counted
+/// cell by cell as the rows are collected (numbers count 8).
+pub const SQL_MAX_RESULT_BYTES: usize = 64 << 20;
 /// Most memory SQLite may hold while running a `registry sql` statement.
 pub const SQL_HEAP_LIMIT_BYTES: i64 = 512 << 20;
 
@@ -79,6 +87,15 @@ pub fn json_value(value: ValueRef<'_>) -> Value {
         ValueRef::Real(f) => json!(f),
         ValueRef::Text(t) => Value::String(String::from_utf8_lossy(t).into_owned()),
         ValueRef::Blob(b) => Value::String(format!("<{} bytes>", b.len())),
+    }
+}
+
+/// The bytes a cell of a result takes once collected: its text, a number's
+/// 8, a blob's description (it is shown by its size).
+fn cell_bytes(value: ValueRef<'_>) -> usize {
+    match value {
+        ValueRef::Text(text) => text.len(),
+        ValueRef::Null | ValueRef::Integer(_) | ValueRef::Real(_) | ValueRef::Blob(_) => 8,
     }
 }
 
@@ -183,6 +200,7 @@ pub fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
         }
     };
     let mut cursor = statement.query([]).map_err(limited)?;
+    let mut result_bytes = 0usize;
     while let Some(row) = cursor.next().map_err(limited)? {
         if rows.len() == SQL_MAX_ROWS {
             return Err(input_error(format!(
@@ -190,8 +208,27 @@ pub fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
             )));
         }
         let mut values = Vec::with_capacity(columns.len());
-        for index in 0..columns.len() {
-            values.push(json_value(row.get_ref(index)?));
+        for (index, column) in columns.iter().enumerate() {
+            let value = row.get_ref(index)?;
+            // Measured before it is copied out of SQLite.
+            let bytes = cell_bytes(value);
+            if bytes > SQL_MAX_CELL_BYTES {
+                return Err(input_error(format!(
+                    "sql: row {} column {}: {bytes} bytes, more than the limit of {} MiB per cell; select a substr() of it",
+                    rows.len() + 1,
+                    crate::limits::display_cell(column),
+                    SQL_MAX_CELL_BYTES >> 20
+                )));
+            }
+            result_bytes += bytes;
+            if result_bytes > SQL_MAX_RESULT_BYTES {
+                return Err(input_error(format!(
+                    "sql: the result passes the limit of {} MiB at row {}; narrow the query or add a LIMIT",
+                    SQL_MAX_RESULT_BYTES >> 20,
+                    rows.len() + 1
+                )));
+            }
+            values.push(json_value(value));
         }
         rows.push(values);
     }

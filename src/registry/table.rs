@@ -30,14 +30,19 @@ impl Table {
         )
     }
 
-    /// The rows as aligned text columns with a header.
+    /// The rows as aligned text columns with a header, each cell (and
+    /// column name) cut to [`MAX_CELL_CHARS`](crate::limits::MAX_CELL_CHARS)
+    /// characters so that no recorded value can widen a column without
+    /// bound.
     pub fn render(&self) -> String {
+        let shown = |text: &str| crate::limits::display_cell(text).into_owned();
+        let columns: Vec<String> = self.columns.iter().map(|c| shown(c)).collect();
         let cells: Vec<Vec<String>> = self
             .rows
             .iter()
-            .map(|row| row.iter().map(cell_text).collect())
+            .map(|row| row.iter().map(|value| shown(&cell_text(value))).collect())
             .collect();
-        let mut widths: Vec<usize> = self.columns.iter().map(|c| c.chars().count()).collect();
+        let mut widths: Vec<usize> = columns.iter().map(|c| c.chars().count()).collect();
         for row in &cells {
             for (width, cell) in widths.iter_mut().zip(row) {
                 *width = (*width).max(cell.chars().count());
@@ -53,7 +58,7 @@ impl Table {
                 .trim_end()
                 .to_string()
         };
-        let mut out = line(&self.columns);
+        let mut out = line(&columns);
         out.push('\n');
         for row in &cells {
             out.push_str(&line(row));

@@ -4,8 +4,10 @@
 //! with the TrueType font embedded in the binary ([`EMBEDDED_FONT`], Roboto
 //! Regular, Apache-2.0, see `assets/fonts/`), so figures look the same on
 //! every machine. `SCANLOC_FONT=/path/to/font.ttf` uses another font; if
-//! that file cannot be read or is not a TrueType font, a one-line warning is
-//! logged and the embedded font is used.
+//! that file cannot be read, is not a regular file of at most
+//! [`MAX_FONT_BYTES`] (a FIFO or a device is not read from at all) or is
+//! not a TrueType font, a one-line warning is logged and the embedded font
+//! is used.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -33,7 +35,7 @@ fn register_figure_font(requested: Option<&Path>) -> Result<Option<String>, Stri
     };
     let mut warning = None;
     if let Some(path) = requested {
-        let problem = match std::fs::read(path) {
+        let problem = match read_font_file(path) {
             Ok(bytes) => {
                 // plotters keeps fonts for the life of the process.
                 if register(Box::leak(bytes.into_boxed_slice())) {
@@ -41,7 +43,7 @@ fn register_figure_font(requested: Option<&Path>) -> Result<Option<String>, Stri
                 }
                 "not a TrueType font".to_string()
             }
-            Err(error) => format!("cannot read it ({error})"),
+            Err(problem) => problem,
         };
         warning = Some(format!(
             "{FONT_VARIABLE}={}: {problem}; figures use the embedded font instead",
@@ -53,6 +55,54 @@ fn register_figure_font(requested: Option<&Path>) -> Result<Option<String>, Stri
     } else {
         Err("the embedded figure font could not be loaded".to_string())
     }
+}
+
+/// Largest font file `SCANLOC_FONT` may name: TrueType fonts with every
+/// CJK glyph are about 20 MB.
+pub const MAX_FONT_BYTES: u64 = 64 << 20;
+
+/// The bytes of the font file `path`, if it is a regular file (after
+/// symbolic links) of at most [`MAX_FONT_BYTES`]; else why not. A FIFO, a
+/// device such as /dev/zero or a folder is refused without reading from
+/// it: the file is opened without blocking and checked before any read,
+/// and the read stops at the bound whatever the file does meanwhile.
+fn read_font_file(path: &Path) -> Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        // Opening a FIFO for reading would otherwise wait for a writer.
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options
+        .open(path)
+        .map_err(|error| format!("cannot read it ({error})"))?;
+    let metadata = file
+        .metadata()
+        .map_err(|error| format!("cannot read it ({error})"))?;
+    if !metadata.is_file() {
+        return Err("not a regular file".to_string());
+    }
+    if metadata.len() > MAX_FONT_BYTES {
+        return Err(format!(
+            "{} bytes, more than the {} MiB a font file may have",
+            metadata.len(),
+            MAX_FONT_BYTES >> 20
+        ));
+    }
+    let mut bytes = Vec::new();
+    file.take(MAX_FONT_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|error| format!("cannot read it ({error})"))?;
+    if bytes.len() as u64 > MAX_FONT_BYTES {
+        return Err(format!(
+            "more than the {} MiB a font file may have",
+            MAX_FONT_BYTES >> 20
+        ));
+    }
+    Ok(bytes)
 }
 
 /// Registers the figure font once per process, logging the warning of
@@ -587,6 +637,34 @@ mod tests {
         std::fs::write(&broken, b"not a font").unwrap();
         let warning = register_figure_font(Some(&broken)).unwrap().unwrap();
         assert!(warning.contains("not a TrueType font"), "{warning}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_scanloc_font_that_is_no_regular_file_or_too_large_falls_back_without_hanging() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("font.fifo");
+        let name = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path; mkfifo only creates a file.
+        assert_eq!(unsafe { libc::mkfifo(name.as_ptr(), 0o600) }, 0);
+        let link = dir.path().join("zero.ttf");
+        std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
+        let large = dir.path().join("large.ttf");
+        std::fs::File::create(&large)
+            .unwrap()
+            .set_len(MAX_FONT_BYTES + 1)
+            .unwrap();
+        for (path, problem) in [
+            (Path::new("/dev/zero"), "not a regular file"),
+            (link.as_path(), "not a regular file"),
+            (fifo.as_path(), "not a regular file"),
+            (dir.path(), "not a regular file"),
+            (large.as_path(), "more than the 64 MiB"),
+        ] {
+            let warning = register_figure_font(Some(path)).unwrap().unwrap();
+            assert!(warning.contains(problem), "{warning}");
+            assert!(!warning.contains('\n'), "{warning}");
+        }
     }
 
     #[test]

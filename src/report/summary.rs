@@ -5,6 +5,7 @@
 use std::fmt::Write as _;
 
 use super::recorded::RecordedManifest;
+use crate::limits::display_cell;
 use crate::registry::RunRecord;
 use crate::registry::dates::seconds_between;
 use crate::run::table;
@@ -76,8 +77,16 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
     )?;
 
     writeln!(out, "seeds")?;
-    let width = record.seeds.keys().map(|s| s.len()).max().unwrap_or(0);
+    // Step names are cut to a bounded width: a recorded name of any length
+    // can make no format width overflow.
+    let width = record
+        .seeds
+        .keys()
+        .map(|s| display_cell(s).len())
+        .max()
+        .unwrap_or(0);
     for (step, seed) in &record.seeds {
+        let step = display_cell(step);
         writeln!(out, "  {step:<width$}  {seed}")?;
     }
 
@@ -87,7 +96,12 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
         "steps: {} cached, {} computed, {} rebuilt",
         counts.cached, counts.computed, counts.rebuilt
     )?;
-    let width = record.steps.iter().map(|s| s.step.len()).max().unwrap_or(0);
+    let width = record
+        .steps
+        .iter()
+        .map(|s| display_cell(&s.step).len())
+        .max()
+        .unwrap_or(0);
     for step in &record.steps {
         let detail = step
             .detail
@@ -96,7 +110,9 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
         writeln!(
             out,
             "  {:<9} {:<width$}  {:>8.2} s{detail}",
-            step.outcome, step.step, step.seconds
+            step.outcome,
+            display_cell(&step.step),
+            step.seconds
         )?;
     }
 

@@ -5,6 +5,7 @@
 //! localisations per empty frame.
 
 use super::EmptyFramesRow;
+use crate::limits::display_cell;
 use crate::manifest::Reference;
 use crate::registry::AucRow;
 
@@ -31,10 +32,17 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     }
     let cell = 6;
     let group = eps.len() * (cell + 1) + 2;
-    let mut label_width = detectors.iter().map(|d| d.len()).max().unwrap_or(0).max(10);
+    // Labels are cut to a bounded width (`display_cell`), so no recorded
+    // name can make a format width overflow.
+    let mut label_width = detectors
+        .iter()
+        .map(|d| display_cell(d).len())
+        .max()
+        .unwrap_or(0)
+        .max(10);
     if let Some(reference) = reference {
         for row in &reference.rows {
-            label_width = label_width.max(row.label.len() + 9);
+            label_width = label_width.max(display_cell(&row.label).len() + 9);
         }
     }
     let mut out = String::new();
@@ -44,9 +52,14 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
             // The paper's labels: 0.75, 1.00, 1.75.
             Some(d) if (d * 100.0).round() == d * 100.0 => format!("D = {d:.2} µm²/s"),
             Some(d) => format!("D = {d} µm²/s"),
-            None => name.to_string(),
+            None => display_cell(name).into_owned(),
         };
-        out.push_str(&format!("  {:<w$}", title, w = group - 2));
+        // Padded by hand: the group's width grows with the ε list, which
+        // a format width (at most 65,535) must not be trusted with.
+        out.push_str("  ");
+        out.push_str(&title);
+        let shown = title.chars().count();
+        out.extend(std::iter::repeat_n(' ', (group - 2).saturating_sub(shown)));
     }
     out.push('\n');
     out.push_str(&format!("{:<label_width$}", "ε (px)"));
@@ -58,6 +71,7 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     }
     out.push('\n');
     let line = |label: &str, value: &dyn Fn(&str, f64) -> Option<f64>| -> String {
+        let label = display_cell(label);
         let mut text = format!("{label:<label_width$}");
         for (name, _) in &datasets {
             text.push_str("  ");
@@ -112,8 +126,8 @@ pub fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
         .map(|row| {
             let empty = &row.empty_frames;
             [
-                row.detector.clone(),
-                row.dataset.clone(),
+                display_cell(&row.detector).into_owned(),
+                display_cell(&row.dataset).into_owned(),
                 // Without a threshold every localisation counts.
                 row.threshold.map_or("none".to_string(), |t| format!("{t}")),
                 empty.frames.to_string(),

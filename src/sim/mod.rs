@@ -519,6 +519,28 @@ impl FrameMaker<'_> {
     }
 }
 
+/// The bytes [`simulate`] holds in memory at its peak for `frames` frames
+/// of `params` (saturating, never overflowing): the counts (4 bytes a
+/// pixel), and the ground truth twice (per frame, with room for the most
+/// emitters a frame can have, then gathered into one list). A command
+/// checks it with [`check_memory`](crate::limits::check_memory) before
+/// simulating.
+pub fn dataset_bytes(params: &SimParams, frames: usize) -> u64 {
+    let size = |n: usize| n as u64;
+    let frames = size(frames);
+    let pixel_bytes = frames
+        .saturating_mul(size(params.height))
+        .saturating_mul(size(params.width))
+        .saturating_mul(size(std::mem::size_of::<u32>()));
+    let truth_bytes = frames
+        .saturating_mul(u64::from(params.emitters.max()))
+        .saturating_mul(2 * size(std::mem::size_of::<TruthRow>()));
+    let list_bytes = frames.saturating_mul(size(std::mem::size_of::<Vec<TruthRow>>()));
+    pixel_bytes
+        .saturating_add(truth_bytes)
+        .saturating_add(list_bytes)
+}
+
 /// Simulates frames `range` of the dataset with `params` and `seed`, in
 /// parallel. The result depends only on `(params, seed, range)`: frame `i`
 /// is the same whether made alone, in a chunk or in the whole dataset.

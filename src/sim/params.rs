@@ -456,6 +456,7 @@ impl SimParams {
         self.background.validate("background", true)?;
         self.brightness.validate("brightness", true)?;
         self.diffusion_um2_s.validate("diffusion_um2_s", true)?;
+        self.check_motion()?;
         self.z_start.validate("z_start", false)?;
         require_non_negative("margin_px", self.margin_px)?;
         if 2.0 * self.margin_px >= self.width.min(self.height) as f64 {
@@ -524,6 +525,37 @@ impl SimParams {
         Ok(())
     }
 
+    /// Refuses a diffusion coefficient above [`MAX_DIFFUSION_UM2_S`], and
+    /// one that moves a QD more than [`MAX_FRAME_TRAVEL_FIELDS`] fields in
+    /// one frame (RMS, along one axis: √(2 D t) over the frame time t).
+    fn check_motion(&self) -> Result<(), FieldError> {
+        let (_, diffusion) = self.diffusion_um2_s.bounds();
+        if diffusion > MAX_DIFFUSION_UM2_S {
+            return Err(FieldError::new(
+                "diffusion_um2_s",
+                format!(
+                    "must be at most {MAX_DIFFUSION_UM2_S} µm²/s (faster than any particle in a liquid), got {}",
+                    readable(diffusion)
+                ),
+            ));
+        }
+        let field_um = self.height.max(self.width) as f64 * self.pixel_size_um;
+        let travel_um = (2.0 * diffusion * self.frame_time_s()).sqrt();
+        if diffusion > 0.0 && !(travel_um <= MAX_FRAME_TRAVEL_FIELDS * field_um) {
+            return Err(FieldError::new(
+                "diffusion_um2_s",
+                format!(
+                    "a QD of D = {} µm²/s moves about {} µm during one frame of {} s, more than {MAX_FRAME_TRAVEL_FIELDS} times the {} µm field; lower the diffusion coefficient or the frame time (dwell_us, retrace_ms)",
+                    readable(diffusion),
+                    readable(travel_um),
+                    readable(self.frame_time_s()),
+                    readable(field_um)
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// The largest expected-photon error one PSF sample can suffer from the
     /// lateral cut-off: the in-focus peak (of the brightest frame) times
     /// `exp(−c²/2)`. Zero without a
@@ -562,6 +594,17 @@ impl SimParams {
 
 /// Most QDs a frame can hold.
 pub const MAX_EMITTERS: u32 = 10_000;
+
+/// Largest diffusion coefficient accepted, µm²/s: beyond small molecules
+/// in water (a few hundred µm²/s; a QD's is tens at most), so no particle
+/// a two-photon microscope follows in a liquid diffuses faster.
+pub const MAX_DIFFUSION_UM2_S: f64 = 1_000.0;
+
+/// Largest RMS distance, in fields (the frame's larger side), a QD may
+/// move along one axis during one frame: a QD that crosses the field many
+/// times per frame leaves no image to localise, and a bound keeps every
+/// simulated or inferred position finite and near the field.
+pub const MAX_FRAME_TRAVEL_FIELDS: f64 = 100.0;
 
 /// `value` as plain digits when short, in scientific notation when very
 /// large or small (an error quoting 1e300 stays one readable line).
@@ -648,6 +691,33 @@ mod tests {
         assert!(refused("brightness", "uniform:1,1e12").contains("uint32"));
         for bad in ["uniform:1", "uniform:a,2", "normal:1,2", ""] {
             assert!(bad.parse::<Distribution>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn diffusion_beyond_any_liquid_or_crossing_the_field_per_frame_is_refused() {
+        let with = |diffusion: &str, retrace_ms: f64| SimParams {
+            diffusion_um2_s: diffusion.parse().unwrap(),
+            retrace_ms,
+            ..SimParams::default()
+        };
+        for (diffusion, retrace_ms) in [
+            ("1e300", 1.1),
+            ("uniform:0,1e308", 1.1),
+            ("1000.5", 1.1),
+            ("uniform:0.75,1e4", 1.1),
+            // Within the bound on D, but a frame that lasts for ever.
+            ("1", 1e300),
+            ("0.5", 1e12),
+        ] {
+            let error = with(diffusion, retrace_ms).validate().unwrap_err();
+            assert_eq!(error.field(), "diffusion_um2_s", "{diffusion}: {error}");
+        }
+        for (diffusion, retrace_ms) in [("1000", 1.1), ("uniform:0,1000", 1.1), ("0", 1e300)] {
+            assert!(
+                with(diffusion, retrace_ms).validate().is_ok(),
+                "{diffusion}"
+            );
         }
     }
 

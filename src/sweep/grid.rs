@@ -102,6 +102,7 @@ pub fn axes(text: &str, source: &str) -> anyhow::Result<Vec<Axis>> {
     if axes.is_empty() {
         return Err(input_error(format!("{source}: sweep: declares no axis")));
     }
+    refuse_overlapping_axes(&document, &axes, source)?;
     let points = axes
         .iter()
         .try_fold(1usize, |n, a| n.checked_mul(a.values.len()))
@@ -112,6 +113,62 @@ pub fn axes(text: &str, source: &str) -> anyhow::Result<Vec<Axis>> {
         )));
     }
     Ok(axes)
+}
+
+/// Refuses two axes that set the same manifest value, or one a value
+/// inside the other's (the later would silently override the earlier at
+/// every point). Paths are compared as the keys they resolve to in
+/// `document`, so two spellings of one key are caught too.
+fn refuse_overlapping_axes(document: &Value, axes: &[Axis], source: &str) -> anyhow::Result<()> {
+    let resolved: Vec<Vec<String>> = axes
+        .iter()
+        .map(|axis| resolved_keys(document, &axis.path))
+        .collect();
+    for (second, keys) in resolved.iter().enumerate() {
+        for (first, earlier) in resolved[..second].iter().enumerate() {
+            let shorter = earlier.len().min(keys.len());
+            if earlier[..shorter] == keys[..shorter] {
+                let (a, b) = (&axes[first], &axes[second]);
+                let relation = if earlier.len() == keys.len() {
+                    "the same manifest path"
+                } else {
+                    "nested manifest paths"
+                };
+                return Err(input_error(format!(
+                    "{source}: sweep.{}.path and sweep.{}.path set {relation} ({} and {}); an axis would override the other at every point: give each axis its own path",
+                    a.name,
+                    b.name,
+                    a.path.join("."),
+                    b.path.join(".")
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The keys `path` leads through in `document`, as [`set_path`] matches
+/// them: the longest existing key at each mapping, one segment at a time
+/// where nothing exists yet.
+fn resolved_keys(document: &Value, path: &[String]) -> Vec<String> {
+    let mut keys = Vec::new();
+    let mut node = Some(document);
+    let mut rest = path;
+    while !rest.is_empty() {
+        let mapping = node.and_then(Value::as_mapping);
+        let taken = mapping
+            .and_then(|m| {
+                (1..=rest.len())
+                    .rev()
+                    .find(|&n| m.contains_key(rest[..n].join(".").as_str()))
+            })
+            .unwrap_or(1);
+        let key = rest[..taken].join(".");
+        node = mapping.and_then(|m| m.get(key.as_str()));
+        keys.push(key);
+        rest = &rest[taken..];
+    }
+    keys
 }
 
 /// Every point of the grid of `text` (whose axes are `axes`), resolved.
@@ -261,5 +318,34 @@ mod tests {
         assert!(error.to_string().contains("frames"), "{error}");
         assert!(bad("  f: {path: name.x, values: [1]}\n").is_err());
         assert!(axes(BASE, "g.yaml").unwrap().is_empty());
+    }
+
+    #[test]
+    fn axes_on_the_same_or_nested_paths_are_refused_naming_both() {
+        let cases = [
+            // The same path twice, through a key with dots or plain keys.
+            "  a: {path: datasets.test-1.00.frames, values: [2, 3]}\n  b: {path: datasets.test-1.00.frames, values: [4]}\n",
+            "  a: {path: detectors.trackpy.crocker_grier.diameter, values: [5]}\n  b: {path: detectors.trackpy.crocker_grier.diameter, values: [7, 9]}\n",
+            // One inside the other, in either order.
+            "  a: {path: detectors.trackpy.crocker_grier, values: [{diameter: 5}]}\n  b: {path: detectors.trackpy.crocker_grier.diameter, values: [7]}\n",
+            "  b: {path: detectors.trackpy.crocker_grier.diameter, values: [7]}\n  a: {path: detectors.trackpy, values: [{crocker_grier: {diameter: 5}}]}\n",
+            // A path that does not exist yet, twice.
+            "  a: {path: detectors.trackpy.crocker_grier.minmass, values: [1]}\n  b: {path: detectors.trackpy.crocker_grier.minmass, values: [2]}\n",
+        ];
+        for block in cases {
+            let text = format!("{BASE}sweep:\n{block}");
+            let error = axes(&text, "g.yaml").unwrap_err();
+            let message = error.to_string();
+            assert_eq!(crate::error::exit_code(&error), 2, "{message}");
+            assert!(
+                message.contains("sweep.a.path") && message.contains("sweep.b.path"),
+                "{message}"
+            );
+        }
+        // Siblings are fine.
+        let text = format!(
+            "{BASE}sweep:\n  a: {{path: detectors.trackpy.crocker_grier.diameter, values: [5]}}\n  b: {{path: detectors.trackpy.crocker_grier.minmass, values: [1]}}\n"
+        );
+        assert_eq!(axes(&text, "g.yaml").unwrap().len(), 2);
     }
 }

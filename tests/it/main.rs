@@ -24,6 +24,7 @@ mod cnn;
 mod crocker_grier;
 mod empty_frames;
 mod figures;
+mod hostile_bounds;
 mod hostile_cli_fuzz;
 mod hostile_files;
 mod hostile_fuzz_guard;

@@ -498,19 +498,54 @@ pub fn locate_frames(
         settings,
         seed,
     };
-    Ok(which
+    let predictions: Vec<Prediction> = which
         .par_iter()
         .map_init(Particles::default, |particles, &index| {
             let prediction = filter.locate_frame(index, frames.frame(index), particles);
             progress.inc(1);
             prediction
         })
-        .collect())
+        .collect();
+    refuse_non_finite(&predictions)?;
+    Ok(predictions)
+}
+
+/// The last guard before predictions are written: every position and
+/// score must be a finite number. The microscope's checks keep the
+/// filter's particles within reach of the field, so this refusal means a
+/// microscope they let through by mistake; it names the frame rather than
+/// writing NaN.
+fn refuse_non_finite(predictions: &[Prediction]) -> anyhow::Result<()> {
+    match predictions
+        .iter()
+        .find(|p| !(p.x.is_finite() && p.y.is_finite() && p.score.is_finite()))
+    {
+        Some(p) => Err(input_error(format!(
+            "likelihood: frame {}: the estimate is not a finite number (x {}, y {}, score {}); the microscope's parameters are beyond what the filter can follow",
+            p.frame, p.x, p.y, p.score
+        ))),
+        None => Ok(()),
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn estimates_that_are_not_finite_are_refused_naming_the_frame() {
+        let good = Prediction::new(3, 1.0, 2.0, 0.5);
+        assert!(refuse_non_finite(&[good]).is_ok());
+        for bad in [
+            Prediction::new(4, f64::NAN, 2.0, 0.5),
+            Prediction::new(4, 1.0, f64::INFINITY, 0.5),
+            Prediction::new(4, 1.0, 2.0, f64::NAN),
+        ] {
+            let error = refuse_non_finite(&[good, bad]).unwrap_err();
+            assert!(error.to_string().contains("frame 4"), "{error}");
+            assert_eq!(crate::error::exit_code(&error), 2);
+        }
+    }
 
     /// A small microscope: frames of `side × side` pixels, QDs starting at
     /// least 3 px from the border.
