@@ -199,9 +199,8 @@ pub struct BenchLocateArgs {
     /// Test frames per test diffusion coefficient.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
-    /// Diffusion coefficients of the test sets, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
-    test_diffusion: Vec<f64>,
+    #[command(flatten)]
+    test_diffusion: super::TestDiffusionArgs,
     /// Master seed of the test sets.
     #[arg(long, default_value_t = 1_000_003)]
     seed: u64,
@@ -221,9 +220,7 @@ pub struct BenchLocateArgs {
 
 pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let params = super::bench::bench_microscope(&args.microscope, "--frames", args.frames)?;
-    for &d in &args.test_diffusion {
-        scanloc::error::require_non_negative("--test-diffusion", d)?;
-    }
+    args.test_diffusion.checked()?;
     let mut model = TrainedCnn::load(&args.model)?;
     if let Some(r) = args.peak_radius_px {
         model.architecture.peak_radius_px = r;
@@ -239,7 +236,7 @@ pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Resu
     let rows = bench::cnn::auc_table(
         &model,
         &params,
-        &args.test_diffusion,
+        args.test_diffusion.checked()?,
         args.frames,
         args.seed,
     )?;

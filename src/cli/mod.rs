@@ -172,3 +172,22 @@ pub struct JsonFlag {
     #[arg(long)]
     pub json: bool,
 }
+
+/// The diffusion coefficients of the test sets a command simulates
+/// (`train --test-frames`, `bench cnn-locate`), one test set per value.
+#[derive(Debug, Clone, Args)]
+pub struct TestDiffusionArgs {
+    /// Diffusion coefficients of the test sets in µm²/s, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
+    pub test_diffusion: Vec<f64>,
+}
+
+impl TestDiffusionArgs {
+    /// The coefficients, each checked to be a finite number ≥ 0.
+    pub fn checked(&self) -> anyhow::Result<&[f64]> {
+        for &d in &self.test_diffusion {
+            scanloc::error::require_non_negative("--test-diffusion", d)?;
+        }
+        Ok(&self.test_diffusion)
+    }
+}

@@ -123,9 +123,8 @@ pub struct TrainArgs {
     /// Test frames per test diffusion coefficient (0 = no test).
     #[arg(long, default_value_t = 0)]
     test_frames: usize,
-    /// Diffusion coefficients of the test sets, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
-    test_diffusion: Vec<f64>,
+    #[command(flatten)]
+    test_diffusion: super::TestDiffusionArgs,
     /// QDs per test frame (same forms as --emitters); the test sets have
     /// the training frames' start depth.
     #[arg(long, default_value = "1")]
@@ -174,7 +173,7 @@ pub fn run(
         let table = bench::cnn::auc_table(
             &model,
             &test_params,
-            &args.test_diffusion,
+            args.test_diffusion.checked()?,
             args.test_frames,
             derive_seed(args.seed, "dataset", "test"),
         )?;
@@ -241,9 +240,7 @@ fn microscopes(args: &TrainArgs) -> anyhow::Result<(SimParams, SimParams)> {
             .validate()
             .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     }
-    for &d in &args.test_diffusion {
-        scanloc::error::require_non_negative("--test-diffusion", d)?;
-    }
+    args.test_diffusion.checked()?;
     // The manifest's limits, checked by the same functions.
     scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     if args.test_frames > 0 {
