@@ -1,6 +1,7 @@
 //! `scanloc bench`: throughput benchmarks, reported against a reference
 //! measured in the same run where one is available.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,10 +18,14 @@ pub struct BenchArgs {
 
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
-    /// Simulator frames/s on the paper's 36,688 frames (D uniform in [0.75, 1.75]).
+    /// Simulator frames/s on the paper's 36,688 frames (the paper's
+    /// microscope, D uniform in [0.75, 1.75], margin 4, unless the
+    /// microscope flags say otherwise; the numpy reference always simulates
+    /// the paper's).
     Simulate(SimulateBench),
-    /// Crocker–Grier frames/s against TrackPy 0.7 on the same frames (paper
-    /// microscope, D = 1 µm²/s, N_qd 7, margin 4; diameter 7, minmass 0).
+    /// Crocker–Grier frames/s against TrackPy 0.7 on the same frames (the
+    /// paper's microscope, D = 1 µm²/s, N_qd 7, margin 4, unless the
+    /// microscope flags say otherwise; diameter 7, minmass 0).
     Locate(LocateBench),
     /// Run time against error for the simulator (substeps, PSF cut-off),
     /// Crocker–Grier (diameter, preprocessing) and the CNN (width, depth,
@@ -61,10 +66,10 @@ struct TradeoffArgs {
     /// Cramér–Rao floor.
     #[arg(long, default_value_t = 1000)]
     static_frames: usize,
-    /// N_qd of the test and training sets and of the Cramér–Rao bound
-    /// (default: the paper experiment's calibrated value).
-    #[arg(long, default_value_t = 7.5)]
-    brightness: f64,
+    /// N_qd of the test and training sets and of the Cramér–Rao bound, one
+    /// fixed number (default: the paper experiment's calibrated value).
+    #[arg(long, default_value = "7.5")]
+    brightness: Distribution,
     /// CNN: frames of the training set (D uniform in [0.75, 1.75]).
     #[arg(long, default_value_t = 3000)]
     cnn_train_frames: usize,
@@ -80,15 +85,19 @@ struct TradeoffArgs {
 }
 
 impl TradeoffArgs {
-    /// Refuses settings that would make an empty or meaningless sweep.
-    fn validate(&self) -> anyhow::Result<()> {
+    /// Refuses settings that would make an empty or meaningless sweep;
+    /// returns the brightness.
+    fn validate(&self) -> anyhow::Result<f64> {
         use scanloc::error::input_error;
         paper_sized("--frames", self.frames)?;
         paper_sized("--static-frames", self.static_frames)?;
-        if !(self.brightness.is_finite() && self.brightness > 0.0) {
+        let brightness = self
+            .brightness
+            .require_fixed("--brightness", "the Cramér–Rao bound")
+            .map_err(|e| input_error(e.to_string()))?;
+        if !(brightness.is_finite() && brightness > 0.0) {
             return Err(input_error(format!(
-                "--brightness: must be a finite number > 0, got {}",
-                self.brightness
+                "--brightness: must be a finite number > 0, got {brightness}"
             )));
         }
         if self.stages.contains(&Stage::Cnn) {
@@ -107,11 +116,12 @@ impl TradeoffArgs {
                 }
             }
         }
-        Ok(())
+        Ok(brightness)
     }
 }
 
 #[derive(Debug, Args)]
+#[command(mut_arg("margin_px", |arg| arg.default_value("4")))]
 struct LocateBench {
     /// Frames to locate.
     #[arg(long, default_value_t = 6850)]
@@ -128,9 +138,16 @@ struct LocateBench {
     /// The TrackPy reference script.
     #[arg(long, default_value = "benches/reference/trackpy_locate.py")]
     reference: PathBuf,
+    /// The microscope of the frames located.
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
 }
 
 #[derive(Debug, Args)]
+#[command(
+    mut_arg("margin_px", |arg| arg.default_value("4")),
+    mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
+)]
 struct SimulateBench {
     /// Frames per repeat.
     #[arg(long, default_value_t = bench::simulate::PAPER_FRAMES)]
@@ -145,16 +162,35 @@ struct SimulateBench {
     /// The numpy reference script.
     #[arg(long, default_value = "benches/reference/numpy_sim.py")]
     reference: PathBuf,
+    /// The microscope simulated.
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
 }
 
-pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     match args.command {
-        BenchCommand::Simulate(args) => simulate(args),
-        BenchCommand::Locate(args) => locate(args),
-        BenchCommand::Tradeoffs(args) => tradeoffs(args),
-        BenchCommand::Train(args) => super::bench_cnn::run_train(args),
-        BenchCommand::CnnLocate(args) => super::bench_cnn::run_locate(args),
+        BenchCommand::Simulate(args) => simulate(args, stdout),
+        BenchCommand::Locate(args) => locate(args, stdout),
+        BenchCommand::Tradeoffs(args) => tradeoffs(args, stdout),
+        BenchCommand::Train(args) => super::bench_cnn::run_train(args, stdout),
+        BenchCommand::CnnLocate(args) => super::bench_cnn::run_locate(args, stdout),
     }
+}
+
+/// The microscope of a bench's `flags`, checked, with `frames` of its size
+/// (the flag `frames_flag`) checked against the limits a manifest's
+/// datasets have.
+pub(super) fn bench_microscope(
+    flags: &super::MicroscopeArgs,
+    frames_flag: &str,
+    frames: usize,
+) -> anyhow::Result<SimParams> {
+    let params = flags.params()?;
+    params
+        .validate()
+        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
+    scanloc::limits::check_dataset_size(frames_flag, frames, params.height, params.width)?;
+    Ok(params)
 }
 
 /// Checks a frame count flag of paper-sized frames against the limits a
@@ -169,27 +205,27 @@ pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
     )?)
 }
 
-fn locate(args: LocateBench) -> anyhow::Result<ExitCode> {
-    paper_sized("--frames", args.frames)?;
-    paper_sized("--reference-frames", args.reference_frames)?;
-    let params = SimParams {
-        diffusion_um2_s: Distribution::Fixed(1.0),
-        margin_px: 4.0,
-        ..SimParams::default()
-    };
+fn locate(args: LocateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let params = bench_microscope(&args.microscope, "--frames", args.frames)?;
+    bench_microscope(
+        &args.microscope,
+        "--reference-frames",
+        args.reference_frames,
+    )?;
     let dataset = scanloc::sim::simulate(&params, 7, 0..args.frames, &scanloc::progress::hidden())?;
     let detector = scanloc::detect::crocker_grier::CrockerGrierParams {
         minmass: Some(0.0),
         ..Default::default()
     };
     let fps = bench::locate::time_crocker_grier(&dataset.frames, &detector, args.repeats)?;
-    println!(
+    writeln!(
+        stdout,
         "scanloc crocker-grier: {} frames of {}×{} at {fps:.0} frames/s on {} threads",
         dataset.frames.n,
         dataset.frames.height,
         dataset.frames.width,
         rayon::current_num_threads()
-    );
+    )?;
     let folder = tempfile::tempdir()?;
     let file = folder.path().join("frames.npy");
     let subset = scanloc::sim::simulate(
@@ -201,66 +237,71 @@ fn locate(args: LocateBench) -> anyhow::Result<ExitCode> {
     scanloc::io::write_frames(&file, &subset.frames)?;
     let file_arg = file.to_string_lossy().into_owned();
     match bench::reference::run_python(&args.python, &args.reference, &["--input", &file_arg]) {
-        Ok(reference_fps) => println!(
+        Ok(reference_fps) => writeln!(
+            stdout,
             "trackpy 0.7 locate: {reference_fps:.0} frames/s; scanloc is {:.0}× faster",
             fps / reference_fps
-        ),
-        Err(reason) => println!("trackpy reference skipped: {reason}"),
+        )?,
+        Err(reason) => writeln!(stdout, "trackpy reference skipped: {reason}")?,
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn simulate(args: SimulateBench) -> anyhow::Result<ExitCode> {
-    paper_sized("--frames", args.frames)?;
-    let params = SimParams {
-        diffusion_um2_s: "uniform:0.75,1.75"
-            .parse::<Distribution>()
-            .map_err(anyhow::Error::msg)?,
-        margin_px: 4.0,
-        ..SimParams::default()
-    };
+fn simulate(args: SimulateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let params = bench_microscope(&args.microscope, "--frames", args.frames)?;
     let timing = bench::simulate::time_simulator(&params, args.frames, args.repeats)?;
-    println!(
+    writeln!(
+        stdout,
         "scanloc simulate: {} frames in {:.3} s on {} threads = {:.0} frames/s",
         timing.frames, timing.seconds, timing.threads, timing.frames_per_second
-    );
+    )?;
     match bench::reference::run_python(
         &args.python,
         &args.reference,
         &["--frames", &args.frames.min(20_000).to_string()],
     ) {
-        Ok(reference_fps) => println!(
+        Ok(reference_fps) => writeln!(
+            stdout,
             "numpy reference: {reference_fps:.0} frames/s; scanloc is {:.1}× faster",
             timing.frames_per_second / reference_fps
-        ),
-        Err(reason) => println!("numpy reference skipped: {reason}"),
+        )?,
+        Err(reason) => writeln!(stdout, "numpy reference skipped: {reason}")?,
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn print_sweep(title: &str, error_label: &str, points: &[bench::tradeoff::TradeoffPoint]) {
-    println!("\n{title}");
-    println!(
+fn print_sweep(
+    title: &str,
+    error_label: &str,
+    points: &[bench::tradeoff::TradeoffPoint],
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
+    writeln!(stdout, "\n{title}")?;
+    writeln!(
+        stdout,
         "{:<40} {:>12} {:>14}  extra",
         "setting", "frames/s", error_label
-    );
+    )?;
     for p in points {
         let extra: Vec<String> = p.extra.iter().map(|(k, v)| format!("{k}={v:.3}")).collect();
-        println!(
+        writeln!(
+            stdout,
             "{:<40} {:>12.0} {:>14.4}{} {}",
             p.setting,
             p.frames_per_second,
             p.error,
             if p.pareto { " *" } else { "  " },
             extra.join(" ")
-        );
+        )?;
     }
     if let Some(reference) = points.iter().find(|p| p.reference) {
-        println!(
+        writeln!(
+            stdout,
             "(*_vs_reference: ratios against '{}', timed in this run)",
             reference.setting
-        );
+        )?;
     }
+    Ok(())
 }
 
 /// The best (smallest) finite value of `values`, with the setting it came from.
@@ -275,21 +316,26 @@ fn best(
         .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
-fn tradeoffs(args: TradeoffArgs) -> anyhow::Result<ExitCode> {
-    use bench::tradeoff::{self, extra};
-    args.validate()?;
+fn tradeoffs(args: TradeoffArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    use bench::tradeoff;
+    let brightness = args.validate()?;
     let floor_params = SimParams {
-        brightness: args.brightness.into(),
+        brightness: brightness.into(),
         ..SimParams::default()
     };
     let floor = tradeoff::cramer_rao_rmse_px(&floor_params, 5)?;
-    println!(
-        "Cramér–Rao floor (static QD, N_qd {}, Poisson): RMSE {floor:.4} px",
-        args.brightness
-    );
+    writeln!(
+        stdout,
+        "Cramér–Rao floor (static QD, N_qd {brightness}, Poisson): RMSE {floor:.4} px"
+    )?;
     if args.stages.contains(&Stage::Simulator) {
         let simulator = tradeoff::simulator_sweep(args.frames)?;
-        print_sweep("simulator (* = Pareto front)", "max |Δμ| (ph)", &simulator);
+        print_sweep(
+            "simulator (* = Pareto front)",
+            "max |Δμ| (ph)",
+            &simulator,
+            stdout,
+        )?;
         tradeoff::write_sweep(
             &args.out,
             "simulator",
@@ -299,76 +345,95 @@ fn tradeoffs(args: TradeoffArgs) -> anyhow::Result<ExitCode> {
         )?;
     }
     let locators = args.stages.contains(&Stage::CrockerGrier) || args.stages.contains(&Stage::Cnn);
-    let tests = if locators {
-        Some(tradeoff::TestSets::simulate(
-            args.frames,
-            args.static_frames,
-            args.brightness,
-        )?)
-    } else {
-        None
-    };
+    if !locators {
+        writeln!(stdout, "tables and plots in {}", args.out.display())?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    let tests = tradeoff::TestSets::simulate(args.frames, args.static_frames, brightness)?;
     let mut closest = Vec::new();
-    if let (true, Some(tests)) = (args.stages.contains(&Stage::CrockerGrier), &tests) {
-        let locator = tradeoff::crocker_grier_sweep(tests)?;
-        print_sweep(
-            "crocker-grier, RMSE at D = 1 (* = Pareto front)",
-            "RMSE (px)",
-            &locator,
-        );
-        tradeoff::write_sweep(
-            &args.out,
-            "crocker_grier",
-            "RMSE of top prediction, D = 1 (px)",
-            &locator,
-            Some(floor),
-        )?;
+    if args.stages.contains(&Stage::CrockerGrier) {
         closest.push((
             "crocker-grier",
-            best(&locator, |p| extra(p, "precision_static_px")),
+            crocker_grier_tradeoff(&args, &tests, floor, stdout)?,
         ));
     }
-    if let (true, Some(tests)) = (args.stages.contains(&Stage::Cnn), &tests) {
-        let sweep = tradeoff::CnnSweep {
-            train_frames: args.cnn_train_frames,
-            channels: args.cnn_channels.clone(),
-            depths: args.cnn_depths.clone(),
-            epochs: args.cnn_epochs.clone(),
-            brightness: args.brightness,
-        };
-        let progress = scanloc::progress::bar(0, "cnn sweep");
-        let cnn = tradeoff::cnn_sweep(&sweep, tests, &progress)?;
-        progress.finish_and_clear();
-        print_sweep(
-            "cnn, RMSE at D = 1 (* = Pareto front of inference frames/s; training time and its front in the extras)",
-            "RMSE (px)",
-            &cnn,
-        );
-        tradeoff::write_sweep(
-            &args.out,
+    if args.stages.contains(&Stage::Cnn) {
+        closest.push((
             "cnn",
-            "RMSE of top prediction, D = 1 (px)",
-            &cnn,
-            Some(floor),
-        )?;
-        tradeoff::write_training_plot(
-            &args.out,
-            "cnn",
-            "RMSE of top prediction, D = 1 (px)",
-            &cnn,
-            Some(floor),
-        )?;
-        closest.push(("cnn", best(&cnn, |p| extra(p, "precision_static_px"))));
+            cnn_tradeoff(&args, brightness, &tests, floor, stdout)?,
+        ));
     }
     for (method, best) in closest {
         match best {
-            Some((setting, rmse)) => println!(
+            Some((setting, rmse)) => writeln!(
+                stdout,
                 "closest to the floor, {method}: precision {rmse:.3} px on a static QD ({setting}; RMSE of the top predictions within 3 px) = {:.2}× the Cramér–Rao floor",
                 rmse / floor
-            ),
-            None => println!("{method}: no setting located anything in the static set"),
+            )?,
+            None => writeln!(
+                stdout,
+                "{method}: no setting located anything in the static set"
+            )?,
         }
     }
-    println!("tables and plots in {}", args.out.display());
+    writeln!(stdout, "tables and plots in {}", args.out.display())?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// The Crocker–Grier sweep: its table, CSV and plot; the setting closest
+/// to the Cramér–Rao `floor`.
+fn crocker_grier_tradeoff(
+    args: &TradeoffArgs,
+    tests: &bench::tradeoff::TestSets,
+    floor: f64,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<Option<(String, f64)>> {
+    use bench::tradeoff::{self, extra};
+    let locator = tradeoff::crocker_grier_sweep(tests)?;
+    print_sweep(
+        "crocker-grier, RMSE at D = 1 (* = Pareto front)",
+        "RMSE (px)",
+        &locator,
+        stdout,
+    )?;
+    tradeoff::write_sweep(
+        &args.out,
+        "crocker_grier",
+        "RMSE of top prediction, D = 1 (px)",
+        &locator,
+        Some(floor),
+    )?;
+    Ok(best(&locator, |p| extra(p, "precision_static_px")))
+}
+
+/// The CNN sweep: its table, CSVs and plots; the setting closest to the
+/// Cramér–Rao `floor`.
+fn cnn_tradeoff(
+    args: &TradeoffArgs,
+    brightness: f64,
+    tests: &bench::tradeoff::TestSets,
+    floor: f64,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<Option<(String, f64)>> {
+    use bench::tradeoff::{self, extra};
+    let sweep = tradeoff::CnnSweep {
+        train_frames: args.cnn_train_frames,
+        channels: args.cnn_channels.clone(),
+        depths: args.cnn_depths.clone(),
+        epochs: args.cnn_epochs.clone(),
+        brightness,
+    };
+    let progress = scanloc::progress::bar(0, "cnn sweep");
+    let cnn = tradeoff::cnn_sweep(&sweep, tests, &progress)?;
+    progress.finish_and_clear();
+    print_sweep(
+        "cnn, RMSE at D = 1 (* = Pareto front of inference frames/s; training time and its front in the extras)",
+        "RMSE (px)",
+        &cnn,
+        stdout,
+    )?;
+    let label = "RMSE of top prediction, D = 1 (px)";
+    tradeoff::write_sweep(&args.out, "cnn", label, &cnn, Some(floor))?;
+    tradeoff::write_training_plot(&args.out, "cnn", label, &cnn, Some(floor))?;
+    Ok(best(&cnn, |p| extra(p, "precision_static_px")))
 }

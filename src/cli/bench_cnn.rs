@@ -3,13 +3,13 @@
 //! inference speed on fresh test sets). Thin wrappers over
 //! `scanloc::bench::cnn`.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
-use scanloc::sim::{Distribution, RandomDistribution, SimParams};
 
 /// Measure CNN training and inference throughput on paper-sized frames,
 /// against PyTorch on the same network.
@@ -64,7 +64,7 @@ pub struct BenchTrainArgs {
 const MAX_BENCH_THREADS: usize = 256;
 const MAX_REPEATS: usize = 100;
 
-pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
+pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     super::bench::paper_sized("--samples", args.samples)?;
     super::bench::paper_sized("--locate-frames", args.locate_frames)?;
     if args.samples == 0 || args.locate_frames == 0 {
@@ -113,7 +113,8 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         args.repeats,
         reference.as_ref(),
     )?;
-    println!(
+    writeln!(
+        stdout,
         "channels {} dilations {:?} batch {}; training {} samples, inference {} frames (batch {}); medians of {} alternating runs",
         arch.channels,
         arch.dilations,
@@ -122,18 +123,19 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
         args.locate_frames,
         cnn::inference::INFERENCE_BATCH,
         args.repeats
-    );
-    print_table(&comparisons, "/s", |r| {
+    )?;
+    print_table(&comparisons, "/s", stdout, |r| {
         (r.train_samples_per_second, r.frames_per_second)
-    });
-    println!(
+    })?;
+    writeln!(
+        stdout,
         "per CPU second of the process (on a loaded machine, the 1-thread rows estimate the idle rates):"
-    );
-    print_table(&comparisons, "/cpu-s", |r| {
+    )?;
+    print_table(&comparisons, "/cpu-s", stdout, |r| {
         (r.train_samples_per_cpu_second, r.frames_per_cpu_second)
-    });
+    })?;
     if let Some(reason) = comparisons.iter().find_map(|c| c.torch_skipped.as_ref()) {
-        println!("torch reference skipped: {reason}");
+        writeln!(stdout, "torch reference skipped: {reason}")?;
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -143,15 +145,17 @@ pub fn run_train(args: BenchTrainArgs) -> anyhow::Result<ExitCode> {
 fn print_table(
     comparisons: &[bench::cnn::Comparison],
     unit: &str,
+    stdout: &mut dyn Write,
     figures: fn(&bench::cnn::Rates) -> (f64, f64),
-) {
-    println!(
+) -> anyhow::Result<()> {
+    writeln!(
+        stdout,
         "threads  {:>19}  {:>17}  ratio   {:>20}  {:>18}  ratio",
         format!("scanloc train{unit}"),
         format!("torch train{unit}"),
         format!("scanloc frames{unit}"),
         format!("torch frames{unit}"),
-    );
+    )?;
     for c in comparisons {
         let (train, frames) = figures(&c.scanloc);
         let torch = c.torch.as_ref().map(figures);
@@ -160,7 +164,8 @@ fn print_table(
             Some(v) => format!("{v:.1}"),
             None => "-".to_string(),
         };
-        println!(
+        writeln!(
+            stdout,
             "{:>7}  {:>19.1}  {:>17}  {:>5}   {:>20.1}  {:>18}  {:>5}",
             c.threads,
             train,
@@ -169,32 +174,39 @@ fn print_table(
             frames,
             show(torch.map(|t| t.1), false),
             show(torch.map(|t| frames / t.1), true),
-        );
+        )?;
     }
+    Ok(())
 }
 
 /// Score a saved CNN on fresh simulated test sets and time its inference.
 ///
-/// Simulates `--frames` frames per `--diffusion` value (the paper's
-/// microscope with the given brightness and margin; each set's seed is
-/// derived from `--seed` and its D) and prints the AUC at ε = 1, 2, 3 px
+/// Simulates `--frames` frames per `--test-diffusion` value (the microscope
+/// the flags describe, by default the paper's with a margin of 4 px; each
+/// set's seed is derived from `--seed` and its D) and prints the AUC at ε = 1, 2, 3 px
 /// beside the paper's FCNN row, with frames/s. Inference options may be
 /// overridden to compare post-processing without retraining.
 #[derive(Debug, Args)]
+#[command(
+    allow_negative_numbers = true,
+    mut_arg("margin_px", |arg| arg.default_value("4")),
+    mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
+)]
 pub struct BenchLocateArgs {
     /// Model folder written by `scanloc train`.
     #[arg(long)]
     model: PathBuf,
+    /// Test frames per test diffusion coefficient.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
-    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
-    diffusion: Vec<f64>,
-    #[arg(long, default_value_t = 7.0)]
-    brightness: f64,
-    #[arg(long, default_value_t = 4.0)]
-    margin_px: f64,
+    #[command(flatten)]
+    test_diffusion: super::TestDiffusionArgs,
+    /// Master seed of the test sets.
     #[arg(long, default_value_t = 1_000_003)]
     seed: u64,
+    /// The microscope of the test sets (but for D).
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
     /// Override the model's peak window radius.
     #[arg(long)]
     peak_radius_px: Option<usize>,
@@ -206,8 +218,9 @@ pub struct BenchLocateArgs {
     score_floor: Option<f64>,
 }
 
-pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
-    super::bench::paper_sized("--frames", args.frames)?;
+pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let params = super::bench::bench_microscope(&args.microscope, "--frames", args.frames)?;
+    args.test_diffusion.checked()?;
     let mut model = TrainedCnn::load(&args.model)?;
     if let Some(r) = args.peak_radius_px {
         model.architecture.peak_radius_px = r;
@@ -220,22 +233,22 @@ pub fn run_locate(args: BenchLocateArgs) -> anyhow::Result<ExitCode> {
     }
     model.architecture.validate()?;
     model.settings.validate()?;
-    let params = SimParams {
-        brightness: args.brightness.into(),
-        margin_px: args.margin_px,
-        diffusion_um2_s: Distribution::Random(RandomDistribution::Uniform([0.75, 1.75])),
-        ..SimParams::default()
-    };
-    params.validate()?;
-    let rows = bench::cnn::auc_table(&model, &params, &args.diffusion, args.frames, args.seed)?;
-    print!("{}", bench::cnn::format_auc_table(&rows));
+    let rows = bench::cnn::auc_table(
+        &model,
+        &params,
+        args.test_diffusion.checked()?,
+        args.frames,
+        args.seed,
+    )?;
+    write!(stdout, "{}", bench::cnn::format_auc_table(&rows))?;
     for row in &rows {
-        println!(
+        writeln!(
+            stdout,
             "D {:.2}: {:.0} frames/s (batch {})",
             row.diffusion,
             row.frames_per_second,
             cnn::inference::INFERENCE_BATCH
-        );
+        )?;
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -1,6 +1,7 @@
 //! `scanloc calibrate`: the brightness sweep (`docs/metric.md`, "Calibrating the
 //! brightness").
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -27,9 +28,8 @@ pub struct CalibrateArgs {
     /// Brightness values (N_qd) to try, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "5,6,6.5,7,7.5,8,9")]
     brightness: Vec<f64>,
-    /// Print one JSON object instead of a table.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
     #[command(flatten)]
     registry: super::RegistryDir,
     /// Where the grid points run (each a recorded run, then the table).
@@ -37,7 +37,7 @@ pub struct CalibrateArgs {
     executor: ExecutorArgs,
 }
 
-pub fn run(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: CalibrateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     let spec = SweepSpec {
         kind: SweepKind::Calibrate {
@@ -47,5 +47,12 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<ExitCode> {
         manifest_path: manifest.source.clone(),
         manifest_text: manifest.text.clone(),
     };
-    run_sweep(&args.registry, spec, &args.executor, false, args.json)
+    run_sweep(
+        &args.registry,
+        spec,
+        &args.executor,
+        false,
+        args.format.json,
+        stdout,
+    )
 }

@@ -1,5 +1,6 @@
 //! `scanloc check`: validate a manifest and print it resolved.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,12 +18,15 @@ use serde_json::json;
 pub struct CheckArgs {
     /// The manifest (YAML).
     manifest: PathBuf,
-    /// Print JSON instead of YAML.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
 }
 
-pub fn run(args: CheckArgs) -> anyhow::Result<ExitCode> {
+pub fn run(
+    args: CheckArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     // Its `sweep:` block as `sweep run` reads it: a grid that would be
     // refused there (two axes on one path) is refused here too.
@@ -33,15 +37,15 @@ pub fn run(args: CheckArgs) -> anyhow::Result<ExitCode> {
         .iter()
         .map(|s| json!({"step": s.id, "key": s.key, "seed": s.seed.map(|v| v.to_string())}))
         .collect();
-    if args.json {
-        println!("{}", json!({"manifest": manifest, "plan": steps}));
+    if args.format.json {
+        writeln!(stdout, "{}", json!({"manifest": manifest, "plan": steps}))?;
     } else {
-        print!("{}", manifest.to_resolved_yaml()?);
-        println!("plan:");
+        write!(stdout, "{}", manifest.to_resolved_yaml()?)?;
+        writeln!(stdout, "plan:")?;
         for step in &plan.steps {
-            println!("- step: {}\n  key: {}", step.id, step.key);
+            writeln!(stdout, "- step: {}\n  key: {}", step.id, step.key)?;
         }
-        eprintln!("{}: ok", args.manifest.display());
+        writeln!(stderr, "{}: ok", args.manifest.display())?;
     }
     Ok(ExitCode::SUCCESS)
 }

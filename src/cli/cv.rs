@@ -1,5 +1,6 @@
 //! `scanloc cv`: k-fold cross-validation of a trained detector.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -41,9 +42,8 @@ pub struct CvArgs {
     /// Recompute every step and check the results equal the stored ones.
     #[arg(long)]
     force: bool,
-    /// Print one JSON object instead of a table.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
     #[command(flatten)]
     registry: super::RegistryDir,
     /// Where the folds run (each fold a recorded run, then the table).
@@ -51,7 +51,7 @@ pub struct CvArgs {
     executor: ExecutorArgs,
 }
 
-pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: CvArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     let block = manifest.cross_validation.clone();
     let detector = args
@@ -71,7 +71,14 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
             manifest_path: manifest.source.clone(),
             manifest_text: manifest.text.clone(),
         };
-        return run_sweep(&args.registry, spec, &args.executor, args.force, args.json);
+        return run_sweep(
+            &args.registry,
+            spec,
+            &args.executor,
+            args.force,
+            args.format.json,
+            stdout,
+        );
     }
     if args.executor.is_not_default() {
         return Err(input_error(
@@ -85,8 +92,9 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
         fold: args.fold,
     };
     let outcome = cross_validation::cross_validate(&mut registry, &manifest, &plan, args.force)?;
-    if args.json {
-        println!(
+    if args.format.json {
+        writeln!(
+            stdout,
             "{}",
             serde_json::json!({
                 "run": outcome.run.run,
@@ -96,9 +104,9 @@ pub fn run(args: CvArgs) -> anyhow::Result<ExitCode> {
                 "cached_steps": outcome.run.counts.cached,
                 "computed_steps": outcome.run.counts.computed,
             })
-        );
+        )?;
     } else {
-        print!("{}", cross_validation::render(&outcome));
+        write!(stdout, "{}", cross_validation::render(&outcome))?;
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -1,5 +1,6 @@
 //! `scanloc locate`: localise QDs in a frame file.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -10,7 +11,6 @@ use scanloc::detect::likelihood::{self, LikelihoodParams};
 use scanloc::error::input_error;
 use scanloc::io::{self, csv_tables};
 use scanloc::registry::{ModelOrigin, Registry};
-use scanloc::sim::SimParams;
 
 /// Localise QDs in every frame of a .npy or .tif stack and write a CSV.
 ///
@@ -27,10 +27,9 @@ use scanloc::sim::SimParams;
 /// a line on standard output names the model (its registry key, run and
 /// detector, or folder) and the sha256 of its bytes, the same for a
 /// registry model and its exported folder. With `--method likelihood` (a
-/// particle filter under the simulator's model of the paper's microscope,
-/// with the microscope flags for D, brightness, background, start depth
-/// and margin) the
-/// columns are frame,x,y,score: one row per frame, the posterior mean of
+/// particle filter under the simulator's model of the microscope its flags
+/// or `--microscope FILE.yaml` describe, the paper's by default, at the
+/// frames' size) the columns are frame,x,y,score: one row per frame, the posterior mean of
 /// the QD's trajectory centroid and the posterior mass within
 /// --score-radius-px of it.
 ///
@@ -61,16 +60,23 @@ pub struct LocateArgs {
     /// stack (an ImageJ hyperstack with channels).
     #[arg(long)]
     channel: Option<usize>,
-    /// With `--method cnn`: a model folder (written by `scanloc train` or
-    /// `scanloc registry model`), or a model in the registry named
-    /// RUN:DETECTOR (a run id or unique prefix, and the detector's name in
-    /// its manifest) or by its content key or a unique prefix. An existing
-    /// path is taken as a folder.
-    #[arg(long, required_if_eq("method", "cnn"))]
-    model: Option<String>,
-    /// The registry `--model` names a model of (when it is not a folder).
-    #[command(flatten)]
-    registry: super::RegistryDir,
+    /// Crocker–Grier's parameters.
+    #[command(flatten, next_help_heading = "With --method crocker-grier")]
+    crocker_grier: CrockerGrierArgs,
+    /// The CNN and where it is stored.
+    #[command(flatten, next_help_heading = "With --method cnn")]
+    cnn: CnnArgs,
+    /// The particle filter and the microscope it models.
+    #[command(
+        flatten,
+        next_help_heading = "With --method likelihood (the microscope the filter models; a distribution is a prior)"
+    )]
+    likelihood: LikelihoodArgs,
+}
+
+/// TrackPy's `locate` parameters, with its defaults.
+#[derive(Debug, Args)]
+struct CrockerGrierArgs {
     /// Feature diameter in pixels (odd, ≥ 3).
     #[arg(long, default_value_t = 7)]
     diameter: usize,
@@ -108,25 +114,64 @@ pub struct LocateArgs {
     /// Find peaks in the raw frames.
     #[arg(long)]
     no_preprocess: bool,
-    /// With `--method likelihood`: particles per frame.
+}
+
+impl CrockerGrierArgs {
+    /// The detector's parameters, checked.
+    fn params(&self) -> anyhow::Result<CrockerGrierParams> {
+        let params = CrockerGrierParams {
+            diameter: self.diameter,
+            minmass: self.minmass,
+            maxsize: self.maxsize,
+            separation: self.separation,
+            noise_size: self.noise_size,
+            smoothing_size: self.smoothing_size,
+            threshold: self.threshold,
+            percentile: self.percentile,
+            topn: self.topn,
+            preprocess: !self.no_preprocess,
+            max_iterations: self.max_iterations,
+        };
+        params
+            .validate()
+            .map_err(|e| input_error(format!("invalid crocker-grier parameter: {e}")))?;
+        Ok(params)
+    }
+}
+
+/// The CNN to locate with.
+#[derive(Debug, Args)]
+struct CnnArgs {
+    /// A model folder (written by `scanloc train` or `scanloc registry
+    /// model`), or a model in the registry named RUN:DETECTOR (a run id or
+    /// unique prefix, and the detector's name in its manifest) or by its
+    /// content key or a unique prefix. An existing path is taken as a
+    /// folder.
+    #[arg(long, required_if_eq("method", "cnn"))]
+    model: Option<String>,
+    /// The registry `--model` names a model of (when it is not a folder).
+    #[command(flatten)]
+    registry: super::RegistryDir,
+}
+
+/// The particle filter's settings and the microscope it models.
+#[derive(Debug, Args)]
+struct LikelihoodArgs {
+    /// Particles per frame.
     #[arg(long, default_value_t = 20_000)]
     particles: usize,
-    /// With `--method likelihood`: the microscope the filter assumes (a
-    /// distribution is a prior, marginalised; the margin bounds the prior
-    /// over the QD's start).
-    #[command(
-        flatten,
-        next_help_heading = "With --method likelihood (the microscope the filter models; a distribution is a prior)"
-    )]
-    microscope: super::MicroscopeArgs,
-    /// With `--method likelihood`: the score is the posterior mass within
-    /// this many pixels of the estimate.
+    /// The score is the posterior mass within this many pixels of the
+    /// estimate.
     #[arg(long, default_value_t = 1.0)]
     score_radius_px: f64,
-    /// With `--method likelihood`: seed of the particle filter (frame i
-    /// draws from stream i of it).
+    /// Seed of the particle filter (frame i draws from stream i of it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// The microscope the filter assumes (a distribution is a prior,
+    /// marginalised; the margin bounds the prior over the QD's start; the
+    /// frame size is the input's).
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
 }
 
 /// Localisation methods.
@@ -160,8 +205,9 @@ pub(super) fn describe_origin(origin: &ModelOrigin) -> String {
     }
 }
 
-pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let model_folder = args
+        .cnn
         .model
         .as_deref()
         .map(Path::new)
@@ -170,96 +216,93 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
     inputs.extend(model_folder.map(|model| ("--model", model)));
     io::refuse_shared_paths(&inputs, &[("--out", &args.out)])?;
     match args.method {
-        Method::CrockerGrier => {
-            let params = CrockerGrierParams {
-                diameter: args.diameter,
-                minmass: args.minmass,
-                maxsize: args.maxsize,
-                separation: args.separation,
-                noise_size: args.noise_size,
-                smoothing_size: args.smoothing_size,
-                threshold: args.threshold,
-                percentile: args.percentile,
-                topn: args.topn,
-                preprocess: !args.no_preprocess,
-                max_iterations: args.max_iterations,
-            };
-            params
-                .validate()
-                .map_err(|e| input_error(format!("invalid crocker-grier parameter: {e}")))?;
-            let frames = io::read_recording_of_channel(&args.input, args.channel)?;
-            let bar = scanloc::progress::bar(frames.shape().0 as u64, "locating");
-            let features = crocker_grier::locate_recording(&frames, &params, &bar)?;
-            bar.finish_and_clear();
-            csv_tables::write_localisations(
-                &args.out,
-                crocker_grier::FEATURE_COLUMNS,
-                features
-                    .iter()
-                    .map(|(frame, f)| (f.prediction(*frame), f.column_values())),
-            )?;
-        }
-        Method::Cnn => {
-            let reference = args
-                .model
-                .as_deref()
-                .ok_or_else(|| input_error("--model: required with --method cnn"))?;
-            let (model, origin) = match model_folder {
-                Some(folder) => (
-                    TrainedCnn::load(folder)?,
-                    format!("folder {}", folder.display()),
-                ),
-                None => {
-                    let registry = Registry::open_existing(&args.registry.dir).map_err(|e| {
-                        input_error(format!(
-                            "--model {reference}: not a model folder, and {e:#}"
-                        ))
-                    })?;
-                    let (model, origin) = registry_cnn(&registry, reference)?;
-                    (
-                        model,
-                        format!("{} ({})", origin.model_key, describe_origin(&origin)),
-                    )
-                }
-            };
-            let model_sha256 = scanloc::registry::hashing::sha256_hex(&model.to_bytes()?);
-            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
-            let bar = scanloc::progress::bar(frames.n as u64, "locating");
-            let predictions = model.locate(&frames, &bar)?;
-            bar.finish_and_clear();
-            csv_tables::write_predictions(&args.out, &predictions)?;
-            println!(
-                "located {} QDs in {} frames with model {origin}, model.bin sha256 {model_sha256}; wrote {}",
-                predictions.len(),
-                frames.n,
-                args.out.display()
-            );
-        }
-        Method::Likelihood => {
-            let settings = LikelihoodParams {
-                particles: args.particles,
-                score_radius_px: args.score_radius_px,
-                ..LikelihoodParams::default()
-            };
-            settings
-                .validate()
-                .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
-            let frames = io::read_frames_of_channel(&args.input, args.channel)?;
-            // The paper's microscope at the frames' size.
-            let microscope = args.microscope.apply(SimParams {
-                height: frames.height,
-                width: frames.width,
-                ..SimParams::default()
-            });
-            microscope
-                .validate()
-                .map_err(|e| input_error(format!("invalid microscope parameter: {e}")))?;
-            let bar = scanloc::progress::bar(frames.n as u64, "locating");
-            let predictions =
-                likelihood::locate_stack(&frames, &microscope, &settings, args.seed, &bar)?;
-            bar.finish_and_clear();
-            csv_tables::write_predictions(&args.out, &predictions)?;
-        }
-    }
+        Method::CrockerGrier => locate_crocker_grier(&args),
+        Method::Cnn => locate_cnn(&args, model_folder, stdout),
+        Method::Likelihood => locate_likelihood(&args),
+    }?;
     Ok(ExitCode::SUCCESS)
+}
+
+fn locate_crocker_grier(args: &LocateArgs) -> anyhow::Result<()> {
+    let params = args.crocker_grier.params()?;
+    let frames = io::read_recording_of_channel(&args.input, args.channel)?;
+    let bar = scanloc::progress::bar(frames.shape().0 as u64, "locating");
+    let features = crocker_grier::locate_recording(&frames, &params, &bar)?;
+    bar.finish_and_clear();
+    csv_tables::write_localisations(
+        &args.out,
+        crocker_grier::FEATURE_COLUMNS,
+        features
+            .iter()
+            .map(|(frame, f)| (f.prediction(*frame), f.column_values())),
+    )
+}
+
+/// The CNN of `--model` (a folder if `model_folder` is `Some`, else a
+/// registry model), described for the report line.
+fn load_cnn(cnn: &CnnArgs, model_folder: Option<&Path>) -> anyhow::Result<(TrainedCnn, String)> {
+    let reference = cnn
+        .model
+        .as_deref()
+        .ok_or_else(|| input_error("--model: required with --method cnn"))?;
+    if let Some(folder) = model_folder {
+        return Ok((
+            TrainedCnn::load(folder)?,
+            format!("folder {}", folder.display()),
+        ));
+    }
+    let registry = Registry::open_existing(&cnn.registry.dir).map_err(|e| {
+        input_error(format!(
+            "--model {reference}: not a model folder, and {e:#}"
+        ))
+    })?;
+    let (model, origin) = registry_cnn(&registry, reference)?;
+    Ok((
+        model,
+        format!("{} ({})", origin.model_key, describe_origin(&origin)),
+    ))
+}
+
+fn locate_cnn(
+    args: &LocateArgs,
+    model_folder: Option<&Path>,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let (model, origin) = load_cnn(&args.cnn, model_folder)?;
+    let model_sha256 = scanloc::registry::hashing::sha256_hex(&model.to_bytes()?);
+    let frames = io::read_frames_of_channel(&args.input, args.channel)?;
+    let bar = scanloc::progress::bar(frames.n as u64, "locating");
+    let predictions = model.locate(&frames, &bar)?;
+    bar.finish_and_clear();
+    csv_tables::write_predictions(&args.out, &predictions)?;
+    writeln!(
+        stdout,
+        "located {} QDs in {} frames with model {origin}, model.bin sha256 {model_sha256}; wrote {}",
+        predictions.len(),
+        frames.n,
+        args.out.display()
+    )?;
+    Ok(())
+}
+
+fn locate_likelihood(args: &LocateArgs) -> anyhow::Result<()> {
+    let filter = &args.likelihood;
+    let settings = LikelihoodParams {
+        particles: filter.particles,
+        score_radius_px: filter.score_radius_px,
+        ..LikelihoodParams::default()
+    };
+    settings
+        .validate()
+        .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
+    let microscope = filter.microscope.resolve()?;
+    let frames = io::read_frames_of_channel(&args.input, args.channel)?;
+    let microscope = microscope.at_frame_size(frames.height, frames.width)?;
+    microscope
+        .validate()
+        .map_err(|e| input_error(format!("invalid microscope parameter: {e}")))?;
+    let bar = scanloc::progress::bar(frames.n as u64, "locating");
+    let predictions = likelihood::locate_stack(&frames, &microscope, &settings, filter.seed, &bar)?;
+    bar.finish_and_clear();
+    csv_tables::write_predictions(&args.out, &predictions)
 }

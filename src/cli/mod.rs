@@ -7,6 +7,7 @@ mod calibrate;
 mod check;
 mod cv;
 mod locate;
+mod microscope;
 mod registry;
 mod report;
 mod reproduce;
@@ -24,6 +25,8 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 use scanloc::env_vars;
+
+pub use microscope::MicroscopeArgs;
 
 /// scanloc: simulate two-photon raster-scan frames of diffusing quantum dots,
 /// localise the dots, and score localisations, reproducibly.
@@ -64,9 +67,9 @@ enum Command {
 /// `--version` go to `stdout`, exit 0). `styled` keeps clap's colours, for
 /// a terminal.
 ///
-/// Progress lines and warnings still go to the process's standard error.
-/// `main` passes the process's streams; the in-process fuzz tests pass
-/// buffers.
+/// Every command writes through `stdout` and `stderr`; only progress bars
+/// and log warnings go to the process's standard error. `main` passes the
+/// process's streams; the in-process tests pass buffers.
 pub fn main_with<I, T>(
     args: I,
     stdout: &mut dyn Write,
@@ -98,7 +101,10 @@ where
             return ExitCode::from(usage.exit_code().clamp(0, 255) as u8);
         }
     };
-    match run(cli, stdout) {
+    let outcome = run(cli, &mut *stdout, &mut *stderr);
+    // Nothing to report a failed flush to (a closed stream).
+    let _ = stdout.flush();
+    match outcome {
         Ok(code) => code,
         Err(error) => {
             // One line: the context chain joined by ": ".
@@ -108,8 +114,10 @@ where
     }
 }
 
-/// Runs the parsed command; results it prints go to `stdout`.
-pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+/// Runs the parsed command: results it prints go to `stdout`, its notes
+/// (training epochs, a shard that failed to import, `check`'s "ok") to
+/// `stderr`.
+pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::Result<ExitCode> {
     // Before the thread pool is first built: rayon would try to start
     // every thread RAYON_NUM_THREADS asks for.
     let threads = scanloc::env_vars::RAYON_NUM_THREADS;
@@ -118,18 +126,18 @@ pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     }
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
-        Command::Bench(args) => bench::run(args),
-        Command::Locate(args) => locate::run(args),
+        Command::Bench(args) => bench::run(args, stdout),
+        Command::Locate(args) => locate::run(args, stdout),
         Command::Score(args) => score::run(args, stdout),
-        Command::Train(args) => train::run(args),
-        Command::Run(args) => run::run(args),
-        Command::Check(args) => check::run(args),
-        Command::Reproduce(args) => reproduce::run(args),
-        Command::Registry(args) => registry::run(args),
-        Command::Report(args) => report::run(args),
-        Command::Calibrate(args) => calibrate::run(args),
-        Command::Cv(args) => cv::run(args),
-        Command::Sweep(args) => sweep::run(args),
+        Command::Train(args) => train::run(args, stdout, stderr),
+        Command::Run(args) => run::run(args, stdout),
+        Command::Check(args) => check::run(args, stdout, stderr),
+        Command::Reproduce(args) => reproduce::run(args, stdout),
+        Command::Registry(args) => registry::run(args, stdout, stderr),
+        Command::Report(args) => report::run(args, stdout),
+        Command::Calibrate(args) => calibrate::run(args, stdout),
+        Command::Cv(args) => cv::run(args, stdout),
+        Command::Sweep(args) => sweep::run(args, stdout),
     }
 }
 
@@ -160,48 +168,32 @@ impl Deref for RegistryDir {
     }
 }
 
-/// The microscope flags of the commands that simulate frames or model them
-/// (`simulate`, `train`, `locate --method likelihood`), flattened into
-/// their arguments so each flag is spelt, documented and converted once.
-///
-/// Each per-frame parameter is a number or `uniform:LOW,HIGH` (drawn once
-/// per frame, docs/simulator.md); for the likelihood detector a
-/// distribution is a prior it marginalises. A command whose defaults
-/// differ (`train`: margin 4, D uniform:0.75,1.75) changes them with
-/// `mut_arg`, so `--help` shows its own.
-#[derive(Debug, Clone, Args)]
-pub struct MicroscopeArgs {
-    /// Diffusion coefficient D in µm²/s: a number or uniform:LOW,HIGH (per frame).
-    #[arg(long, default_value = "1.0")]
-    pub diffusion: scanloc::sim::Distribution,
-    /// N_qd, photons of an in-focus QD (PSF normalisation): a number or
-    /// uniform:LOW,HIGH (per frame).
-    #[arg(long, default_value = "7")]
-    pub brightness: scanloc::sim::Distribution,
-    /// N_bkg, expected background photons per pixel: a number or
-    /// uniform:LOW,HIGH (per frame).
-    #[arg(long, default_value = "8.4")]
-    pub background: scanloc::sim::Distribution,
-    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH
-    /// (per frame).
-    #[arg(long, default_value = "0")]
-    pub z_start: scanloc::sim::Distribution,
-    /// Start positions are uniform over the field shrunk by this many pixels.
-    #[arg(long, default_value_t = 0.0)]
-    pub margin_px: f64,
+/// The `--json` flag of every command that can print JSON instead of text
+/// (flattened into their arguments; `registry` and `sweep` make it global
+/// with `mut_arg`, so it may follow their subcommand). What each command's
+/// JSON holds: its `--help`.
+#[derive(Debug, Clone, Copy, Args)]
+pub struct JsonFlag {
+    /// Print JSON on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
-impl MicroscopeArgs {
-    /// `base` with the values of these flags (the one conversion of the
-    /// shared flags into simulator parameters; not yet validated).
-    pub fn apply(&self, base: scanloc::sim::SimParams) -> scanloc::sim::SimParams {
-        scanloc::sim::SimParams {
-            diffusion_um2_s: self.diffusion,
-            brightness: self.brightness,
-            background: self.background,
-            z_start: self.z_start,
-            margin_px: self.margin_px,
-            ..base
+/// The diffusion coefficients of the test sets a command simulates
+/// (`train --test-frames`, `bench cnn-locate`), one test set per value.
+#[derive(Debug, Clone, Args)]
+pub struct TestDiffusionArgs {
+    /// Diffusion coefficients of the test sets in µm²/s, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
+    pub test_diffusion: Vec<f64>,
+}
+
+impl TestDiffusionArgs {
+    /// The coefficients, each checked to be a finite number ≥ 0.
+    pub fn checked(&self) -> anyhow::Result<&[f64]> {
+        for &d in &self.test_diffusion {
+            scanloc::error::require_non_negative("--test-diffusion", d)?;
         }
+        Ok(&self.test_diffusion)
     }
 }

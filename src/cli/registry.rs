@@ -1,5 +1,6 @@
 //! `scanloc registry`: audit what has been run and stored.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -15,14 +16,14 @@ use scanloc::report::summary::run_summary;
 ///
 /// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
+#[command(mut_arg("json", |arg| arg.global(true)))]
 pub struct RegistryArgs {
     #[command(subcommand)]
     command: RegistryCommand,
     #[command(flatten)]
     registry: super::RegistryDir,
-    /// Print JSON instead of text.
-    #[arg(long, global = true)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
 }
 
 #[derive(Debug, Subcommand)]
@@ -88,19 +89,24 @@ enum RegistryCommand {
     Sql { query: String },
 }
 
-fn print_table(table: &Table, json: bool) {
+fn print_table(table: &Table, json: bool, stdout: &mut dyn Write) -> anyhow::Result<()> {
     if json {
-        println!("{}", table.to_json());
+        writeln!(stdout, "{}", table.to_json())?;
     } else {
-        print!("{}", table.render());
+        write!(stdout, "{}", table.render())?;
     }
+    Ok(())
 }
 
-fn print_value(value: &serde_json::Value, json: bool) -> anyhow::Result<()> {
+fn print_value(
+    value: &serde_json::Value,
+    json: bool,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
     if json {
-        println!("{value}");
+        writeln!(stdout, "{value}")?;
     } else {
-        print!("{}", serde_yaml::to_string(value)?);
+        write!(stdout, "{}", serde_yaml::to_string(value)?)?;
     }
     Ok(())
 }
@@ -114,125 +120,39 @@ fn run_id(registry: &Registry, id: &str) -> anyhow::Result<String> {
     }
 }
 
-pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
-    let json = args.json;
+pub fn run(
+    args: RegistryArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
+    let json = args.format.json;
     if let RegistryCommand::Sql { query: sql } = &args.command {
-        print_table(&sql::read_only_sql(&args.registry, sql)?, json);
+        print_table(&sql::read_only_sql(&args.registry, sql)?, json, stdout)?;
         return Ok(ExitCode::SUCCESS);
     }
     if let RegistryCommand::Import { shards } = &args.command {
-        return import(&args.registry, shards, json);
+        return import(&args.registry, shards, json, stdout, stderr);
     }
     let mut registry = Registry::open_existing(&args.registry)?;
     match args.command {
-        RegistryCommand::Runs => print_table(&registry.list_runs()?, json),
-        RegistryCommand::Datasets => print_table(&registry.list_datasets()?, json),
-        RegistryCommand::Models => print_table(&registry.list_models()?, json),
-        RegistryCommand::Evaluations => print_table(&registry.list_evaluations()?, json),
+        RegistryCommand::Runs => print_table(&registry.list_runs()?, json, stdout)?,
+        RegistryCommand::Datasets => print_table(&registry.list_datasets()?, json, stdout)?,
+        RegistryCommand::Models => print_table(&registry.list_models()?, json, stdout)?,
+        RegistryCommand::Evaluations => print_table(&registry.list_evaluations()?, json, stdout)?,
         RegistryCommand::Show { id } => match registry.resolve_id(&id)? {
             Found::Run(id) => {
                 let record = registry.run_record(&id)?;
                 if json {
-                    println!("{}", serde_json::to_string(&record)?);
+                    writeln!(stdout, "{}", serde_json::to_string(&record)?)?;
                 } else {
-                    print!("{}", run_summary(&record));
+                    write!(stdout, "{}", run_summary(&record))?;
                 }
             }
-            Found::Artefact(key) => print_value(&registry.artefact_record(&key)?, json)?,
+            Found::Artefact(key) => print_value(&registry.artefact_record(&key)?, json, stdout)?,
         },
-        RegistryCommand::Diff { a, b } => {
-            let (a, b) = (run_id(&registry, &a)?, run_id(&registry, &b)?);
-            let differences = diff::diff_runs(&registry.run_record(&a)?, &registry.run_record(&b)?);
-            if json {
-                println!(
-                    "{}",
-                    serde_json::json!({"a": a, "b": b, "differences": differences})
-                );
-            } else if differences.is_empty() {
-                println!(
-                    "runs {a} and {b}: no differences in code, parameters, seeds, artefacts or AUC"
-                );
-            } else {
-                println!("runs {a} (a) and {b} (b) differ in:");
-                for d in &differences {
-                    println!("  {:<10} {}: {} → {}", d.section, d.field, d.a, d.b);
-                }
-            }
-        }
-        RegistryCommand::Verify => {
-            let report = registry.verify()?;
-            if json {
-                println!("{}", serde_json::to_string(&report)?);
-            } else {
-                println!(
-                    "verified {} blobs ({} bytes); database integrity: {}",
-                    report.blobs_checked, report.bytes_checked, report.database_integrity
-                );
-                for bad in &report.bad {
-                    println!(
-                        "BAD {} {} ({}){}: used by {}",
-                        bad.problem,
-                        bad.sha256,
-                        bad.path,
-                        bad.actual_sha256
-                            .as_ref()
-                            .map(|a| format!(", bytes hash to {a}"))
-                            .unwrap_or_default(),
-                        if bad.used_by.is_empty() {
-                            "nothing".to_string()
-                        } else {
-                            bad.used_by.join("; ")
-                        }
-                    );
-                }
-                for bad in &report.bad_specs {
-                    println!(
-                        "BAD spec of {}: it hashes to {}, not to its key",
-                        bad.artefact, bad.spec_sha256
-                    );
-                }
-                for file in &report.unrecorded_files {
-                    println!(
-                        "note: unrecorded blob file {file} (left by an interrupted run; gc removes it)"
-                    );
-                }
-                for file in &report.leftover_temporaries {
-                    println!("note: leftover temporary {file} (gc removes it)");
-                }
-            }
-            if !report.ok() {
-                return Err(anyhow::Error::new(CheckFailed(format!(
-                    "{} blob(s) missing or damaged (the next run rebuilds them); {} artefact spec(s) not matching their key; database: {}",
-                    report.bad.len(),
-                    report.bad_specs.len(),
-                    report.database_integrity
-                ))));
-            }
-        }
-        RegistryCommand::Gc { dry_run } => {
-            let report = registry.gc(dry_run)?;
-            if json {
-                println!("{}", serde_json::to_string(&report)?);
-            } else {
-                let verb = if dry_run { "would remove" } else { "removed" };
-                println!(
-                    "{verb} {} artefact(s), {} blob(s) ({} bytes), {} temporary file(s)",
-                    report.artefacts.len(),
-                    report.blobs.len(),
-                    report.bytes,
-                    report.temporaries.len()
-                );
-                for artefact in &report.artefacts {
-                    println!("  artefact {artefact}");
-                }
-                for blob in &report.blobs {
-                    println!("  blob {blob}");
-                }
-                for file in &report.temporaries {
-                    println!("  temporary {file}");
-                }
-            }
-        }
+        RegistryCommand::Diff { a, b } => diff_runs(&registry, &a, &b, json, stdout)?,
+        RegistryCommand::Verify => verify(&registry, json, stdout)?,
+        RegistryCommand::Gc { dry_run } => gc(&mut registry, dry_run, json, stdout)?,
         RegistryCommand::Export { runs, out } => {
             let ids = runs
                 .iter()
@@ -241,26 +161,33 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
             drop(registry);
             let report = shard::export(&args.registry, &ids, &out)?;
             if json {
-                println!("{}", serde_json::to_string(&report)?);
+                writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
             } else {
-                println!("exported to {}: {}", out.display(), report.summary());
+                writeln!(
+                    stdout,
+                    "exported to {}: {}",
+                    out.display(),
+                    report.summary()
+                )?;
             }
         }
         RegistryCommand::Model { model, out } => {
             let (cnn, origin) = super::locate::registry_cnn(&registry, &model)?;
             cnn.save(&out)?;
             if json {
-                println!(
+                writeln!(
+                    stdout,
                     "{}",
                     serde_json::json!({"out": out.display().to_string(), "model": origin})
-                );
+                )?;
             } else {
-                println!(
+                writeln!(
+                    stdout,
                     "wrote model {} ({}) to {}",
                     origin.model_key,
                     super::locate::describe_origin(&origin),
                     out.display()
-                );
+                )?;
             }
         }
         RegistryCommand::Sql { .. } | RegistryCommand::Import { .. } => {
@@ -270,8 +197,134 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `registry diff`: what differs between runs `a` and `b`.
+fn diff_runs(
+    registry: &Registry,
+    a: &str,
+    b: &str,
+    json: bool,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let (a, b) = (run_id(registry, a)?, run_id(registry, b)?);
+    let differences = diff::diff_runs(&registry.run_record(&a)?, &registry.run_record(&b)?);
+    if json {
+        writeln!(
+            stdout,
+            "{}",
+            serde_json::json!({"a": a, "b": b, "differences": differences})
+        )?;
+    } else if differences.is_empty() {
+        writeln!(
+            stdout,
+            "runs {a} and {b}: no differences in code, parameters, seeds, artefacts or AUC"
+        )?;
+    } else {
+        writeln!(stdout, "runs {a} (a) and {b} (b) differ in:")?;
+        for d in &differences {
+            writeln!(stdout, "  {:<10} {}: {} → {}", d.section, d.field, d.a, d.b)?;
+        }
+    }
+    Ok(())
+}
+
+/// `registry verify`: the report, and a failed check if anything is wrong.
+fn verify(registry: &Registry, json: bool, stdout: &mut dyn Write) -> anyhow::Result<()> {
+    let report = registry.verify()?;
+    if json {
+        writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
+    } else {
+        writeln!(
+            stdout,
+            "verified {} blobs ({} bytes); database integrity: {}",
+            report.blobs_checked, report.bytes_checked, report.database_integrity
+        )?;
+        for bad in &report.bad {
+            writeln!(
+                stdout,
+                "BAD {} {} ({}){}: used by {}",
+                bad.problem,
+                bad.sha256,
+                bad.path,
+                bad.actual_sha256
+                    .as_ref()
+                    .map(|a| format!(", bytes hash to {a}"))
+                    .unwrap_or_default(),
+                if bad.used_by.is_empty() {
+                    "nothing".to_string()
+                } else {
+                    bad.used_by.join("; ")
+                }
+            )?;
+        }
+        for bad in &report.bad_specs {
+            writeln!(
+                stdout,
+                "BAD spec of {}: it hashes to {}, not to its key",
+                bad.artefact, bad.spec_sha256
+            )?;
+        }
+        for file in &report.unrecorded_files {
+            writeln!(
+                stdout,
+                "note: unrecorded blob file {file} (left by an interrupted run; gc removes it)"
+            )?;
+        }
+        for file in &report.leftover_temporaries {
+            writeln!(stdout, "note: leftover temporary {file} (gc removes it)")?;
+        }
+    }
+    if !report.ok() {
+        return Err(anyhow::Error::new(CheckFailed(format!(
+            "{} blob(s) missing or damaged (the next run rebuilds them); {} artefact spec(s) not matching their key; database: {}",
+            report.bad.len(),
+            report.bad_specs.len(),
+            report.database_integrity
+        ))));
+    }
+    Ok(())
+}
+
+/// `registry gc`: what was (or would be) removed.
+fn gc(
+    registry: &mut Registry,
+    dry_run: bool,
+    json: bool,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let report = registry.gc(dry_run)?;
+    if json {
+        writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
+    } else {
+        let verb = if dry_run { "would remove" } else { "removed" };
+        writeln!(
+            stdout,
+            "{verb} {} artefact(s), {} blob(s) ({} bytes), {} temporary file(s)",
+            report.artefacts.len(),
+            report.blobs.len(),
+            report.bytes,
+            report.temporaries.len()
+        )?;
+        for artefact in &report.artefacts {
+            writeln!(stdout, "  artefact {artefact}")?;
+        }
+        for blob in &report.blobs {
+            writeln!(stdout, "  blob {blob}")?;
+        }
+        for file in &report.temporaries {
+            writeln!(stdout, "  temporary {file}")?;
+        }
+    }
+    Ok(())
+}
+
 /// `registry import`: every shard in turn; the exit code says the worst.
-fn import(registry: &Path, shards: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
+fn import(
+    registry: &Path,
+    shards: &[PathBuf],
+    json: bool,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
     let mut registry = Registry::open(registry)?;
     let shards: Vec<&Path> = shards.iter().map(PathBuf::as_path).collect();
     let results = shard::import_all(&mut registry, &shards);
@@ -282,19 +335,19 @@ fn import(registry: &Path, shards: &[PathBuf], json: bool) -> anyhow::Result<Exi
             Ok(report) => {
                 conflicts += report.conflicts.len();
                 if !json {
-                    println!("imported {}", report.summary());
+                    writeln!(stdout, "imported {}", report.summary())?;
                 }
                 reports.push(serde_json::json!({"shard": shard, "report": report}));
             }
             Err(error) => {
-                eprintln!("error: {error:#}");
+                writeln!(stderr, "error: {error:#}")?;
                 reports.push(serde_json::json!({"shard": shard, "error": format!("{error:#}")}));
                 bad_shards.push(shard);
             }
         }
     }
     if json {
-        println!("{}", serde_json::Value::Array(reports));
+        writeln!(stdout, "{}", serde_json::Value::Array(reports))?;
     }
     if conflicts > 0 {
         return Err(anyhow::Error::new(CheckFailed(format!(

@@ -1,5 +1,6 @@
 //! `scanloc report`: a Markdown report of a recorded run, with figures.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -28,7 +29,7 @@ pub struct ReportArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: ReportArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let registry = Registry::open_existing(&args.registry)?;
     let run_id = if args.run == "latest" {
         registry
@@ -52,6 +53,6 @@ pub fn run(args: ReportArgs) -> anyhow::Result<ExitCode> {
         }
     };
     let path = scanloc::report::run_report::write_report(&registry, &run_id, &args.out)?;
-    println!("{}", path.display());
+    writeln!(stdout, "{}", path.display())?;
     Ok(ExitCode::SUCCESS)
 }

@@ -1,5 +1,6 @@
 //! `scanloc reproduce`: re-execute a recorded run and compare.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -18,9 +19,8 @@ use scanloc::run::reproduce;
 pub struct ReproduceArgs {
     /// The run id (or a unique prefix of it), as `scanloc registry runs` lists.
     run: String,
-    /// Print the report as JSON.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
     /// Scratch folder for the re-execution (default: a temporary folder,
     /// removed afterwards).
     #[arg(long)]
@@ -29,7 +29,7 @@ pub struct ReproduceArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: ReproduceArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: ReproduceArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let mut registry = Registry::open_existing(&args.registry)?;
     let run_id = match registry.resolve_id(&args.run)? {
         Found::Run(id) => id,
@@ -41,10 +41,10 @@ pub fn run(args: ReproduceArgs) -> anyhow::Result<ExitCode> {
     };
     let (scratch, _guard) = reproduce::scratch_dir(args.scratch.as_deref())?;
     let report = reproduce::reproduce(&mut registry, &run_id, &scratch)?;
-    if args.json {
-        println!("{}", serde_json::to_string(&report)?);
+    if args.format.json {
+        writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
     } else {
-        print!("{}", report.render());
+        write!(stdout, "{}", report.render())?;
     }
     if report.identical {
         Ok(ExitCode::SUCCESS)

@@ -1,5 +1,6 @@
 //! `scanloc run`: run an experiment manifest over the registry.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -19,18 +20,19 @@ use serde_json::json;
 /// as cached; a damaged blob is reported and rebuilt. Several runs may share
 /// one registry at once.
 ///
+/// With --json, one JSON object instead of the table:
+/// {"run", "auc": [{"detector", "dataset", "diffusion", "eps_px", "auc", …}],
+/// "empty_frames": [{"detector", "dataset", "threshold", "frames",
+/// "localisations", "false_localisations_per_frame"}],
+/// "cached_steps", "computed_steps", …}.
+///
 /// Manifest format: docs/manifest.md; the registry: docs/registry.md.
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// The manifest (YAML), e.g. experiments/smoke.yaml.
     manifest: PathBuf,
-    /// Print one JSON object on stdout instead of the table:
-    /// {"run", "auc": [{"detector", "dataset", "diffusion", "eps_px", "auc", …}],
-    /// "empty_frames": [{"detector", "dataset", "threshold", "frames",
-    /// "localisations", "false_localisations_per_frame"}],
-    /// "cached_steps", "computed_steps", …}.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
     /// Recompute every step, and fail (exit 1) unless every result is
     /// identical to the stored one.
     #[arg(long)]
@@ -39,7 +41,7 @@ pub struct RunArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
+pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     // Parse and validate before touching the registry: bad input leaves it
     // unchanged.
     let manifest = manifest::load(&args.manifest)?;
@@ -55,7 +57,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             ..RunOptions::default()
         },
     )?;
-    if args.json {
+    if args.format.json {
         let value = json!({
             "run": outcome.run,
             "manifest": outcome.manifest,
@@ -70,17 +72,23 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             "steps": outcome.steps,
             "seconds": outcome.seconds,
         });
-        println!("{value}");
+        writeln!(stdout, "{value}")?;
     } else {
         // A run that scores only sets of empty frames has no AUC to show.
         if !outcome.auc.is_empty() || outcome.empty_frames.is_empty() {
-            print!(
+            write!(
+                stdout,
                 "{}",
                 table::render(&outcome.auc, manifest.reference.as_ref())
-            );
+            )?;
         }
-        print!("{}", table::render_empty_frames(&outcome.empty_frames));
-        println!(
+        write!(
+            stdout,
+            "{}",
+            table::render_empty_frames(&outcome.empty_frames)
+        )?;
+        writeln!(
+            stdout,
             "run {}: {} steps cached, {} computed, {} rebuilt in {:.2} s (registry {})",
             outcome.run,
             outcome.counts.cached,
@@ -88,7 +96,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             outcome.counts.rebuilt,
             outcome.seconds,
             args.registry.display()
-        );
+        )?;
     }
     Ok(ExitCode::SUCCESS)
 }

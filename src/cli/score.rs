@@ -72,9 +72,8 @@ pub struct ScoreArgs {
     /// else every localisation counts.
     #[arg(long, allow_negative_numbers = true)]
     threshold: Option<f64>,
-    /// Print one JSON object instead of a table.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
     /// Also write the precision–recall curve points to this CSV
     /// (eps_px,k,score,precision,recall).
     #[arg(long)]
@@ -124,6 +123,45 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         )),
         None => None,
     };
+    let frames = test_set_frames(&args, &truth)?;
+    refuse_disjoint_frames(&args.locs, &args.truth, &truth, &predictions)?;
+    if let Some((path, compared)) = &compared {
+        refuse_disjoint_frames(path, &args.truth, &truth, compared)?;
+    }
+    let reading = score_reading(&args)?;
+    let score = metrics::score_read_as(
+        &predictions,
+        &truth,
+        frames,
+        &args.eps,
+        args.curve.is_some(),
+        reading,
+    )
+    .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
+    let compared = compared
+        .as_ref()
+        .map(|(path, c)| (path.as_path(), c.as_slice()));
+    let (comparison, spread) = resample(&args, &predictions, compared, &truth, frames, resamples)?;
+    if let Some(path) = &args.curve {
+        write_curve(path, &score)?;
+    }
+    if args.format.json {
+        write_json(stdout, &score, spread.as_deref(), comparison.as_deref())?;
+    } else {
+        write_table(stdout, &score)?;
+        if let Some(spread) = &spread {
+            write_spread(stdout, spread, args.seed)?;
+        }
+        if let (Some(comparison), Some((path, _))) = (&comparison, compared) {
+            write_comparison(stdout, comparison, &args.locs, path, args.seed)?;
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The number of frames of the test set: --frames, checked against the
+/// truth, else the largest frame index of the truth + 1.
+fn test_set_frames(args: &ScoreArgs, truth: &[scanloc::types::TruthRow]) -> anyhow::Result<usize> {
     // Frame numbers are below MAX_FRAMES (checked by the readers), so this
     // cannot overflow.
     let frames_with_truth = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
@@ -147,10 +185,12 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         }
         None => frames_with_truth,
     };
-    refuse_disjoint_frames(&args.locs, &args.truth, &truth, &predictions)?;
-    if let Some((path, compared)) = &compared {
-        refuse_disjoint_frames(path, &args.truth, &truth, compared)?;
-    }
+    Ok(frames)
+}
+
+/// How the scores are read: the --threshold (checked), or 0.5 with
+/// --probability.
+fn score_reading(args: &ScoreArgs) -> anyhow::Result<ScoreReading> {
     if let Some(threshold) = args.threshold
         && !threshold.is_finite()
     {
@@ -158,29 +198,34 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             "--threshold: must be a finite score, got {threshold}"
         )));
     }
-    let reading = ScoreReading {
+    Ok(ScoreReading {
         threshold: args.threshold.or(args
             .probability
             .then_some(ScoreReading::PROBABILITY_THRESHOLD)),
         probability: args.probability,
-    };
-    let score = metrics::score_read_as(
-        &predictions,
-        &truth,
-        frames,
-        &args.eps,
-        args.curve.is_some(),
-        reading,
-    )
-    .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
-    // With --compare, one bootstrap gives the paired difference and, for
-    // --bootstrap, the spread of --locs' own AUC (the same resamples).
-    let (comparison, spread) = match &compared {
+    })
+}
+
+/// The paired differences of --compare and the spread of --bootstrap,
+/// each where asked for.
+type Resampled = (Option<Vec<PairedDifference>>, Option<Vec<AucSpread>>);
+
+/// With --compare, one bootstrap gives the paired difference and, for
+/// --bootstrap, the spread of --locs' own AUC (the same resamples).
+fn resample(
+    args: &ScoreArgs,
+    predictions: &[scanloc::types::Prediction],
+    compared: Option<(&std::path::Path, &[scanloc::types::Prediction])>,
+    truth: &[scanloc::types::TruthRow],
+    frames: usize,
+    resamples: usize,
+) -> anyhow::Result<Resampled> {
+    Ok(match compared {
         Some((path, compared)) => {
             let (comparison, spread) = paired::paired_bootstrap_with_spread(
-                &predictions,
+                predictions,
                 compared,
-                &truth,
+                truth,
                 frames,
                 &args.eps,
                 resamples,
@@ -190,64 +235,61 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             (Some(comparison), args.bootstrap.then_some(spread))
         }
         None if args.bootstrap => {
-            let spread = paired::bootstrap_auc(
-                &predictions,
-                &truth,
-                frames,
-                &args.eps,
-                resamples,
-                args.seed,
-            )
-            .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
+            let spread =
+                paired::bootstrap_auc(predictions, truth, frames, &args.eps, resamples, args.seed)
+                    .map_err(|e| input_error(format!("{}: {e}", args.locs.display())))?;
             (None, Some(spread))
         }
         None => (None, None),
-    };
-    if let Some(path) = &args.curve {
-        io::write_atomically(path, |writer| {
-            let mut csv = csv::Writer::from_writer(writer);
-            csv.write_record(["eps_px", "k", "score", "precision", "recall"])?;
-            for per_eps in &score.per_eps {
-                for point in &per_eps.curve {
-                    csv.write_record([
-                        per_eps.eps_px.to_string(),
-                        point.k.to_string(),
-                        point.score.to_string(),
-                        point.precision.to_string(),
-                        point.recall.to_string(),
-                    ])?;
-                }
+    })
+}
+
+/// The precision–recall curve points as CSV (eps_px,k,score,precision,recall).
+fn write_curve(path: &std::path::Path, score: &Score) -> anyhow::Result<()> {
+    io::write_atomically(path, |writer| {
+        let mut csv = csv::Writer::from_writer(writer);
+        csv.write_record(["eps_px", "k", "score", "precision", "recall"])?;
+        for per_eps in &score.per_eps {
+            for point in &per_eps.curve {
+                csv.write_record([
+                    per_eps.eps_px.to_string(),
+                    point.k.to_string(),
+                    point.score.to_string(),
+                    point.precision.to_string(),
+                    point.recall.to_string(),
+                ])?;
             }
-            csv.flush()?;
-            Ok(())
-        })?;
+        }
+        csv.flush()?;
+        Ok(())
+    })?;
+    Ok(())
+}
+
+/// `score` as one JSON object on one line, without the curve points, with
+/// the bootstrap's `spread` and `comparison` where they were computed.
+fn write_json(
+    stdout: &mut dyn Write,
+    score: &Score,
+    spread: Option<&[AucSpread]>,
+    comparison: Option<&[PairedDifference]>,
+) -> anyhow::Result<()> {
+    let mut summary = score.clone();
+    for per_eps in &mut summary.per_eps {
+        per_eps.curve.clear();
     }
-    if args.json {
-        let mut summary = score.clone();
-        for per_eps in &mut summary.per_eps {
-            per_eps.curve.clear();
+    let mut json = serde_json::to_value(&summary)?;
+    if let Some(object) = json.as_object_mut() {
+        if let Some(spread) = spread {
+            object.insert("spread".into(), serde_json::to_value(spread)?);
         }
-        let mut json = serde_json::to_value(&summary)?;
-        if let Some(object) = json.as_object_mut() {
-            if let Some(spread) = &spread {
-                object.insert("spread".into(), serde_json::to_value(spread)?);
-            }
-            if let Some(comparison) = &comparison {
-                object.insert("comparison".into(), serde_json::to_value(comparison)?);
-            }
-        }
-        serde_json::to_writer(&mut *stdout, &json)?;
-        writeln!(stdout)?;
-    } else {
-        write_table(stdout, &score)?;
-        if let Some(spread) = &spread {
-            write_spread(stdout, spread, args.seed)?;
-        }
-        if let (Some(comparison), Some((path, _))) = (&comparison, &compared) {
-            write_comparison(stdout, comparison, &args.locs, path, args.seed)?;
+        if let Some(comparison) = comparison {
+            object.insert("comparison".into(), serde_json::to_value(comparison)?);
         }
     }
-    Ok(ExitCode::SUCCESS)
+    serde_json::to_writer(&mut *stdout, &json)?;
+    writeln!(stdout)?;
+    Ok(())
 }
 
 /// Refuses localisations none of which is on a frame with ground truth:
@@ -327,6 +369,22 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
         "frames without prediction: {} of {} ({:.4})",
         score.frames_without_prediction, score.frames, score.fraction_without_prediction
     )?;
+    write_threshold_rows(out, score)?;
+    if let Some(empty) = &score.empty_frames {
+        writeln!(
+            out,
+            "empty frames (no truth): {} of {}; localisations on them: {} ({} per empty frame)",
+            empty.frames,
+            score.frames,
+            empty.localisations,
+            maybe(empty.false_localisations_per_frame)
+        )?;
+    }
+    write_calibration(out, score)
+}
+
+/// The figures of the localisations at or above the score threshold, per ε.
+fn write_threshold_rows(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
     let threshold = score.reading.and_then(|r| r.threshold);
     match threshold {
         Some(t) => writeln!(out, "localisations with score >= {t}:")?,
@@ -353,16 +411,12 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
             )?;
         }
     }
-    if let Some(empty) = &score.empty_frames {
-        writeln!(
-            out,
-            "empty frames (no truth): {} of {}; localisations on them: {} ({} per empty frame)",
-            empty.frames,
-            score.frames,
-            empty.localisations,
-            maybe(empty.false_localisations_per_frame)
-        )?;
-    }
+    Ok(())
+}
+
+/// The reliability diagram of probability scores and the calibration of
+/// the localisations' own σ, where the localisations have them.
+fn write_calibration(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
     if let Some(reliability) = &score.reliability {
         writeln!(
             out,

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, PendingFile};
-use scanloc::sim::{self, DetectorNoise, EmitterCount, SimParams};
+use scanloc::sim;
 
 /// Simulate point-scanning 2PM frames of diffusing QDs (docs/simulator.md).
 ///
@@ -23,44 +23,9 @@ pub struct SimulateArgs {
     /// Master seed of the dataset.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// D, N_qd, N_bkg, start depth and margin.
+    /// The microscope (every field of a manifest's `microscope` section).
     #[command(flatten)]
     microscope: super::MicroscopeArgs,
-    /// Frame height in pixels (rows).
-    #[arg(long, default_value_t = 24)]
-    height: usize,
-    /// Frame width in pixels (columns).
-    #[arg(long, default_value_t = 25)]
-    width: usize,
-    /// Pixel size in µm.
-    #[arg(long, default_value_t = 0.07)]
-    pixel_size_um: f64,
-    /// Pixel dwell time in µs.
-    #[arg(long, default_value_t = 2.0)]
-    dwell_us: f64,
-    /// Line retrace time in ms.
-    #[arg(long, default_value_t = 1.1)]
-    retrace_ms: f64,
-    /// Lateral PSF standard deviation in µm.
-    #[arg(long, default_value_t = 0.21)]
-    sigma_xy_um: f64,
-    /// Axial PSF standard deviation in µm.
-    #[arg(long, default_value_t = 1.36)]
-    sigma_z_um: f64,
-    /// PSF samples per pixel dwell (1 = the paper).
-    #[arg(long, default_value_t = 1)]
-    substeps: u32,
-    /// QDs per frame: N, or drawn per frame with choice:N,N,... (optionally
-    /// /weights:W,W,...).
-    #[arg(long, default_value = "1")]
-    emitters: EmitterCount,
-    /// Detector noise: `poisson`, or `pmt:F2` for a PMT with excess-noise factor F² > 1.
-    #[arg(long, default_value = "poisson", value_parser = parse_detector_noise)]
-    detector_noise: DetectorNoise,
-    /// Lateral PSF cut-off in σ_xy (samples farther from the beam add nothing),
-    /// or `none` to evaluate the PSF everywhere.
-    #[arg(long, default_value = "6", value_parser = parse_cutoff)]
-    psf_cutoff_sigma: Cutoff,
     /// Output frames: FILE.npy (uint16, or uint32 if needed; shape (n, H, W)) or FILE.tif.
     #[arg(long)]
     out: PathBuf,
@@ -69,55 +34,13 @@ pub struct SimulateArgs {
     truth: Option<PathBuf>,
 }
 
-fn parse_detector_noise(text: &str) -> Result<DetectorNoise, String> {
-    match text.trim() {
-        "poisson" => Ok(DetectorNoise::Poisson),
-        other => match other.strip_prefix("pmt:") {
-            Some(factor) => factor
-                .parse::<f64>()
-                .map(|excess_noise_factor| DetectorNoise::Pmt {
-                    excess_noise_factor,
-                })
-                .map_err(|_| format!("expected pmt:F2 with a number F2, got {other:?}")),
-            None => Err(format!("expected `poisson` or `pmt:F2`, got {other:?}")),
-        },
-    }
-}
-
-/// An optional cut-off; the alias keeps clap from treating the flag itself
-/// as optional (it always has a value, possibly `none`).
-type Cutoff = Option<f64>;
-
-fn parse_cutoff(text: &str) -> Result<Cutoff, String> {
-    match text.trim() {
-        "none" => Ok(None),
-        number => number
-            .parse::<f64>()
-            .map(Some)
-            .map_err(|_| format!("expected a number of σ or `none`, got {number:?}")),
-    }
-}
-
 pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
-    let params = args.microscope.apply(SimParams {
-        height: args.height,
-        width: args.width,
-        pixel_size_um: args.pixel_size_um,
-        dwell_us: args.dwell_us,
-        retrace_ms: args.retrace_ms,
-        sigma_xy_um: args.sigma_xy_um,
-        sigma_z_um: args.sigma_z_um,
-        substeps: args.substeps,
-        emitters: args.emitters,
-        detector_noise: args.detector_noise,
-        psf_cutoff_sigma: args.psf_cutoff_sigma,
-        ..SimParams::default()
-    });
+    let params = args.microscope.params()?;
     params
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     // The manifest's limits, checked by the same functions.
-    scanloc::limits::check_dataset_size("--frames", args.frames, args.height, args.width)?;
+    scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     // The memory the dataset takes, before any of it is allocated: a
     // failed allocation would end the process without a word.
     scanloc::limits::check_memory(

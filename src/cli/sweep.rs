@@ -1,6 +1,7 @@
 //! `scanloc sweep`: parameter grids, and the executor options every sweep
 //! front end (`cv`, `calibrate`, `sweep run`) shares.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -93,34 +94,37 @@ pub fn run_sweep(
     executor: &ExecutorArgs,
     force: bool,
     json: bool,
+    stdout: &mut dyn Write,
 ) -> anyhow::Result<ExitCode> {
     let mut registry = Registry::open(registry)?;
     let (file, result) = sweep::run(&mut registry, &spec, &executor.executor(), force)?;
     match result {
         Some(result) => {
             if json {
-                println!("{}", result.json);
+                writeln!(stdout, "{}", result.json)?;
             } else {
-                print!("{}", result.text);
+                write!(stdout, "{}", result.text)?;
             }
             result.check()?;
         }
         None => {
             let submission = file.submissions.last();
             if json {
-                println!(
+                writeln!(
+                    stdout,
                     "{}",
                     serde_json::json!({"sweep": file.id, "folder": file.dir(), "submission": submission})
-                );
+                )?;
             } else if let Some(submission) = submission {
-                println!(
+                writeln!(
+                    stdout,
                     "sweep {}: array job {}, aggregation job {}\nfollow it with: scanloc sweep status {} --registry {}",
                     file.id,
                     submission.array_job,
                     submission.aggregate_job,
                     file.id,
                     file.registry.display()
-                );
+                )?;
             }
         }
     }
@@ -131,14 +135,14 @@ pub fn run_sweep(
 /// axes over manifest paths, every combination a recorded run), see where
 /// a sweep stands, and the commands Slurm jobs run.
 #[derive(Debug, Args)]
+#[command(mut_arg("json", |arg| arg.global(true)))]
 pub struct SweepArgs {
     #[command(subcommand)]
     command: SweepCommand,
     #[command(flatten)]
     registry: super::RegistryDir,
-    /// Print JSON instead of text.
-    #[arg(long, global = true)]
-    json: bool,
+    #[command(flatten)]
+    format: super::JsonFlag,
 }
 
 #[derive(Debug, Subcommand)]
@@ -182,8 +186,8 @@ enum SweepCommand {
     },
 }
 
-pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
-    let json = args.json;
+pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let json = args.format.json;
     match args.command {
         SweepCommand::Run {
             manifest,
@@ -198,21 +202,23 @@ pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
                 manifest_path: manifest.display().to_string(),
                 manifest_text,
             };
-            run_sweep(&args.registry, spec, &executor, force, json)
+            run_sweep(&args.registry, spec, &executor, force, json, stdout)
         }
         SweepCommand::Status { sweep: id } => {
             let dir = sweep::find(&args.registry, &id)?;
             let (file, states, aggregation) = sweep::slurm::status(&dir)?;
             if json {
-                println!(
+                writeln!(
+                    stdout,
                     "{}",
                     serde_json::json!({"sweep": file.id, "folder": dir, "points": states,
                         "submissions": file.submissions, "aggregation": aggregation})
-                );
+                )?;
             } else {
-                println!("sweep {} ({})", file.id, dir.display());
+                writeln!(stdout, "sweep {} ({})", file.id, dir.display())?;
                 for state in &states {
-                    println!(
+                    writeln!(
+                        stdout,
                         "  {:>3}  {:<24} {:<10} {}{}",
                         state.index,
                         state.label,
@@ -224,10 +230,10 @@ pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
                             .filter(|_| state.status != "done")
                             .map(|l| format!("  log {l}"))
                             .unwrap_or_default()
-                    );
+                    )?;
                 }
                 if let Some(aggregation) = aggregation {
-                    println!("aggregation: {aggregation}");
+                    writeln!(stdout, "aggregation: {aggregation}")?;
                 }
             }
             Ok(ExitCode::SUCCESS)
@@ -240,7 +246,7 @@ pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
         } => {
             let summary = sweep::task(&dir, index, direct, force)?;
             // The last line of the log: read back by the aggregation.
-            println!("{}", serde_json::to_string(&summary)?);
+            writeln!(stdout, "{}", serde_json::to_string(&summary)?)?;
             Ok(ExitCode::SUCCESS)
         }
         SweepCommand::Aggregate { sweep: id } => {
@@ -249,9 +255,9 @@ pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
             let mut registry = Registry::open_existing(&file.registry)?;
             let result = sweep::import_and_aggregate(&mut registry, &dir)?;
             if json {
-                println!("{}", result.json);
+                writeln!(stdout, "{}", result.json)?;
             } else {
-                print!("{}", result.text);
+                write!(stdout, "{}", result.text)?;
             }
             result.check()?;
             Ok(ExitCode::SUCCESS)

@@ -1,6 +1,7 @@
 //! `scanloc train`: train the CNN localiser on simulated frames.
 
-use std::path::PathBuf;
+use std::io::Write;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -14,11 +15,10 @@ use scanloc::sim::{self, EmitterCount, SimParams};
 
 /// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
-/// Simulates `--frames` frames of the paper's microscope (with the given
-/// brightness, background, margin, diffusion, QDs per frame and start
-/// depth, each but the margin a number or drawn per frame from
-/// uniform:LOW,HIGH) as the
-/// fixed dataset, of which
+/// Simulates `--frames` frames of the microscope the flags describe (the
+/// paper's by default, with D drawn per frame and a margin of 4 px; or
+/// `--microscope FILE.yaml`; per-frame parameters a number or drawn per
+/// frame from uniform:LOW,HIGH) as the fixed dataset, of which
 /// `--validation-fraction` selects the best epoch, optionally adds
 /// `--fresh-frames-per-epoch` newly simulated frames every epoch, trains, and
 /// writes the model folder `--out` (model.bpk in burn's record format,
@@ -43,15 +43,10 @@ pub struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
-    /// D, N_qd, N_bkg, start depth and margin of the training frames (and
-    /// of the test sets, but for D).
+    /// The microscope of the training frames (and of the test sets, but for
+    /// D and the QDs per frame).
     #[command(flatten)]
     microscope: super::MicroscopeArgs,
-    /// QDs per training frame: N, or drawn per frame with choice:N,N,...
-    /// (optionally /weights:W,W,...), e.g. choice:0,1,2,3 for scenes of no,
-    /// one or several QDs (docs/detectors.md).
-    #[arg(long, default_value = "1")]
-    emitters: EmitterCount,
     /// Master seed: derives the dataset's seed, the fresh frames', the
     /// weight initialisation, the split and the batch order.
     #[arg(long, default_value_t = 0)]
@@ -128,9 +123,8 @@ pub struct TrainArgs {
     /// Test frames per test diffusion coefficient (0 = no test).
     #[arg(long, default_value_t = 0)]
     test_frames: usize,
-    /// Diffusion coefficients of the test sets, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
-    test_diffusion: Vec<f64>,
+    #[command(flatten)]
+    test_diffusion: super::TestDiffusionArgs,
     /// QDs per test frame (same forms as --emitters); the test sets have
     /// the training frames' start depth.
     #[arg(long, default_value = "1")]
@@ -140,7 +134,57 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
-pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
+pub fn run(
+    args: TrainArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
+    let (architecture, settings) = network_and_settings(&args)?;
+    let (params, test_params) = microscopes(&args)?;
+    cnn::check_model_destination(&args.out)?;
+
+    let bar = scanloc::progress::bar(args.frames as u64, "simulating");
+    let dataset = sim::simulate(
+        &params,
+        derive_seed(args.seed, "dataset", "training"),
+        0..args.frames,
+        &bar,
+    )?;
+    bar.finish_and_clear();
+
+    let bar = scanloc::progress::bar(0, "training");
+    let started = Instant::now();
+    let model = cnn::train(
+        &architecture,
+        &settings,
+        &dataset,
+        Some(&params),
+        args.seed,
+        &metrics::paper_aucs,
+        &bar,
+    )?;
+    let seconds = started.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    model.save(&args.out)?;
+    write_epochs(&model, stderr)?;
+    write_summary(&model, seconds, &args.out, stdout)?;
+
+    if args.test_frames > 0 {
+        let table = bench::cnn::auc_table(
+            &model,
+            &test_params,
+            args.test_diffusion.checked()?,
+            args.test_frames,
+            derive_seed(args.seed, "dataset", "test"),
+        )?;
+        write!(stdout, "{}", bench::cnn::format_auc_table(&table))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The network and its training settings: the flags given, the library's
+/// defaults for the rest, checked.
+fn network_and_settings(args: &TrainArgs) -> anyhow::Result<(CnnArchitecture, TrainingSettings)> {
     let defaults = CnnArchitecture::default();
     let architecture = CnnArchitecture {
         channels: args.channels.unwrap_or(defaults.channels),
@@ -179,10 +223,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     };
     architecture.validate()?;
     settings.validate()?;
-    let params = args.microscope.apply(SimParams {
-        emitters: args.emitters.clone(),
-        ..SimParams::default()
-    });
+    Ok((architecture, settings))
+}
+
+/// The microscope of the training frames and that of the test sets (its
+/// QDs per frame from --test-emitters), checked with the test diffusion
+/// coefficients and the dataset sizes.
+fn microscopes(args: &TrainArgs) -> anyhow::Result<(SimParams, SimParams)> {
+    let params = args.microscope.params()?;
     let test_params = SimParams {
         emitters: args.test_emitters.clone(),
         ..params.clone()
@@ -192,9 +240,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
             .validate()
             .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     }
-    for &d in &args.test_diffusion {
-        scanloc::error::require_non_negative("--test-diffusion", d)?;
-    }
+    args.test_diffusion.checked()?;
     // The manifest's limits, checked by the same functions.
     scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     if args.test_frames > 0 {
@@ -205,31 +251,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
             params.width,
         )?;
     }
-    cnn::check_model_destination(&args.out)?;
+    Ok((params, test_params))
+}
 
-    let bar = scanloc::progress::bar(args.frames as u64, "simulating");
-    let dataset = sim::simulate(
-        &params,
-        derive_seed(args.seed, "dataset", "training"),
-        0..args.frames,
-        &bar,
-    )?;
-    bar.finish_and_clear();
-
-    let bar = scanloc::progress::bar(0, "training");
-    let started = Instant::now();
-    let model = cnn::train(
-        &architecture,
-        &settings,
-        &dataset,
-        Some(&params),
-        args.seed,
-        &metrics::paper_aucs,
-        &bar,
-    )?;
-    let seconds = started.elapsed().as_secs_f64();
-    bar.finish_and_clear();
-    model.save(&args.out)?;
+/// One line per epoch of every member: its losses and validation AUCs.
+fn write_epochs(model: &cnn::TrainedCnn, stderr: &mut dyn Write) -> anyhow::Result<()> {
     for (index, record) in model.records().enumerate() {
         let member = if model.members() > 1 {
             format!("member {}/{} ", index + 1, model.members())
@@ -237,7 +263,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
             String::new()
         };
         for epoch in &record.epochs {
-            eprintln!(
+            writeln!(
+                stderr,
                 "{member}epoch {:>3}: loss {:.4} (score {:.4}, offset {:.4}) validation AUC {}",
                 epoch.epoch,
                 epoch.loss,
@@ -249,9 +276,20 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
                     .map(|a| format!("{a:.3}"))
                     .collect::<Vec<_>>()
                     .join("/")
-            );
+            )?;
         }
     }
+    Ok(())
+}
+
+/// The line saying what was trained, how fast, which epochs were kept and
+/// where the model went.
+fn write_summary(
+    model: &cnn::TrainedCnn,
+    seconds: f64,
+    out: &Path,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<()> {
     let samples: usize = model
         .records()
         .flat_map(|record| &record.epochs)
@@ -266,23 +304,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<ExitCode> {
     } else {
         (String::new(), "epoch")
     };
-    println!(
+    writeln!(
+        stdout,
         "trained {networks}{} epochs ({samples} samples) in {seconds:.1} s ({:.0} samples/s); kept {kept_epochs} {}; saved {}",
         model.record.epochs.len(),
         samples as f64 / seconds,
         kept.join(", "),
-        args.out.display()
-    );
-
-    if args.test_frames > 0 {
-        let table = bench::cnn::auc_table(
-            &model,
-            &test_params,
-            &args.test_diffusion,
-            args.test_frames,
-            derive_seed(args.seed, "dataset", "test"),
-        )?;
-        print!("{}", bench::cnn::format_auc_table(&table));
-    }
-    Ok(ExitCode::SUCCESS)
+        out.display()
+    )?;
+    Ok(())
 }

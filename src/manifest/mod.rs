@@ -443,6 +443,42 @@ pub fn parse(text: &str, source: &str) -> anyhow::Result<Manifest> {
         .map_err(|e| errors::located_field_error(source, &LineIndex::new(text), &e))
 }
 
+/// The `microscope:` section of the manifest-style YAML file at `path`
+/// (its other sections are not read) over `base`, a command's defaults:
+/// the simulator parameters, not yet validated, and the names of the
+/// fields the section sets. Errors name the file, line and field, as a
+/// manifest's do.
+pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimParams, Vec<String>)> {
+    let source = path.display().to_string();
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    let document: serde_yaml::Value =
+        serde_yaml::from_str(text).map_err(|e| errors::located_yaml_error(&source, e))?;
+    let located =
+        |error: FieldError| errors::located_field_error(&source, &LineIndex::new(text), &error);
+    let section = match document.get("microscope") {
+        Some(serde_yaml::Value::Mapping(section)) => section,
+        Some(_) => {
+            return Err(located(FieldError::new(
+                "microscope",
+                "must be a mapping of microscope fields (docs/manifest.md)",
+            )));
+        }
+        None => {
+            return Err(input_error(format!(
+                "{source}: no `microscope:` section (a mapping of microscope fields, docs/manifest.md)"
+            )));
+        }
+    };
+    let params = resolve::microscope_over(section, base).map_err(located)?;
+    let fields = section
+        .keys()
+        .filter_map(|key| key.as_str().map(str::to_string))
+        .collect();
+    Ok((params, fields))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

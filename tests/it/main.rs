@@ -19,6 +19,7 @@ static ALLOCATOR: hostile_fuzz_guard::CountingAllocator = hostile_fuzz_guard::Co
 mod bench_tradeoffs;
 mod calibrate_cv;
 mod cli_locate;
+mod cli_microscope;
 mod cli_simulate;
 mod cnn;
 mod crocker_grier;

@@ -62,6 +62,16 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
     Ok(manifest)
 }
 
+/// The `microscope` section `section` on top of `base` (a command's
+/// defaults rather than the paper's), its fields checked one by one as a
+/// manifest's are; not yet validated as a whole.
+pub(super) fn microscope_over(
+    section: &serde_yaml::Mapping,
+    base: &crate::sim::SimParams,
+) -> Result<crate::sim::SimParams, FieldError> {
+    microscope::apply_sim_overrides(&path_of(&["microscope"]), base, section, &[])
+}
+
 /// The path through the mappings `keys` from the top of the document
 /// (`["datasets", name]`).
 fn path_of(keys: &[&str]) -> Vec<Segment> {

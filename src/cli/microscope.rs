@@ -1,0 +1,332 @@
+//! The microscope on the command line: one flag per field of a manifest's
+//! `microscope` section (the same names, with `-` for `_`, and the same
+//! units), and `--microscope FILE.yaml` to take the section from a file.
+//!
+//! Flattened into `simulate`, `train`, `locate` (for `--method
+//! likelihood`) and the benches that simulate, so each flag is spelt,
+//! documented and converted once. Each command's defaults are the paper's
+//! microscope ([`SimParams::default`]) unless it changes one with
+//! `mut_arg` (`train`: margin 4, D uniform:0.75,1.75), so `--help` shows
+//! its own.
+//!
+//! The precedence, field by field: a flag given on the command line, else
+//! the file's field, else the command's default. Knowing which flags were
+//! given needs clap's `ArgMatches`, which the derived parser hides, so
+//! [`MicroscopeArgs`] wraps the derived [`MicroscopeFlags`] and records
+//! the flags' value sources itself.
+
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+
+use clap::parser::ValueSource;
+use clap::{ArgMatches, Args, Command, FromArgMatches};
+use scanloc::error::input_error;
+use scanloc::sim::{DetectorNoise, Distribution, EmitterCount, SimParams};
+
+/// Every microscope field as a flag. Per-frame parameters are a number or
+/// `uniform:LOW,HIGH` (drawn once per frame, docs/simulator.md); for the
+/// likelihood detector a distribution is a prior it marginalises.
+#[derive(Debug, Clone, Args)]
+pub struct MicroscopeFlags {
+    /// Take the microscope from the `microscope:` section of this
+    /// manifest-style YAML file (other sections are ignored): the flags
+    /// below override its fields, and fields it leaves out keep the
+    /// command's defaults.
+    #[arg(long = "microscope", value_name = "FILE.yaml")]
+    pub file: Option<PathBuf>,
+    /// Frame height in pixels (rows).
+    #[arg(long, default_value_t = 24)]
+    pub height: usize,
+    /// Frame width in pixels (columns).
+    #[arg(long, default_value_t = 25)]
+    pub width: usize,
+    /// Pixel size in µm.
+    #[arg(long, default_value_t = 0.07)]
+    pub pixel_size_um: f64,
+    /// Pixel dwell time in µs.
+    #[arg(long, default_value_t = 2.0)]
+    pub dwell_us: f64,
+    /// Line retrace time in ms.
+    #[arg(long, default_value_t = 1.1)]
+    pub retrace_ms: f64,
+    /// Lateral PSF standard deviation in µm.
+    #[arg(long, default_value_t = 0.21)]
+    pub sigma_xy_um: f64,
+    /// Axial PSF standard deviation in µm.
+    #[arg(long, default_value_t = 1.36)]
+    pub sigma_z_um: f64,
+    /// Diffusion coefficient D in µm²/s (the manifest's diffusion_um2_s): a
+    /// number or uniform:LOW,HIGH (per frame).
+    #[arg(long, visible_alias = "diffusion-um2-s", default_value = "1.0")]
+    pub diffusion: Distribution,
+    /// N_qd, photons of an in-focus QD (PSF normalisation): a number or
+    /// uniform:LOW,HIGH (per frame).
+    #[arg(long, default_value = "7")]
+    pub brightness: Distribution,
+    /// N_bkg, expected background photons per pixel: a number or
+    /// uniform:LOW,HIGH (per frame).
+    #[arg(long, default_value = "8.4")]
+    pub background: Distribution,
+    /// Start depth relative to focus in µm: a number or uniform:LOW,HIGH
+    /// (per frame).
+    #[arg(long, default_value = "0")]
+    pub z_start: Distribution,
+    /// Start positions are uniform over the field shrunk by this many pixels.
+    #[arg(long, default_value_t = 0.0)]
+    pub margin_px: f64,
+    /// PSF samples per pixel dwell (1 = the paper).
+    #[arg(long, default_value_t = 1)]
+    pub substeps: u32,
+    /// QDs per frame: N, or drawn per frame with choice:N,N,... (optionally
+    /// /weights:W,W,...), e.g. choice:0,1,2,3 for scenes of no, one or
+    /// several QDs.
+    #[arg(long, default_value = "1")]
+    pub emitters: EmitterCount,
+    /// Detector noise: `poisson`, or `pmt:F2` for a PMT with excess-noise factor F² > 1.
+    #[arg(long, default_value = "poisson", value_parser = parse_detector_noise)]
+    pub detector_noise: DetectorNoise,
+    /// Lateral PSF cut-off in σ_xy (samples farther from the beam add nothing),
+    /// or `none` to evaluate the PSF everywhere.
+    #[arg(long, default_value = "6", value_parser = parse_cutoff)]
+    pub psf_cutoff_sigma: Cutoff,
+}
+
+/// Each flag's clap id (its field name above) and the manifest field it sets.
+const FIELDS: [(&str, &str); 16] = [
+    ("height", "height"),
+    ("width", "width"),
+    ("pixel_size_um", "pixel_size_um"),
+    ("dwell_us", "dwell_us"),
+    ("retrace_ms", "retrace_ms"),
+    ("sigma_xy_um", "sigma_xy_um"),
+    ("sigma_z_um", "sigma_z_um"),
+    ("diffusion", "diffusion_um2_s"),
+    ("brightness", "brightness"),
+    ("background", "background"),
+    ("z_start", "z_start"),
+    ("margin_px", "margin_px"),
+    ("substeps", "substeps"),
+    ("emitters", "emitters"),
+    ("detector_noise", "detector_noise"),
+    ("psf_cutoff_sigma", "psf_cutoff_sigma"),
+];
+
+impl MicroscopeFlags {
+    /// Sets field `id` (a clap id of [`FIELDS`]) of `params` to this flag's
+    /// value: the one conversion of a flag into a simulator parameter.
+    fn set(&self, params: &mut SimParams, id: &str) {
+        match id {
+            "height" => params.height = self.height,
+            "width" => params.width = self.width,
+            "pixel_size_um" => params.pixel_size_um = self.pixel_size_um,
+            "dwell_us" => params.dwell_us = self.dwell_us,
+            "retrace_ms" => params.retrace_ms = self.retrace_ms,
+            "sigma_xy_um" => params.sigma_xy_um = self.sigma_xy_um,
+            "sigma_z_um" => params.sigma_z_um = self.sigma_z_um,
+            "diffusion" => params.diffusion_um2_s = self.diffusion,
+            "brightness" => params.brightness = self.brightness,
+            "background" => params.background = self.background,
+            "z_start" => params.z_start = self.z_start,
+            "margin_px" => params.margin_px = self.margin_px,
+            "substeps" => params.substeps = self.substeps,
+            "emitters" => params.emitters = self.emitters.clone(),
+            "detector_noise" => params.detector_noise = self.detector_noise,
+            "psf_cutoff_sigma" => params.psf_cutoff_sigma = self.psf_cutoff_sigma,
+            other => unreachable!("{other} is not a microscope flag"),
+        }
+    }
+}
+
+fn parse_detector_noise(text: &str) -> Result<DetectorNoise, String> {
+    match text.trim() {
+        "poisson" => Ok(DetectorNoise::Poisson),
+        other => match other.strip_prefix("pmt:") {
+            Some(factor) => factor
+                .parse::<f64>()
+                .map(|excess_noise_factor| DetectorNoise::Pmt {
+                    excess_noise_factor,
+                })
+                .map_err(|_| format!("expected pmt:F2 with a number F2, got {other:?}")),
+            None => Err(format!("expected `poisson` or `pmt:F2`, got {other:?}")),
+        },
+    }
+}
+
+/// An optional cut-off; the alias keeps clap from treating the flag itself
+/// as optional (it always has a value, possibly `none`).
+type Cutoff = Option<f64>;
+
+fn parse_cutoff(text: &str) -> Result<Cutoff, String> {
+    match text.trim() {
+        "none" => Ok(None),
+        number => number
+            .parse::<f64>()
+            .map(Some)
+            .map_err(|_| format!("expected a number of σ or `none`, got {number:?}")),
+    }
+}
+
+/// The microscope flags with the ids of those given on the command line
+/// (flatten it into a command's arguments).
+#[derive(Debug, Clone)]
+pub struct MicroscopeArgs {
+    flags: MicroscopeFlags,
+    /// Clap ids of the flags given on the command line.
+    given: Vec<&'static str>,
+}
+
+/// A resolved microscope: the simulator parameters, and the manifest names
+/// of the fields the user stated (by a flag or in the file), as against
+/// those left at the command's defaults.
+#[derive(Debug, Clone)]
+pub struct Microscope {
+    pub params: SimParams,
+    pub stated: BTreeSet<String>,
+}
+
+impl MicroscopeArgs {
+    /// The microscope these flags describe (not yet validated: the
+    /// command checks it with [`SimParams::validate`] once it is complete).
+    pub fn params(&self) -> anyhow::Result<SimParams> {
+        Ok(self.resolve()?.params)
+    }
+
+    /// The microscope with the fields the user stated: the command's
+    /// defaults, then the `--microscope` file's section, then the flags
+    /// given.
+    pub fn resolve(&self) -> anyhow::Result<Microscope> {
+        let mut params = SimParams::default();
+        for (id, _) in FIELDS {
+            self.flags.set(&mut params, id);
+        }
+        let mut stated = BTreeSet::new();
+        if let Some(file) = &self.flags.file {
+            let (from_file, fields) = scanloc::manifest::load_microscope(file, &params)?;
+            params = from_file;
+            stated.extend(fields);
+        }
+        for (id, name) in FIELDS {
+            if self.given.contains(&id) {
+                self.flags.set(&mut params, id);
+                stated.insert(name.to_string());
+            }
+        }
+        Ok(Microscope { params, stated })
+    }
+}
+
+impl Microscope {
+    /// The microscope at the size of frames of `height` × `width` pixels
+    /// (a detector's input): a stated height or width must be theirs.
+    pub fn at_frame_size(mut self, height: usize, width: usize) -> anyhow::Result<SimParams> {
+        for (field, stated, actual) in [
+            ("height", self.params.height, height),
+            ("width", self.params.width, width),
+        ] {
+            if self.stated.contains(field) && stated != actual {
+                return Err(input_error(format!(
+                    "{field}: the microscope's frames have {stated} pixels, those of --input {actual}"
+                )));
+            }
+        }
+        self.params.height = height;
+        self.params.width = width;
+        Ok(self.params)
+    }
+}
+
+impl FromArgMatches for MicroscopeArgs {
+    fn from_arg_matches(matches: &ArgMatches) -> Result<Self, clap::Error> {
+        let flags = MicroscopeFlags::from_arg_matches(matches)?;
+        let given = FIELDS
+            .iter()
+            .map(|&(id, _)| id)
+            .filter(|id| matches.value_source(id) == Some(ValueSource::CommandLine))
+            .collect();
+        Ok(Self { flags, given })
+    }
+
+    fn update_from_arg_matches(&mut self, matches: &ArgMatches) -> Result<(), clap::Error> {
+        *self = Self::from_arg_matches(matches)?;
+        Ok(())
+    }
+}
+
+impl Args for MicroscopeArgs {
+    fn augment_args(command: Command) -> Command {
+        MicroscopeFlags::augment_args(command)
+    }
+
+    fn augment_args_for_update(command: Command) -> Command {
+        MicroscopeFlags::augment_args_for_update(command)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Probe {
+        #[command(flatten)]
+        microscope: MicroscopeArgs,
+    }
+
+    #[test]
+    fn the_defaults_are_the_papers_microscope() {
+        let probe = Probe::try_parse_from(["probe"]).unwrap();
+        assert_eq!(probe.microscope.params().unwrap(), SimParams::default());
+        assert!(probe.microscope.resolve().unwrap().stated.is_empty());
+    }
+
+    #[test]
+    fn every_flag_sets_its_field() {
+        let probe = Probe::try_parse_from([
+            "probe",
+            "--height=30",
+            "--width=40",
+            "--pixel-size-um=0.1",
+            "--dwell-us=5",
+            "--retrace-ms=0.5",
+            "--sigma-xy-um=0.3",
+            "--sigma-z-um=2",
+            "--diffusion-um2-s=uniform:1,2",
+            "--brightness=9",
+            "--background=3",
+            "--z-start=0.5",
+            "--margin-px=2",
+            "--substeps=4",
+            "--emitters=choice:0,1",
+            "--detector-noise=pmt:1.5",
+            "--psf-cutoff-sigma=none",
+        ])
+        .unwrap();
+        let microscope = probe.microscope.resolve().unwrap();
+        assert_eq!(microscope.stated.len(), FIELDS.len());
+        let params = microscope.params;
+        let paper = SimParams::default();
+        // Every field differs from the paper's.
+        let differing = [
+            params.height != paper.height,
+            params.width != paper.width,
+            params.pixel_size_um != paper.pixel_size_um,
+            params.dwell_us != paper.dwell_us,
+            params.retrace_ms != paper.retrace_ms,
+            params.sigma_xy_um != paper.sigma_xy_um,
+            params.sigma_z_um != paper.sigma_z_um,
+            params.diffusion_um2_s != paper.diffusion_um2_s,
+            params.brightness != paper.brightness,
+            params.background != paper.background,
+            params.z_start != paper.z_start,
+            params.margin_px != paper.margin_px,
+            params.substeps != paper.substeps,
+            params.emitters != paper.emitters,
+            params.detector_noise != paper.detector_noise,
+            params.psf_cutoff_sigma != paper.psf_cutoff_sigma,
+        ];
+        assert!(differing.iter().all(|&d| d), "{differing:?}");
+        assert_eq!(params.height, 30);
+        assert_eq!(params.psf_cutoff_sigma, None);
+    }
+}
