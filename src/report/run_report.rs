@@ -24,12 +24,14 @@ use crate::progress::hidden;
 use crate::registry::{Registry, RunRecord};
 use crate::run::{cross_validation, load_artefact};
 use crate::sim::{self, Distribution, SimParams};
-use crate::types::{Dataset, Prediction};
+use crate::types::{Dataset, DetectorKind, Prediction};
 
 /// One scored (detector, dataset) pair of the run.
 struct Evaluation {
     detector: String,
-    detector_kind: String,
+    /// The kind of its manifest detector (unknown if the manifest no
+    /// longer names it).
+    detector_kind: Option<DetectorKind>,
     dataset: String,
     diffusion: Option<f64>,
     dataset_key: String,
@@ -155,8 +157,7 @@ fn load_evaluations(
                 let cv = record.cross_validation.as_ref()?;
                 resolved.detector(&cv.detector)
             })
-            .map_or("", |d| d.spec.kind())
-            .to_string();
+            .map(|d| d.spec.kind());
         evaluations.push(Evaluation {
             detector_kind,
             detector: row.detector,
@@ -335,14 +336,14 @@ fn write_reference_note(
         evaluations
             .iter()
             .find(|e| e.detector == detector)
-            .map(|e| e.detector_kind.as_str())
+            .map(|e| e.detector_kind)
     };
     let mut fitted = Vec::new();
     let mut tested = Vec::new();
     for row in &reference.rows {
         let label = format!("{} ({})", row.label, row.detector);
         match kind_of(&row.detector) {
-            Some("crocker_grier") => fitted.push(label),
+            Some(Some(DetectorKind::CrockerGrier)) => fitted.push(label),
             Some(_) => tested.push(label),
             None => {}
         }
@@ -623,12 +624,12 @@ fn write_bound_comparison_table<'k>(
 ) -> anyhow::Result<()> {
     let pairs: Vec<(&Evaluation, &Evaluation)> = evaluations
         .iter()
-        .filter(|bound| bound.detector_kind == "likelihood")
+        .filter(|bound| bound.detector_kind == Some(DetectorKind::Likelihood))
         .flat_map(|bound| {
             evaluations
                 .iter()
                 .filter(move |other| {
-                    other.detector_kind != "likelihood"
+                    other.detector_kind != Some(DetectorKind::Likelihood)
                         && other.dataset_key == bound.dataset_key
                         && !other.score.per_eps.is_empty()
                 })
@@ -701,7 +702,7 @@ fn write_reference_bound_table<'k>(
     let bounds: Vec<&Evaluation> = evaluations
         .iter()
         .filter(|bound| {
-            bound.detector_kind == "likelihood"
+            bound.detector_kind == Some(DetectorKind::Likelihood)
                 && bound.score.per_eps.iter().any(|s| {
                     reference
                         .rows
@@ -1065,7 +1066,7 @@ fn localisation_panels(
             .predictions()?
             .as_ref()
             .clone();
-        let kind = if e.detector_kind == "cnn" {
+        let kind = if e.detector_kind == Some(DetectorKind::Cnn) {
             MarkerKind::Cnn
         } else {
             MarkerKind::CrockerGrier
@@ -1214,7 +1215,7 @@ mod tests {
     fn evaluation(detector: &str, kind: &str) -> Evaluation {
         Evaluation {
             detector: detector.to_string(),
-            detector_kind: kind.to_string(),
+            detector_kind: kind.parse().ok(),
             dataset: "test-1.00".to_string(),
             diffusion: Some(1.0),
             dataset_key: String::new(),

@@ -87,7 +87,12 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
         "steps: {} cached, {} computed, {} rebuilt",
         counts.cached, counts.computed, counts.rebuilt
     )?;
-    let width = record.steps.iter().map(|s| s.step.len()).max().unwrap_or(0);
+    let width = record
+        .steps
+        .iter()
+        .map(|s| s.step.to_string().len())
+        .max()
+        .unwrap_or(0);
     for step in &record.steps {
         let detail = step
             .detail
