@@ -100,7 +100,7 @@ pub fn display_path(path: &[Segment]) -> String {
 /// A field that failed a check: where it is and what is wrong with it.
 ///
 /// `path` is relative to the value that was checked (`training.epochs` for
-/// [`TrainingSettings`](crate::detect::cnn::TrainingSettings)); whoever holds
+/// the CNN's `TrainingSettings`); whoever holds
 /// that value puts its own path in front with [`FieldError::under`]
 /// (`detectors.cnn.cnn.training.epochs`). It prints as `path: message`, and
 /// turned into an [`anyhow::Error`] (by `?`) it is an [`InputError`] with

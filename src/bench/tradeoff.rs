@@ -11,11 +11,11 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::detect::crocker_grier::{self, CrockerGrierParams};
-use crate::manifest::derive_seed;
 use crate::metrics;
 use crate::progress::hidden;
 use crate::report::figures::{TradeoffChart, tradeoff_chart};
 use crate::sim::{self, Distribution, SimParams};
+use crate::types::derive_seed;
 use crate::types::{Dataset, Prediction};
 
 /// The master seed of the sweeps.

@@ -191,7 +191,7 @@ pub(super) fn registry_cnn(
     registry: &Registry,
     reference: &str,
 ) -> anyhow::Result<(TrainedCnn, ModelOrigin)> {
-    let stored = registry.stored_model(reference, "cnn")?;
+    let stored = registry.stored_model(reference, scanloc::types::DetectorKind::Cnn)?;
     let model = TrainedCnn::from_bytes(&stored.bytes)
         .map_err(|e| input_error(format!("{reference}: {e:#}")))?;
     Ok((model, stored.origin))

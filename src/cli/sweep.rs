@@ -227,7 +227,7 @@ pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
                         state
                             .log
                             .as_ref()
-                            .filter(|_| state.status != "done")
+                            .filter(|_| !state.status.is_done())
                             .map(|l| format!("  log {l}"))
                             .unwrap_or_default()
                     )?;

@@ -6,12 +6,11 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Args;
-use scanloc::bench;
 use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use scanloc::error::input_error;
-use scanloc::manifest::derive_seed;
 use scanloc::metrics;
 use scanloc::sim::{self, EmitterCount, SimParams};
+use scanloc::types::derive_seed;
 
 /// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
@@ -170,14 +169,14 @@ pub fn run(
     write_summary(&model, seconds, &args.out, stdout)?;
 
     if args.test_frames > 0 {
-        let table = bench::cnn::auc_table(
+        let table = scanloc::run::test_sets::auc_table(
             &model,
             &test_params,
             args.test_diffusion.checked()?,
             args.test_frames,
             derive_seed(args.seed, "dataset", "test"),
         )?;
-        write!(stdout, "{}", bench::cnn::format_auc_table(&table))?;
+        write!(stdout, "{}", scanloc::run::test_sets::format_auc_table(&table))?;
     }
     Ok(ExitCode::SUCCESS)
 }

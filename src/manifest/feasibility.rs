@@ -11,6 +11,7 @@
 
 use super::{DetectorSpec, Manifest};
 use crate::error::{FieldError, Segment};
+use crate::types::DetectorKind;
 
 fn problem(path: &[&str], message: String) -> FieldError {
     let path: Vec<Segment> = path.iter().map(|p| Segment::key(p)).collect();
@@ -39,7 +40,7 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
                 &[
                     "detectors",
                     &detector.name,
-                    "cnn",
+                    DetectorKind::Cnn.as_str(),
                     "training",
                     "validation_fraction",
                 ],
@@ -57,7 +58,7 @@ pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
                 &[
                     "detectors",
                     &detector.name,
-                    "cnn",
+                    DetectorKind::Cnn.as_str(),
                     "training",
                     "teacher_particles",
                 ],

@@ -39,7 +39,7 @@
 //!     - {detector: trackpy, label: TrackPy, auc: {test-1.00: [0.04, 0.30, 0.61]}}
 //! ```
 //!
-//! Seeds: each artefact's seed is [`derive_seed`]`(seed, kind, name)`, a
+//! Seeds: each artefact's seed is [`derive_seed`](crate::types::derive_seed)`(seed, kind, name)`, a
 //! hash of the master seed and the artefact's name, so adding, removing or
 //! reordering other entries never changes it and no global random state is
 //! involved.
@@ -55,11 +55,11 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 use crate::error::{FieldError, input_error};
 use crate::metrics::ScoreReading;
 use crate::sim::SimParams;
+use crate::types::DetectorKind;
 pub use locate::LineIndex;
 
 // The size limits are the command line's too: one definition, in `limits`.
@@ -164,12 +164,13 @@ pub struct CnnSpec {
 }
 
 impl DetectorSpec {
-    /// The name of the kind as written in manifests.
-    pub fn kind(&self) -> &'static str {
+    /// The detector's kind (written in manifests as `crocker_grier`,
+    /// `cnn`, `likelihood`).
+    pub fn kind(&self) -> DetectorKind {
         match self {
-            DetectorSpec::CrockerGrier(_) => "crocker_grier",
-            DetectorSpec::Cnn(_) => "cnn",
-            DetectorSpec::Likelihood(_) => "likelihood",
+            DetectorSpec::CrockerGrier(_) => DetectorKind::CrockerGrier,
+            DetectorSpec::Cnn(_) => DetectorKind::Cnn,
+            DetectorSpec::Likelihood(_) => DetectorKind::Likelihood,
         }
     }
 
@@ -400,22 +401,6 @@ impl Manifest {
     }
 }
 
-/// The seed of artefact `name` of kind `kind` (`dataset`, `detector`, …):
-/// the first 8 bytes (little-endian) of
-/// `sha256("scanloc-seed/1\0" ‖ master as 8 LE bytes ‖ kind ‖ "\0" ‖ name)`.
-pub fn derive_seed(master: u64, kind: &str, name: &str) -> u64 {
-    let mut hasher = Sha256::new();
-    hasher.update(b"scanloc-seed/1\0");
-    hasher.update(master.to_le_bytes());
-    hasher.update(kind.as_bytes());
-    hasher.update([0u8]);
-    hasher.update(name.as_bytes());
-    let digest = hasher.finalize();
-    let mut bytes = [0u8; 8];
-    bytes.copy_from_slice(&digest[..8]);
-    u64::from_le_bytes(bytes)
-}
-
 /// Reads and resolves the manifest at `path`.
 pub fn load(path: &Path) -> anyhow::Result<Manifest> {
     let source = path.display().to_string();
@@ -482,15 +467,7 @@ pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimPara
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn seeds_depend_on_master_kind_and_name_only() {
-        let a = derive_seed(1, "dataset", "train");
-        assert_eq!(a, derive_seed(1, "dataset", "train"));
-        assert_ne!(a, derive_seed(2, "dataset", "train"));
-        assert_ne!(a, derive_seed(1, "detector", "train"));
-        assert_ne!(a, derive_seed(1, "dataset", "train2"));
-    }
+    use crate::types::derive_seed;
 
     #[test]
     fn datasets_inherit_the_microscope_and_override_it() {
@@ -630,6 +607,21 @@ mod tests {
                 "{uniform: [1]}",
                 "must be a number or {uniform: [LOW, HIGH]}",
             ),
+            (
+                "emitters",
+                "{poisson: 3}",
+                "must be a whole number or {choice: [N, ...]}",
+            ),
+            (
+                "emitters",
+                "{choice: [1, x]}",
+                "must be a whole number or {choice: [N, ...]}",
+            ),
+            (
+                "emitters",
+                "-1",
+                "must be a whole number or {choice: [N, ...]}",
+            ),
         ] {
             let text =
                 format!("name: t\nseed: 3\ndatasets:\n  a:\n    frames: 2\n    {field}: {value}\n");
@@ -640,5 +632,13 @@ mod tests {
             );
             assert!(!error.contains('\n'), "{error}");
         }
+        // A field of another type keeps serde's own word for what it takes.
+        let text =
+            "name: t\nseed: 3\ndatasets:\n  a:\n    frames: 2\n    height: {uniform: [1, 2]}\n";
+        let error = parse(text, "x.yaml").unwrap_err().to_string();
+        assert!(
+            error.starts_with("x.yaml:6: datasets.a.height: ") && !error.contains("{uniform: [LOW"),
+            "{error}"
+        );
     }
 }

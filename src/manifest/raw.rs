@@ -30,8 +30,8 @@ pub(super) struct RawManifest {
     pub cross_validation: Option<CrossValidation>,
     #[serde(default)]
     pub reference: Option<RawReference>,
-    /// A parameter grid for `scanloc sweep run`, read by `crate::sweep`
-    /// (a plain run ignores it).
+    /// A parameter grid for `scanloc sweep run`, read by the sweep
+    /// module (a plain run ignores it).
     #[serde(default, rename = "sweep")]
     pub _sweep: Option<serde::de::IgnoredAny>,
 }

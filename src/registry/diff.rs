@@ -110,7 +110,7 @@ pub fn diff_runs(a: &RunRecord, b: &RunRecord) -> Vec<Difference> {
     let steps = |r: &RunRecord| -> BTreeMap<String, Value> {
         r.steps
             .iter()
-            .map(|s| (s.step.clone(), json!(s.artefact_key)))
+            .map(|s| (s.step.to_string(), json!(s.artefact_key)))
             .collect()
     };
     let auc = |r: &RunRecord| -> BTreeMap<String, Value> {

@@ -25,6 +25,7 @@ pub mod record;
 pub mod shard;
 pub mod sql;
 pub mod sql_guard;
+pub mod step_id;
 pub mod table;
 pub mod verify;
 pub mod write_lock;
@@ -44,6 +45,7 @@ pub use record::{
     StepOutcome, StepRecord,
 };
 pub use sql::{EvaluationRow, Found};
+pub use step_id::{BlobRole, StepId};
 pub use table::Table;
 
 use crate::error::input_error;
@@ -96,7 +98,7 @@ impl ArtefactKind {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct BlobRef {
     /// What the blob is within its artefact (`frames.npy`, `score.json`, …).
-    pub role: String,
+    pub role: BlobRole,
     pub sha256: String,
 }
 
@@ -120,12 +122,12 @@ pub enum ArtefactDetails {
         diffusion: Option<f64>,
         /// N_qd: the `brightness` column holds the number when it is fixed
         /// and the distribution's text form (`uniform:5,10`) otherwise.
-        brightness: crate::sim::Distribution,
+        brightness: crate::types::Distribution,
         params_json: String,
     },
     Model {
         detector: String,
-        detector_kind: String,
+        detector_kind: crate::types::DetectorKind,
         training_dataset_key: String,
         seed: u64,
     },
@@ -151,7 +153,7 @@ pub enum ArtefactDetails {
 /// when it is fixed, so existing queries and rows keep their numbers, and
 /// the distribution's text form (`uniform:5,10`, as the flags take it)
 /// when it is drawn per frame.
-fn per_frame_column(value: &crate::sim::Distribution) -> rusqlite::types::Value {
+fn per_frame_column(value: &crate::types::Distribution) -> rusqlite::types::Value {
     match value.fixed() {
         Some(number) => rusqlite::types::Value::Real(number),
         None => rusqlite::types::Value::Text(value.to_string()),
@@ -483,15 +485,7 @@ impl Registry {
         }
         let tx = self.write_transaction()?;
         let now = utc_now();
-        for blob in &artefact.blobs {
-            let bytes = std::fs::metadata(self.blobs.path(&blob.sha256))
-                .map(|m| m.len())
-                .unwrap_or(0);
-            tx.execute(
-                "INSERT OR IGNORE INTO blobs (sha256, bytes, created_at) VALUES (?1, ?2, ?3)",
-                params![blob.sha256, bytes as i64, now],
-            )?;
-        }
+        insert_blob_rows(&tx, &self.blobs, &artefact.blobs, &now)?;
         let existing: Option<String> = tx
             .query_row(
                 "SELECT key FROM artefacts WHERE key = ?1",
@@ -500,139 +494,9 @@ impl Registry {
             )
             .optional()?;
         if existing.is_some() {
-            let mut statement = tx.prepare(
-                "SELECT role, sha256 FROM artefact_blobs WHERE artefact_key = ?1 ORDER BY role",
-            )?;
-            let stored: Vec<BlobRef> = statement
-                .query_map([&artefact.key], |row| {
-                    Ok(BlobRef {
-                        role: row.get(0)?,
-                        sha256: row.get(1)?,
-                    })
-                })?
-                .collect::<Result<_, _>>()?;
-            drop(statement);
-            let mut ours = artefact.blobs.clone();
-            ours.sort_by(|a, b| a.role.cmp(&b.role));
-            if stored != ours {
-                if !replace {
-                    anyhow::bail!(
-                        "artefact {} ({}) is already stored with different content: the step that makes it is not deterministic",
-                        artefact.name,
-                        artefact.key
-                    );
-                }
-                tx.execute(
-                    "DELETE FROM artefact_blobs WHERE artefact_key = ?1",
-                    [&artefact.key],
-                )?;
-                insert_artefact_blobs(&tx, artefact)?;
-            }
-            tx.commit()?;
-            return Ok(());
-        }
-        tx.execute(
-            "INSERT INTO artefacts (key, kind, name, spec, code_version, created_at, created_by_run, compute_seconds)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-            params![
-                artefact.key,
-                artefact.kind.as_str(),
-                artefact.name,
-                artefact.spec,
-                artefact.code_version,
-                now,
-                artefact.run_id,
-                artefact.compute_seconds
-            ],
-        )?;
-        insert_artefact_blobs(&tx, artefact)?;
-        let key = &artefact.key;
-        match &artefact.details {
-            ArtefactDetails::Dataset {
-                frames,
-                height,
-                width,
-                seed,
-                diffusion,
-                brightness,
-                params_json,
-            } => {
-                tx.execute(
-                    "INSERT INTO datasets (key, name, frames, height, width, seed, diffusion, brightness, params)
-                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
-                    params![
-                        key,
-                        artefact.name,
-                        *frames as i64,
-                        *height as i64,
-                        *width as i64,
-                        seed.to_string(),
-                        diffusion,
-                        per_frame_column(brightness),
-                        params_json
-                    ],
-                )?;
-            }
-            ArtefactDetails::Model {
-                detector,
-                detector_kind,
-                training_dataset_key,
-                seed,
-            } => {
-                tx.execute(
-                    "INSERT INTO models (key, detector, detector_kind, training_dataset_key, seed)
-                     VALUES (?1, ?2, ?3, ?4, ?5)",
-                    params![
-                        key,
-                        detector,
-                        detector_kind,
-                        training_dataset_key,
-                        seed.to_string()
-                    ],
-                )?;
-            }
-            ArtefactDetails::Predictions {
-                detector,
-                dataset_key,
-                model_key,
-                count,
-            } => {
-                tx.execute(
-                    "INSERT INTO predictions (key, detector, dataset_key, model_key, count)
-                     VALUES (?1, ?2, ?3, ?4, ?5)",
-                    params![key, detector, dataset_key, model_key, *count as i64],
-                )?;
-            }
-            ArtefactDetails::Evaluation {
-                detector,
-                dataset,
-                dataset_key,
-                predictions_key,
-                rmse_top_px,
-                fraction_without_prediction,
-                auc,
-            } => {
-                tx.execute(
-                    "INSERT INTO evaluations (key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction)
-                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-                    params![
-                        key,
-                        detector,
-                        dataset,
-                        dataset_key,
-                        predictions_key,
-                        rmse_top_px,
-                        fraction_without_prediction
-                    ],
-                )?;
-                for (eps, value, tp, fp) in auc {
-                    tx.execute(
-                        "INSERT INTO auc (evaluation_key, eps_px, auc, true_positives, false_positives)
-                         VALUES (?1, ?2, ?3, ?4, ?5)",
-                        params![key, eps, value, *tp as i64, *fp as i64],
-                    )?;
-                }
-            }
+            supersede_blobs_if_changed(&tx, artefact, replace)?;
+        } else {
+            insert_artefact(&tx, artefact, &now)?;
         }
         tx.commit()?;
         Ok(())
@@ -721,7 +585,12 @@ impl Registry {
         let blobs: serde_json::Map<String, serde_json::Value> = step
             .blobs
             .iter()
-            .map(|b| (b.role.clone(), serde_json::Value::String(b.sha256.clone())))
+            .map(|b| {
+                (
+                    b.role.to_string(),
+                    serde_json::Value::String(b.sha256.clone()),
+                )
+            })
             .collect();
         let tx = self.write_transaction()?;
         tx.execute(
@@ -730,7 +599,7 @@ impl Registry {
             params![
                 run_id,
                 step.ordinal as i64,
-                step.step,
+                step.step.to_string(),
                 step.kind.as_str(),
                 step.artefact_key,
                 step.outcome.as_str(),
@@ -839,6 +708,183 @@ fn backfill_cross_validation_plans(tx: &Connection) -> anyhow::Result<()> {
             "UPDATE runs SET cv_detector = ?2, cv_folds = ?3, cv_fold = ?4 WHERE id = ?1",
             params![run, detector, folds as i64, only_fold],
         )?;
+    }
+    Ok(())
+}
+
+/// A `blobs` row for each of `blobs` not recorded yet (its size read from
+/// the store), dated `now`.
+fn insert_blob_rows(
+    tx: &Connection,
+    store: &BlobStore,
+    blobs: &[BlobRef],
+    now: &str,
+) -> anyhow::Result<()> {
+    for blob in blobs {
+        let bytes = std::fs::metadata(store.path(&blob.sha256))
+            .map(|m| m.len())
+            .unwrap_or(0);
+        tx.execute(
+            "INSERT OR IGNORE INTO blobs (sha256, bytes, created_at) VALUES (?1, ?2, ?3)",
+            params![blob.sha256, bytes as i64, now],
+        )?;
+    }
+    Ok(())
+}
+
+/// For an artefact already recorded: nothing if its blobs are the same;
+/// else, with `replace` (the old blobs were damaged), records the new ones
+/// in their place, and without it refuses (the step is not deterministic).
+fn supersede_blobs_if_changed(
+    tx: &Connection,
+    artefact: &NewArtefact,
+    replace: bool,
+) -> anyhow::Result<()> {
+    let mut statement = tx
+        .prepare("SELECT role, sha256 FROM artefact_blobs WHERE artefact_key = ?1 ORDER BY role")?;
+    let stored: Vec<BlobRef> = statement
+        .query_map([&artefact.key], |row| {
+            Ok(BlobRef {
+                role: row.get(0)?,
+                sha256: row.get(1)?,
+            })
+        })?
+        .collect::<Result<_, _>>()?;
+    drop(statement);
+    let mut ours = artefact.blobs.clone();
+    ours.sort_by(|a, b| a.role.cmp(&b.role));
+    if stored == ours {
+        return Ok(());
+    }
+    if !replace {
+        anyhow::bail!(
+            "artefact {} ({}) is already stored with different content: the step that makes it is not deterministic",
+            artefact.name,
+            artefact.key
+        );
+    }
+    tx.execute(
+        "DELETE FROM artefact_blobs WHERE artefact_key = ?1",
+        [&artefact.key],
+    )?;
+    insert_artefact_blobs(tx, artefact)?;
+    Ok(())
+}
+
+/// Records a new artefact: its row, its blobs, and the row of its kind's
+/// table (`datasets`, `models`, `predictions`, `evaluations` with `auc`).
+fn insert_artefact(tx: &Connection, artefact: &NewArtefact, now: &str) -> anyhow::Result<()> {
+    tx.execute(
+        "INSERT INTO artefacts (key, kind, name, spec, code_version, created_at, created_by_run, compute_seconds)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+        params![
+            artefact.key,
+            artefact.kind.as_str(),
+            artefact.name,
+            artefact.spec,
+            artefact.code_version,
+            now,
+            artefact.run_id,
+            artefact.compute_seconds
+        ],
+    )?;
+    insert_artefact_blobs(tx, artefact)?;
+    insert_details(tx, &artefact.key, &artefact.name, &artefact.details)
+}
+
+/// The row of artefact `key` (named `name`) in its kind's table.
+fn insert_details(
+    tx: &Connection,
+    key: &str,
+    name: &str,
+    details: &ArtefactDetails,
+) -> anyhow::Result<()> {
+    match details {
+        ArtefactDetails::Dataset {
+            frames,
+            height,
+            width,
+            seed,
+            diffusion,
+            brightness,
+            params_json,
+        } => {
+            tx.execute(
+                "INSERT INTO datasets (key, name, frames, height, width, seed, diffusion, brightness, params)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
+                params![
+                    key,
+                    name,
+                    *frames as i64,
+                    *height as i64,
+                    *width as i64,
+                    seed.to_string(),
+                    diffusion,
+                    per_frame_column(brightness),
+                    params_json
+                ],
+            )?;
+        }
+        ArtefactDetails::Model {
+            detector,
+            detector_kind,
+            training_dataset_key,
+            seed,
+        } => {
+            tx.execute(
+                "INSERT INTO models (key, detector, detector_kind, training_dataset_key, seed)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![
+                    key,
+                    detector,
+                    detector_kind.as_str(),
+                    training_dataset_key,
+                    seed.to_string()
+                ],
+            )?;
+        }
+        ArtefactDetails::Predictions {
+            detector,
+            dataset_key,
+            model_key,
+            count,
+        } => {
+            tx.execute(
+                "INSERT INTO predictions (key, detector, dataset_key, model_key, count)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![key, detector, dataset_key, model_key, *count as i64],
+            )?;
+        }
+        ArtefactDetails::Evaluation {
+            detector,
+            dataset,
+            dataset_key,
+            predictions_key,
+            rmse_top_px,
+            fraction_without_prediction,
+            auc,
+        } => {
+            tx.execute(
+                "INSERT INTO evaluations (key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                params![
+                    key,
+                    detector,
+                    dataset,
+                    dataset_key,
+                    predictions_key,
+                    rmse_top_px,
+                    fraction_without_prediction
+                ],
+            )?;
+            for (eps, value, tp, fp) in auc {
+                tx.execute(
+                    "INSERT INTO auc (evaluation_key, eps_px, auc, true_positives, false_positives)
+                     VALUES (?1, ?2, ?3, ?4, ?5)",
+                    params![key, eps, value, *tp as i64, *fp as i64],
+                )?;
+            }
+        }
     }
     Ok(())
 }
@@ -1050,7 +1096,7 @@ mod tests {
             run_id: None,
             compute_seconds: 0.0,
             blobs: vec![BlobRef {
-                role: "frames.npy".into(),
+                role: BlobRole::Frames,
                 sha256: sha.to_string(),
             }],
             details: ArtefactDetails::Dataset {

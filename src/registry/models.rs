@@ -7,14 +7,16 @@
 //! of it. The bytes are the model artefact's `model.bin` blob, re-hashed
 //! when read; decoding them is the detector's business.
 
+use anyhow::Context;
 use rusqlite::OptionalExtension;
 use serde::Serialize;
 
-use super::{ArtefactKind, BlobState, Registry};
+use super::{ArtefactKind, BlobRole, BlobState, Registry, StepId};
 use crate::error::input_error;
+use crate::types::DetectorKind;
 
 /// The blob role that holds a model's bytes.
-pub const MODEL_BLOB: &str = "model.bin";
+pub const MODEL_BLOB: BlobRole = BlobRole::Model;
 
 /// Shortest prefix accepted for a run id or a content key.
 const MIN_PREFIX: usize = 4;
@@ -28,7 +30,7 @@ pub struct ModelOrigin {
     /// The detector's name in the manifest that trained it.
     pub detector: String,
     /// The detector's kind (`cnn`).
-    pub detector_kind: String,
+    pub detector_kind: DetectorKind,
     /// The run named in the reference (`RUN:DETECTOR`), else the run that
     /// first computed the model, if recorded.
     pub run: Option<String>,
@@ -50,7 +52,7 @@ impl Registry {
     pub fn stored_model(
         &self,
         reference: &str,
-        detector_kind: &str,
+        detector_kind: DetectorKind,
     ) -> anyhow::Result<StoredModel> {
         let (key, run) = match reference.split_once(':') {
             Some((run, detector)) => {
@@ -75,7 +77,7 @@ impl Registry {
             )
             .optional()?
             .ok_or_else(|| input_error(format!("{reference}: model {key} has no models row")))?;
-        if kind != detector_kind {
+        if kind.parse::<DetectorKind>() != Ok(detector_kind) {
             crate::bail_input!(
                 "{reference}: detector `{detector}` is a {kind} model, not a {detector_kind}"
             );
@@ -101,7 +103,7 @@ impl Registry {
             origin: ModelOrigin {
                 model_key: key,
                 detector,
-                detector_kind: kind,
+                detector_kind,
                 run: run.or(created_by),
             },
             bytes,
@@ -157,42 +159,28 @@ impl Registry {
     /// The model that run `run` used for `detector` (its step
     /// `model/DETECTOR`).
     fn model_of_run(&self, run: &str, detector: &str) -> anyhow::Result<String> {
-        let step = format!("model/{detector}");
-        let key = self
-            .connection()
-            .query_row(
-                "SELECT artefact_key FROM run_steps WHERE run_id = ?1 AND step = ?2",
-                [run, &step],
-                |row| row.get::<_, String>(0),
-            )
-            .optional()?;
-        if let Some(key) = key {
-            return Ok(key);
+        let steps = self.steps_of_run(run)?;
+        if let Some((_, key)) = steps
+            .iter()
+            .find(|(step, _)| *step == StepId::Model(detector.to_string()))
+        {
+            return Ok(key.clone());
         }
-        let predicts = self
-            .connection()
-            .query_row(
-                "SELECT 1 FROM run_steps WHERE run_id = ?1 AND substr(step, 1, ?3) = ?2 LIMIT 1",
-                rusqlite::params![
-                    run,
-                    format!("predictions/{detector}@"),
-                    format!("predictions/{detector}@").chars().count()
-                ],
-                |_| Ok(()),
-            )
-            .optional()?
-            .is_some();
+        let predicts = steps.iter().any(
+            |(step, _)| matches!(step, StepId::Predictions { detector: d, .. } if d == detector),
+        );
         if predicts {
             crate::bail_input!(
                 "{run}:{detector}: detector `{detector}` of run {run} has no trained model (it is not a CNN)"
             );
         }
-        let mut statement = self.connection().prepare(
-            "SELECT substr(step, 7) FROM run_steps WHERE run_id = ?1 AND step LIKE 'model/%' ORDER BY ordinal",
-        )?;
-        let models = statement
-            .query_map([run], |row| row.get::<_, String>(0))?
-            .collect::<Result<Vec<_>, _>>()?;
+        let models: Vec<String> = steps
+            .iter()
+            .filter_map(|(step, _)| match step {
+                StepId::Model(name) => Some(name.clone()),
+                _ => None,
+            })
+            .collect();
         crate::bail_input!(
             "{run}:{detector}: run {run} has no detector `{detector}` (its trained models: {})",
             if models.is_empty() {
@@ -201,6 +189,26 @@ impl Registry {
                 models.join(", ")
             }
         )
+    }
+
+    /// Every step of run `run` with its artefact's key, in run order.
+    fn steps_of_run(&self, run: &str) -> anyhow::Result<Vec<(StepId, String)>> {
+        let mut statement = self.connection().prepare(
+            "SELECT step, artefact_key FROM run_steps WHERE run_id = ?1 ORDER BY ordinal",
+        )?;
+        let rows = statement
+            .query_map([run], |row| {
+                Ok((row.get::<_, String>(0)?, row.get::<_, String>(1)?))
+            })?
+            .collect::<Result<Vec<_>, _>>()?;
+        rows.into_iter()
+            .map(|(step, key)| {
+                let step = step
+                    .parse()
+                    .with_context(|| format!("run {run}: column run_steps.step"))?;
+                Ok((step, key))
+            })
+            .collect()
     }
 
     /// The first column of `sql` (one `LIKE ?1` parameter) for rows

@@ -10,7 +10,9 @@ use rusqlite::types::FromSql;
 use rusqlite::{OptionalExtension, Row};
 use serde::{Deserialize, Serialize};
 
-use super::{ArtefactKind, BlobRef, CodeVersion, Registry, host_name, process_alive};
+use super::{
+    ArtefactKind, BlobRef, BlobRole, CodeVersion, Registry, StepId, host_name, process_alive,
+};
 use crate::error::input_error;
 
 /// For an enum stored in the database by name: `as_str` (the stored
@@ -26,7 +28,8 @@ macro_rules! stored_by_name {
                 }
             }
 
-            fn parse(text: &str) -> Option<Self> {
+            /// The value stored as `text` (`None` for an unknown name).
+            pub fn parse(text: &str) -> Option<Self> {
                 match text {
                     $($name => Some($type::$variant),)+
                     _ => None,
@@ -176,7 +179,7 @@ pub struct RunStart {
 pub struct StepRecord {
     pub ordinal: usize,
     /// `dataset/train`, `evaluation/trackpy@test-1.00`, …
-    pub step: String,
+    pub step: StepId,
     pub kind: ArtefactKind,
     pub artefact_key: String,
     pub outcome: StepOutcome,
@@ -443,10 +446,10 @@ impl Registry {
             "SELECT ordinal, step, kind, artefact_key, outcome, seconds, blobs, detail
              FROM run_steps WHERE run_id = ?1 ORDER BY ordinal",
             |columns| {
-                let blobs: BTreeMap<String, String> = columns.json("blobs")?;
+                let blobs: BTreeMap<BlobRole, String> = columns.json("blobs")?;
                 Ok(StepRecord {
                     ordinal: columns.count("ordinal")?,
-                    step: columns.get("step")?,
+                    step: columns.parse("step", |text| text.parse().ok())?,
                     kind: columns.parse("kind", |text| ArtefactKind::parse(text).ok())?,
                     artefact_key: columns.get("artefact_key")?,
                     outcome: columns.parse("outcome", StepOutcome::parse)?,
@@ -545,13 +548,13 @@ mod tests {
             .unwrap();
         let step = StepRecord {
             ordinal: 0,
-            step: "dataset/a".into(),
+            step: StepId::Dataset("a".into()),
             kind: ArtefactKind::Dataset,
             artefact_key: "k".into(),
             outcome: StepOutcome::Rebuilt,
             seconds: 0.5,
             blobs: vec![BlobRef {
-                role: "frames.npy".into(),
+                role: BlobRole::Frames,
                 sha256: "ab".into(),
             }],
             detail: None,
@@ -625,7 +628,7 @@ mod tests {
                 "r1",
                 &StepRecord {
                     ordinal: 0,
-                    step: "dataset/a".into(),
+                    step: StepId::Dataset("a".into()),
                     kind: ArtefactKind::Dataset,
                     artefact_key: "k".into(),
                     outcome: StepOutcome::Computed,

@@ -99,7 +99,7 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
     let width = record
         .steps
         .iter()
-        .map(|s| display_cell(&s.step).len())
+        .map(|s| display_cell(&s.step.to_string()).chars().count())
         .max()
         .unwrap_or(0);
     for step in &record.steps {
@@ -111,7 +111,7 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
             out,
             "  {:<9} {:<width$}  {:>8.2} s{detail}",
             step.outcome,
-            display_cell(&step.step),
+            display_cell(&step.step.to_string()),
             step.seconds
         )?;
     }

@@ -21,6 +21,7 @@ use anyhow::Context;
 
 use crate::io::{csv_tables, npy};
 use crate::metrics::Score;
+use crate::registry::BlobRole;
 use crate::types::{Dataset, Prediction};
 
 /// Version of the blob encodings below.
@@ -37,29 +38,23 @@ pub enum Artefact {
 
 impl Artefact {
     /// The artefact's blobs: (role, bytes), in role order.
-    pub fn encode(&self) -> anyhow::Result<Vec<(String, Vec<u8>)>> {
+    pub fn encode(&self) -> anyhow::Result<Vec<(BlobRole, Vec<u8>)>> {
         Ok(match self {
             Artefact::Dataset(dataset) => {
                 let mut frames = Vec::new();
                 npy::write_frames(&mut frames, &dataset.frames)?;
                 let mut truth = Vec::new();
                 csv_tables::write_truth_to(&mut truth, &dataset.truth)?;
-                vec![
-                    ("frames.npy".to_string(), frames),
-                    ("truth.csv".to_string(), truth),
-                ]
+                vec![(BlobRole::Frames, frames), (BlobRole::Truth, truth)]
             }
-            Artefact::Model(bytes) => vec![("model.bin".to_string(), bytes.as_ref().clone())],
+            Artefact::Model(bytes) => vec![(BlobRole::Model, bytes.as_ref().clone())],
             Artefact::Predictions(predictions) => {
                 let mut csv = Vec::new();
                 csv_tables::write_predictions_to(&mut csv, predictions)?;
-                vec![("predictions.csv".to_string(), csv)]
+                vec![(BlobRole::Predictions, csv)]
             }
             Artefact::Evaluation(score) => {
-                vec![(
-                    "score.json".to_string(),
-                    serde_json::to_vec(score.as_ref())?,
-                )]
+                vec![(BlobRole::Score, serde_json::to_vec(score.as_ref())?)]
             }
         })
     }
@@ -93,30 +88,38 @@ impl Artefact {
     }
 }
 
-fn blob<'a>(blobs: &'a [(String, Vec<u8>)], role: &str) -> anyhow::Result<&'a [u8]> {
+fn blob(blobs: &[(BlobRole, Vec<u8>)], role: BlobRole) -> anyhow::Result<&[u8]> {
     blobs
         .iter()
-        .find(|(r, _)| r == role)
+        .find(|(r, _)| *r == role)
         .map(|(_, b)| b.as_slice())
         .with_context(|| format!("the artefact has no {role} blob"))
 }
 
 /// Decodes a dataset from its `frames.npy` and `truth.csv` blobs.
-pub fn decode_dataset(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Dataset> {
-    let frames_npy = blob(blobs, "frames.npy")?;
-    let frames = npy::read_frames_from(frames_npy, frames_npy.len() as u64, "frames.npy")?;
-    let truth = csv_tables::read_truth_from(blob(blobs, "truth.csv")?, "truth.csv")?;
+pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> {
+    let frames_npy = blob(blobs, BlobRole::Frames)?;
+    let frames = npy::read_frames_from(
+        frames_npy,
+        frames_npy.len() as u64,
+        BlobRole::Frames.as_str(),
+    )?;
+    let truth =
+        csv_tables::read_truth_from(blob(blobs, BlobRole::Truth)?, BlobRole::Truth.as_str())?;
     Ok(Dataset { frames, truth })
 }
 
 /// Decodes predictions from their `predictions.csv` blob.
-pub fn decode_predictions(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Vec<Prediction>> {
-    csv_tables::read_predictions_from(blob(blobs, "predictions.csv")?, "predictions.csv")
+pub fn decode_predictions(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Prediction>> {
+    csv_tables::read_predictions_from(
+        blob(blobs, BlobRole::Predictions)?,
+        BlobRole::Predictions.as_str(),
+    )
 }
 
 /// Decodes an evaluation from its `score.json` blob.
-pub fn decode_score(blobs: &[(String, Vec<u8>)]) -> anyhow::Result<Score> {
-    serde_json::from_slice(blob(blobs, "score.json")?).context("decoding score.json")
+pub fn decode_score(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Score> {
+    serde_json::from_slice(blob(blobs, BlobRole::Score)?).context("decoding score.json")
 }
 
 #[cfg(test)]
@@ -171,7 +174,7 @@ mod tests {
             .encode()
             .unwrap()
             .into_iter()
-            .map(|(role, bytes)| (role, sha256_hex(&bytes)))
+            .map(|(role, bytes)| (role.as_str().to_string(), sha256_hex(&bytes)))
             .collect()
     }
 
@@ -242,7 +245,7 @@ mod tests {
                 .encode()
                 .unwrap();
             assert_eq!(blobs.len(), 1);
-            assert_eq!(blobs[0].0, "predictions.csv");
+            assert_eq!(blobs[0].0.as_str(), "predictions.csv");
             blobs[0].1.clone()
         };
         let awkward = [

@@ -2,7 +2,7 @@
 //! detector's AUC row comes closest to its reference row.
 //!
 //! Each grid point is an ordinary recorded run (kind `calibrate`) of the
-//! manifest restricted to that detector (run as a sweep, `crate::sweep`), with every dataset's brightness
+//! manifest restricted to that detector (run as a sweep, `scanloc calibrate`), with every dataset's brightness
 //! set to the point's value; the points share dataset seeds (derived from
 //! the names), so the sweep compares brightness values on common random
 //! numbers. Scored by the sum of squared differences over the reference

@@ -188,7 +188,7 @@ fn locate(
     microscope: Option<&crate::sim::SimParams>,
 ) -> anyhow::Result<Artefact> {
     let frames = &dataset.dataset()?.frames;
-    let progress = crate::progress::bar(frames.n as u64, &step.name);
+    let progress = crate::progress::bar(frames.n as u64, &step.name());
     let predictions = match &detector.spec {
         DetectorSpec::CrockerGrier(params) => {
             let features = crate::detect::crocker_grier::locate_stack(frames, params, &progress)
@@ -238,7 +238,7 @@ fn score(
         metrics.keep_curves,
         reading,
     )
-    .with_context(|| format!("scoring {}", step.name))?;
+    .with_context(|| format!("scoring {}", step.name()))?;
     Ok(Artefact::Evaluation(Arc::new(score)))
 }
 

@@ -21,8 +21,9 @@ use serde_json::json;
 
 use super::{RunOptions, RunOutcome, execute, plan::Plan};
 use crate::error::input_error;
-use crate::manifest::{CrossValidation, DatasetSpec, DetectorEntry, Manifest, derive_seed};
+use crate::manifest::{CrossValidation, DatasetSpec, DetectorEntry, Manifest};
 use crate::registry::{AucRow, CrossValidationPlan, Registry, RunKind};
+use crate::types::derive_seed;
 
 /// Mean and spread of one (dataset, ε) cell over the folds.
 #[derive(Debug, Clone, Serialize)]

@@ -38,7 +38,7 @@ pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> Artefac
             _,
         ) => ArtefactDetails::Model {
             detector: detector.name.clone(),
-            detector_kind: detector.spec.kind().to_string(),
+            detector_kind: detector.spec.kind(),
             training_dataset_key: plan.steps[*training].key.clone(),
             seed: detector.seed,
         },

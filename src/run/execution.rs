@@ -16,7 +16,7 @@ use crate::metrics::Score;
 use crate::metrics::scenes::EmptyFrames;
 use crate::registry::hashing::sha256_hex;
 use crate::registry::{
-    AucRow, BlobRef, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
+    AucRow, BlobRef, BlobRole, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
 };
 
 /// How often a run waiting for another's step looks again.
@@ -203,8 +203,8 @@ impl Execution {
             }
             let row = NewArtefact {
                 key: step.key.clone(),
-                kind: step.kind,
-                name: step.name.clone(),
+                kind: step.kind(),
+                name: step.name(),
                 spec: step.spec.clone(),
                 code_version: step.code_version.clone(),
                 run_id: Some(self.run_id.clone()),
@@ -279,7 +279,7 @@ impl Execution {
         let record = StepRecord {
             ordinal: index,
             step: step.id.clone(),
-            kind: step.kind,
+            kind: step.kind(),
             artefact_key: step.key.clone(),
             outcome: done.outcome,
             // A cached step's time is the re-hashing of its blobs.
@@ -294,11 +294,11 @@ impl Execution {
 }
 
 /// The blob references of encoded blobs: (role, sha256), in the same order.
-fn blob_refs(encoded: &[(String, Vec<u8>)]) -> Vec<BlobRef> {
+fn blob_refs(encoded: &[(BlobRole, Vec<u8>)]) -> Vec<BlobRef> {
     encoded
         .iter()
         .map(|(role, bytes)| BlobRef {
-            role: role.clone(),
+            role: *role,
             sha256: sha256_hex(bytes),
         })
         .collect()

@@ -23,6 +23,7 @@ pub mod plan;
 pub mod reproduce;
 mod stored;
 pub mod table;
+pub mod test_sets;
 
 use std::io::IsTerminal;
 use std::time::Instant;
@@ -177,12 +178,12 @@ fn refuse_work_on_read_only(registry: &Registry, plan: &Plan, force: bool) -> an
         )));
     }
     let stored = stored::check_stored_artefacts(registry, plan)?;
-    let missing: Vec<&str> = plan
+    let missing: Vec<&crate::registry::StepId> = plan
         .steps
         .iter()
         .zip(&stored)
         .filter(|(_, stored)| !matches!(stored, stored::Stored::Intact(..)))
-        .map(|(step, _)| step.id.as_str())
+        .map(|(step, _)| &step.id)
         .collect();
     if let Some(first) = missing.first() {
         return Err(crate::error::input_error(format!(

@@ -22,8 +22,8 @@ use serde_json::json;
 use super::artefacts::FORMAT_VERSION;
 use crate::manifest::{DatasetSpec, DetectorEntry, Manifest, MetricsSpec};
 use crate::metrics::ScoreReading;
-use crate::registry::ArtefactKind;
 use crate::registry::hashing::{canonical_json, content_key};
+use crate::registry::{ArtefactKind, StepId};
 use crate::sim::GENERATOR_VERSION;
 
 /// Version of the frame-subset step (cross-validation folds).
@@ -78,10 +78,7 @@ pub enum Action {
 #[derive(Debug, Clone)]
 pub struct Step {
     /// `dataset/train`, `model/cnn`, `predictions/trackpy@test-1.00`, …
-    pub id: String,
-    pub kind: ArtefactKind,
-    /// The artefact's name: `train`, `cnn`, `trackpy@test-1.00`.
-    pub name: String,
+    pub id: StepId,
     /// sha256 of [`Step::spec`].
     pub key: String,
     /// The canonical JSON description the key is the hash of.
@@ -94,6 +91,16 @@ pub struct Step {
 }
 
 impl Step {
+    /// The kind of artefact the step makes.
+    pub fn kind(&self) -> ArtefactKind {
+        self.id.kind()
+    }
+
+    /// The artefact's name: `train`, `cnn`, `trackpy@test-1.00`.
+    pub fn name(&self) -> String {
+        self.id.name()
+    }
+
     /// Indices of the steps whose artefacts this one reads.
     pub fn inputs(&self) -> Vec<usize> {
         match &self.action {
@@ -125,9 +132,7 @@ pub struct Plan {
 }
 
 fn make_step(
-    id: String,
-    kind: ArtefactKind,
-    name: String,
+    id: StepId,
     code_version: String,
     seed: Option<u64>,
     description: &impl Serialize,
@@ -137,8 +142,6 @@ fn make_step(
         key: content_key(description)?,
         spec: canonical_json(description)?,
         id,
-        kind,
-        name,
         code_version,
         seed,
         action,
@@ -157,8 +160,8 @@ impl Plan {
     }
 
     /// The index of the step with id `id`.
-    pub fn index_of(&self, id: &str) -> Option<usize> {
-        self.steps.iter().position(|s| s.id == id)
+    pub fn index_of(&self, id: &StepId) -> Option<usize> {
+        self.steps.iter().position(|s| s.id == *id)
     }
 
     /// Adds the step that simulates `dataset`.
@@ -172,9 +175,7 @@ impl Plan {
             "seed": dataset.seed,
         });
         let step = make_step(
-            format!("dataset/{}", dataset.name),
-            ArtefactKind::Dataset,
-            dataset.name.clone(),
+            StepId::Dataset(dataset.name.clone()),
             code_version,
             Some(dataset.seed),
             &description,
@@ -212,9 +213,7 @@ impl Plan {
             "chosen_by": description,
         });
         let step = make_step(
-            format!("dataset/{name}"),
-            ArtefactKind::Dataset,
-            name.to_string(),
+            StepId::Dataset(name.to_string()),
             code_version,
             None,
             &spec,
@@ -257,9 +256,7 @@ impl Plan {
             }
         }
         let step = make_step(
-            format!("model/{}", detector.name),
-            ArtefactKind::Model,
-            detector.name.clone(),
+            StepId::Model(detector.name.clone()),
             code_version,
             Some(detector.seed),
             &description,
@@ -295,11 +292,12 @@ impl Plan {
         if let Some(seed) = seed {
             description["seed"] = json!(seed);
         }
-        let name = format!("{}@{}", detector.name, dataset_step.name);
+        let id = StepId::Predictions {
+            detector: detector.name.clone(),
+            dataset: dataset_step.name(),
+        };
         let step = make_step(
-            format!("predictions/{name}"),
-            ArtefactKind::Predictions,
-            name,
+            id,
             code_version,
             seed,
             &description,
@@ -334,12 +332,13 @@ impl Plan {
             "metric": {"eps_px": metrics.eps_px, "keep_curves": metrics.keep_curves},
             "reading": reading,
         });
-        let dataset_name = self.steps[dataset].name.clone();
-        let name = format!("{detector}@{dataset_name}");
+        let dataset_name = self.steps[dataset].name();
+        let id = StepId::Evaluation {
+            detector: detector.to_string(),
+            dataset: dataset_name.clone(),
+        };
         let step = make_step(
-            format!("evaluation/{name}"),
-            ArtefactKind::Evaluation,
-            name,
+            id,
             code_version,
             None,
             &description,
@@ -411,7 +410,7 @@ impl Plan {
     pub fn seeds(&self) -> BTreeMap<String, String> {
         self.steps
             .iter()
-            .filter_map(|s| s.seed.map(|seed| (s.id.clone(), seed.to_string())))
+            .filter_map(|s| s.seed.map(|seed| (s.id.to_string(), seed.to_string())))
             .collect()
     }
 }

@@ -8,7 +8,7 @@
 //! and reproduced values, bit for bit. Where an evaluation's blob differs,
 //! the numbers inside it are compared one by one.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
@@ -20,24 +20,53 @@ use crate::error::CheckFailed;
 use crate::manifest;
 use crate::registry::diff::flatten;
 use crate::registry::{
-    BlobState, Registry, RunKind, RunRecord, RunStart, RunStatus, StepCounts, StepRecord,
+    AucRow, BlobRef, BlobRole, BlobState, Registry, RunKind, RunRecord, RunStart, RunStatus,
+    StepCounts, StepId, StepRecord,
 };
 
 /// One blob of one artefact, three ways.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BlobComparison {
-    pub role: String,
+    pub role: BlobRole,
     pub recorded: Option<String>,
-    /// `intact`, `missing`, or `damaged (hashes to …)`.
-    pub stored: String,
+    /// `intact`, `missing`, or `damaged (hashes to …)`; `-` if not recorded.
+    pub stored: StoredBlob,
     pub reproduced: Option<String>,
     pub identical: bool,
+}
+
+/// How a recorded blob stands in the main registry now. Written as text:
+/// `intact`, `missing`, `damaged (hashes to …)`, or `-` for a blob the
+/// run did not record.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StoredBlob {
+    NotRecorded,
+    Checked(BlobState),
+}
+
+impl std::fmt::Display for StoredBlob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            StoredBlob::NotRecorded => f.pad("-"),
+            StoredBlob::Checked(BlobState::Intact) => f.pad("intact"),
+            StoredBlob::Checked(BlobState::Missing) => f.pad("missing"),
+            StoredBlob::Checked(BlobState::Damaged { actual }) => {
+                f.pad(&format!("damaged (hashes to {actual})"))
+            }
+        }
+    }
+}
+
+impl Serialize for StoredBlob {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_str(self)
+    }
 }
 
 /// One artefact of the run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ArtefactComparison {
-    pub step: String,
+    pub step: StepId,
     pub recorded_key: Option<String>,
     pub reproduced_key: Option<String>,
     pub blobs: Vec<BlobComparison>,
@@ -182,22 +211,7 @@ pub fn reproduce(
             "the manifest recorded by run {run_id} no longer parses with this scanloc: {e:#}"
         )))
     })?;
-    let mut notes = Vec::new();
-    let current = crate::registry::CodeVersion::current();
-    for (field, recorded, now) in [
-        (
-            "crate_version",
-            &record.code.crate_version,
-            &current.crate_version,
-        ),
-        ("git_commit", &record.code.git_commit, &current.git_commit),
-        ("git_dirty", &record.code.git_dirty, &current.git_dirty),
-        ("rustc", &record.code.rustc, &current.rustc),
-    ] {
-        if recorded != now {
-            notes.push(format!("{field}: recorded {recorded}, now {now}"));
-        }
-    }
+    let mut notes = code_notes(&record);
     refuse_incomplete(&record)?;
     let recorded_done = record.status == RunStatus::Done;
     if !recorded_done {
@@ -209,90 +223,108 @@ pub fn reproduce(
     if record.kind == RunKind::Reproduce {
         notes.push("the recorded run is itself a reproduction".into());
     }
+    let (fresh, outcome) = re_execute(&record, &manifest, scratch)?;
+    let artefacts = compare_artefacts(registry, &fresh, &record, &outcome)?;
+    let auc = compare_auc(&record.auc, &outcome.auc, recorded_done);
+    // Identical exactly when every line the report prints says so.
+    let identical = artefacts.iter().all(|a| a.identical) && auc.iter().all(|c| c.identical);
+    let reproduction_run = record_reproduction(
+        registry, &record, &manifest, source, &outcome, &artefacts, identical,
+    )?;
+    Ok(ReproduceReport {
+        run: run_id.to_string(),
+        reproduction_run,
+        scratch: scratch.display().to_string(),
+        identical,
+        artefacts,
+        auc,
+        notes,
+    })
+}
 
+/// Where the code that recorded the run differs from this one (not a
+/// failure by itself).
+fn code_notes(record: &RunRecord) -> Vec<String> {
+    let current = crate::registry::CodeVersion::current();
+    [
+        (
+            "crate_version",
+            &record.code.crate_version,
+            &current.crate_version,
+        ),
+        ("git_commit", &record.code.git_commit, &current.git_commit),
+        ("git_dirty", &record.code.git_dirty, &current.git_dirty),
+        ("rustc", &record.code.rustc, &current.rustc),
+    ]
+    .into_iter()
+    .filter(|(_, recorded, now)| recorded != now)
+    .map(|(field, recorded, now)| format!("{field}: recorded {recorded}, now {now}"))
+    .collect()
+}
+
+/// Runs the recorded run's plan again in a new registry in `scratch`.
+fn re_execute(
+    record: &RunRecord,
+    manifest: &manifest::Manifest,
+    scratch: &Path,
+) -> anyhow::Result<(Registry, super::RunOutcome)> {
     if scratch.join(crate::registry::DATABASE_FILE).exists() {
         return Err(crate::error::input_error(format!(
             "{}: already holds a registry; reproduce needs an empty scratch folder",
             scratch.display()
         )));
     }
-    let plan = recorded_plan(&record, &manifest)?;
+    let plan = recorded_plan(record, manifest)?;
     let mut fresh = Registry::open(scratch)?;
     let outcome = super::execute(
         &mut fresh,
-        &manifest,
+        manifest,
         &plan,
         &RunOptions {
             kind: RunKind::Reproduce,
-            parent_run: Some(run_id.to_string()),
+            parent_run: Some(record.id.clone()),
             force: false,
             cross_validation: None,
         },
     )
     .context("re-executing the run in the scratch registry")?;
+    Ok((fresh, outcome))
+}
 
-    let reproduced: BTreeMap<&str, &StepRecord> =
-        outcome.steps.iter().map(|s| (s.step.as_str(), s)).collect();
+/// Every recorded step's artefact against its reproduction, blob by blob.
+fn compare_artefacts(
+    registry: &Registry,
+    fresh: &Registry,
+    record: &RunRecord,
+    outcome: &super::RunOutcome,
+) -> anyhow::Result<Vec<ArtefactComparison>> {
+    let reproduced: HashMap<&StepId, &StepRecord> =
+        outcome.steps.iter().map(|s| (&s.step, s)).collect();
     let mut artefacts = Vec::new();
     for step in &record.steps {
-        let name = step.step.clone();
         let recorded_key = Some(step.artefact_key.clone());
-        let recorded_blobs = &step.blobs;
-        let ours = reproduced.get(name.as_str());
-        let mut blobs = Vec::new();
-        let mut roles: Vec<String> = recorded_blobs.iter().map(|b| b.role.clone()).collect();
-        if let Some(ours) = ours {
-            for blob in &ours.blobs {
-                if !roles.contains(&blob.role) {
-                    roles.push(blob.role.clone());
-                }
+        let ours = reproduced.get(&step.step).copied();
+        let mut roles: Vec<BlobRole> = step.blobs.iter().map(|b| b.role).collect();
+        for blob in ours.iter().flat_map(|o| &o.blobs) {
+            if !roles.contains(&blob.role) {
+                roles.push(blob.role);
             }
         }
         roles.sort();
+        let mut blobs = Vec::new();
         let mut differing = Vec::new();
         for role in roles {
-            let recorded = recorded_blobs
-                .iter()
-                .find(|b| b.role == role)
-                .map(|b| b.sha256.clone());
-            let reproduced_sha = ours
-                .and_then(|o| o.blobs.iter().find(|b| b.role == role))
-                .map(|b| b.sha256.clone());
-            let stored = match &recorded {
-                None => "-".to_string(),
-                Some(sha) => match registry.blobs().check(sha)? {
-                    BlobState::Intact => "intact".to_string(),
-                    BlobState::Missing => "missing".to_string(),
-                    BlobState::Damaged { actual } => format!("damaged (hashes to {actual})"),
-                },
-            };
-            let identical = recorded.is_some() && recorded == reproduced_sha && stored == "intact";
-            if !identical && role == "score.json" {
-                // Compare the numbers inside: the stored bytes as they are
-                // now (even if altered) against the reproduction.
-                let stored_bytes = recorded
-                    .as_ref()
-                    .and_then(|sha| std::fs::read(registry.blobs().path(sha)).ok());
-                let ours_bytes = reproduced_sha
-                    .as_ref()
-                    .and_then(|sha| fresh.blobs().get(sha).ok().and_then(|r| r.ok()));
-                if let (Some(a), Some(b)) = (stored_bytes, ours_bytes) {
-                    differing.extend(differing_numbers(&a, &b, 20));
-                }
+            let blob = compare_blob(registry, role, &step.blobs, ours)?;
+            if !blob.identical && role == BlobRole::Score {
+                differing.extend(differing_scores(registry, fresh, &blob));
             }
-            blobs.push(BlobComparison {
-                role,
-                recorded,
-                stored,
-                reproduced: reproduced_sha,
-                identical,
-            });
+            blobs.push(blob);
         }
         let reproduced_key = ours.map(|o| o.artefact_key.clone());
         let identical =
             ours.is_some() && recorded_key == reproduced_key && blobs.iter().all(|b| b.identical);
         artefacts.push(ArtefactComparison {
-            step: name,
+            step: step.step.clone(),
             recorded_key,
             reproduced_key,
             blobs,
@@ -300,16 +332,71 @@ pub fn reproduce(
             identical,
         });
     }
+    Ok(artefacts)
+}
 
-    let mut auc = Vec::new();
-    let recorded_auc = &record.auc;
-    let mut cells: Vec<(String, String, f64)> = recorded_auc
+/// Blob `role` as recorded (`recorded`), as stored now (re-hashed) and as
+/// reproduced (`ours`).
+fn compare_blob(
+    registry: &Registry,
+    role: BlobRole,
+    recorded: &[BlobRef],
+    ours: Option<&StepRecord>,
+) -> anyhow::Result<BlobComparison> {
+    let recorded = recorded
+        .iter()
+        .find(|b| b.role == role)
+        .map(|b| b.sha256.clone());
+    let reproduced = ours
+        .and_then(|o| o.blobs.iter().find(|b| b.role == role))
+        .map(|b| b.sha256.clone());
+    let stored = match &recorded {
+        None => StoredBlob::NotRecorded,
+        Some(sha) => StoredBlob::Checked(registry.blobs().check(sha)?),
+    };
+    let identical = recorded.is_some()
+        && recorded == reproduced
+        && stored == StoredBlob::Checked(BlobState::Intact);
+    Ok(BlobComparison {
+        role,
+        recorded,
+        stored,
+        reproduced,
+        identical,
+    })
+}
+
+/// The numbers that differ inside a score blob: the stored bytes as they
+/// are now (even if altered) against the reproduction.
+fn differing_scores(registry: &Registry, fresh: &Registry, blob: &BlobComparison) -> Vec<String> {
+    let stored_bytes = blob
+        .recorded
+        .as_ref()
+        .and_then(|sha| std::fs::read(registry.blobs().path(sha)).ok());
+    let ours_bytes = blob
+        .reproduced
+        .as_ref()
+        .and_then(|sha| fresh.blobs().get(sha).ok().and_then(|r| r.ok()));
+    match (stored_bytes, ours_bytes) {
+        (Some(a), Some(b)) => differing_numbers(&a, &b, 20),
+        _ => Vec::new(),
+    }
+}
+
+/// Every AUC cell recorded (and, for a run that finished, every cell
+/// reproduced), compared bit for bit.
+fn compare_auc(
+    recorded: &[AucRow],
+    reproduced: &[AucRow],
+    recorded_done: bool,
+) -> Vec<NumberComparison> {
+    let mut cells: Vec<(String, String, f64)> = recorded
         .iter()
         .map(|row| (row.detector.clone(), row.dataset.clone(), row.eps_px))
         .collect();
     // A run that failed recorded no AUC table: there is nothing to compare
     // the reproduced values with, which is not a difference.
-    for row in outcome.auc.iter().filter(|_| recorded_done) {
+    for row in reproduced.iter().filter(|_| recorded_done) {
         if !cells
             .iter()
             .any(|(d, s, e)| *d == row.detector && *s == row.dataset && *e == row.eps_px)
@@ -317,38 +404,51 @@ pub fn reproduce(
             cells.push((row.detector.clone(), row.dataset.clone(), row.eps_px));
         }
     }
-    for (detector, dataset, eps_px) in cells {
-        let recorded = recorded_auc
-            .iter()
+    let value = |rows: &[AucRow], detector: &str, dataset: &str, eps_px: f64| {
+        rows.iter()
             .find(|r| r.detector == detector && r.dataset == dataset && r.eps_px == eps_px)
-            .map(|r| r.auc);
-        let reproduced_value = outcome
-            .auc
-            .iter()
-            .find(|r| r.detector == detector && r.dataset == dataset && r.eps_px == eps_px)
-            .map(|r| r.auc);
-        let identical = matches!((recorded, reproduced_value), (Some(a), Some(b)) if a.to_bits() == b.to_bits());
-        auc.push(NumberComparison {
-            detector,
-            dataset,
-            eps_px,
-            recorded,
-            reproduced: reproduced_value,
-            identical,
-        });
-    }
-    // Identical exactly when every line the report prints says so.
-    let identical = artefacts.iter().all(|a| a.identical) && auc.iter().all(|c| c.identical);
+            .map(|r| r.auc)
+    };
+    cells
+        .into_iter()
+        .map(|(detector, dataset, eps_px)| {
+            let recorded = value(recorded, &detector, &dataset, eps_px);
+            let reproduced = value(reproduced, &detector, &dataset, eps_px);
+            let identical =
+                matches!((recorded, reproduced), (Some(a), Some(b)) if a.to_bits() == b.to_bits());
+            NumberComparison {
+                detector,
+                dataset,
+                eps_px,
+                recorded,
+                reproduced,
+                identical,
+            }
+        })
+        .collect()
+}
 
-    // Record the reproduction in the main registry.
+/// Records the reproduction in the main registry: a run of kind
+/// `reproduce`, done if everything is `identical`, failed otherwise, with
+/// the reproduced AUC table. Returns its id.
+fn record_reproduction(
+    registry: &mut Registry,
+    record: &RunRecord,
+    manifest: &manifest::Manifest,
+    source: String,
+    outcome: &super::RunOutcome,
+    artefacts: &[ArtefactComparison],
+    identical: bool,
+) -> anyhow::Result<String> {
+    let run_id = &record.id;
     let reproduction_run = super::new_run_id();
     let summary = if identical {
         None
     } else {
-        let differing: Vec<&str> = artefacts
+        let differing: Vec<String> = artefacts
             .iter()
             .filter(|a| !a.identical)
-            .map(|a| a.step.as_str())
+            .map(|a| a.step.to_string())
             .collect();
         Some(format!(
             "reproduction of {run_id} differs: {}",
@@ -386,15 +486,7 @@ pub fn reproduce(
         },
         &outcome.auc,
     )?;
-    Ok(ReproduceReport {
-        run: run_id.to_string(),
-        reproduction_run,
-        scratch: scratch.display().to_string(),
-        identical,
-        artefacts,
-        auc,
-        notes,
-    })
+    Ok(reproduction_run)
 }
 
 /// Refuses (as bad input) a run that has no complete record to compare

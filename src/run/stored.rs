@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::artefacts::{self, Artefact};
 use super::plan::Plan;
-use crate::registry::{ArtefactKind, BlobRef, BlobState, BlobStore, Registry};
+use crate::registry::{ArtefactKind, BlobRef, BlobRole, BlobState, BlobStore, Registry};
 
 /// What a step's stored artefact looked like when its blobs were checked.
 pub(super) enum Stored {
@@ -84,11 +84,11 @@ fn check_blobs(store: &BlobStore, blobs: Vec<BlobRef>) -> anyhow::Result<Stored>
 pub fn read_blobs(
     registry: &Registry,
     blobs: &[BlobRef],
-) -> anyhow::Result<Vec<(String, Vec<u8>)>> {
+) -> anyhow::Result<Vec<(BlobRole, Vec<u8>)>> {
     blobs
         .iter()
         .map(|blob| match registry.blobs().get(&blob.sha256)? {
-            Ok(bytes) => Ok((blob.role.clone(), bytes)),
+            Ok(bytes) => Ok((blob.role, bytes)),
             Err(state) => anyhow::bail!(
                 "{} blob {} ({}) is {:?}; it will be rebuilt by the next run",
                 blob.role,
@@ -124,11 +124,11 @@ pub(super) fn load_step_artefact(
         .with_context(|| format!("{} ({}) is not in the registry", step.id, step.key))?;
     let blobs =
         read_blobs(registry, &stored.blobs).with_context(|| format!("reading {}", step.id))?;
-    decode(step.kind, blobs)
+    decode(step.kind(), blobs)
 }
 
 /// An artefact of kind `kind` from its blobs.
-fn decode(kind: ArtefactKind, blobs: Vec<(String, Vec<u8>)>) -> anyhow::Result<Artefact> {
+fn decode(kind: ArtefactKind, blobs: Vec<(BlobRole, Vec<u8>)>) -> anyhow::Result<Artefact> {
     Ok(match kind {
         ArtefactKind::Dataset => Artefact::Dataset(Arc::new(artefacts::decode_dataset(&blobs)?)),
         ArtefactKind::Model => Artefact::Model(Arc::new(

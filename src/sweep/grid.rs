@@ -18,10 +18,17 @@
 //! validated like any manifest, so a value the manifest refuses is reported
 //! with the axis and value that made it.
 
+use std::sync::Arc;
+
+use serde_json::json;
 use serde_yaml::{Mapping, Value};
 
+use super::SweepSpec;
+use super::front_end::{Finished, FrontEnd};
 use crate::error::input_error;
 use crate::manifest::{self, Manifest};
+use crate::registry::{Registry, RunKind};
+use crate::run::{Plan, RunOptions};
 
 /// One axis of the grid.
 #[derive(Debug, Clone, PartialEq)]
@@ -277,6 +284,72 @@ fn get_path_mut<'a>(document: &'a mut Value, path: &[String]) -> &'a mut Value {
         rest = &rest[taken..];
     }
     node
+}
+
+/// `scanloc sweep run` as a sweep: a point per cell of the manifest's
+/// grid; the aggregation lists each finished point's AUC rows.
+pub struct GridSweep;
+
+impl FrontEnd for GridSweep {
+    fn name(&self) -> &'static str {
+        "grid"
+    }
+
+    fn points(&self, _base: &Arc<Manifest>, spec: &SweepSpec) -> anyhow::Result<Vec<super::Point>> {
+        let axes = axes(&spec.manifest_text, &spec.manifest_path)?;
+        if axes.is_empty() {
+            return Err(input_error(format!(
+                "{}: no sweep block: `scanloc sweep run` needs `sweep:` axes (see docs/cluster.md)",
+                spec.manifest_path
+            )));
+        }
+        points(&spec.manifest_text, &spec.manifest_path, &axes)?
+            .into_iter()
+            .enumerate()
+            .map(|(index, point)| {
+                Ok(super::Point {
+                    index,
+                    label: point.label,
+                    plan: Plan::from_manifest(&point.manifest)?,
+                    manifest: Arc::new(point.manifest),
+                    run: RunOptions {
+                        kind: RunKind::Sweep,
+                        ..RunOptions::default()
+                    },
+                })
+            })
+            .collect()
+    }
+
+    fn aggregate(
+        &self,
+        registry: &mut Registry,
+        sweep: &Finished<'_>,
+    ) -> anyhow::Result<(String, serde_json::Value)> {
+        let file = sweep.file;
+        let mut text = format!("sweep {} of {}\n", file.id, file.spec.manifest_path);
+        let mut rows = Vec::new();
+        for point in sweep.done() {
+            let auc = super::point_auc(registry, point)?;
+            text.push_str(&format!("{}\n", point.label));
+            for row in &auc {
+                text.push_str(&format!(
+                    "  {:<12} {:<16} ε={:<4} AUC {:.4}\n",
+                    row.detector, row.dataset, row.eps_px, row.auc
+                ));
+            }
+            rows.push(json!({
+                "point": point.index,
+                "label": point.label,
+                "run": sweep.states[point.index].run,
+                "auc": auc,
+            }));
+        }
+        Ok((
+            text,
+            json!({"sweep": file.id, "grid": rows, "points": sweep.states}),
+        ))
+    }
 }
 
 #[cfg(test)]

@@ -2,7 +2,10 @@
 //! one aggregation step that prints and records the table. Three front
 //! ends share it: `scanloc cv` (a point per fold), `scanloc calibrate` (a
 //! point per brightness) and `scanloc sweep run` (a point per cell of the
-//! manifest's `sweep:` grid, see [`grid`]).
+//! manifest's `sweep:` grid, see [`grid`]). Each implements
+//! [`FrontEnd`] in its own file ([`cv`], [`calibrate`], [`grid`]): its
+//! points and its aggregation's table and JSON; the engine here runs
+//! points and collects their states without knowing which front end it runs.
 //!
 //! Executors ([`Executor`]): `local` runs the points on this machine, one
 //! after another in this process or in `--jobs N` processes writing into the
@@ -20,8 +23,12 @@
 //! submitted again finds the same folder and the registry's cache, and
 //! runs only its missing points.
 
+pub mod calibrate;
+pub mod cv;
+pub mod front_end;
 pub mod grid;
 pub mod slurm;
+pub mod state;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -35,10 +42,11 @@ use crate::error::{CheckFailed, input_error};
 use crate::manifest::{self, Manifest};
 use crate::registry::hashing::{canonical_json, sha256_hex};
 use crate::registry::shard::{self, Selection};
-use crate::registry::{AucRow, CrossValidationPlan, Registry, RunKind, utc_now};
-use crate::run::calibrate::{self, CalibrationPoint};
-use crate::run::cross_validation::{self, CrossValidationOutcome};
+use crate::registry::{AucRow, Registry, RunStatus, utc_now};
 use crate::run::{Action, Plan, RunOptions, RunOutcome, execute, load_artefact, score_rows};
+use front_end::Finished;
+pub use front_end::FrontEnd;
+pub use state::PointStatus;
 
 /// The folder of a registry that holds its sweeps.
 pub const SWEEPS_DIR: &str = "sweeps";
@@ -62,25 +70,6 @@ pub enum SweepKind {
     Grid,
 }
 
-impl SweepKind {
-    fn name(&self) -> &'static str {
-        match self {
-            SweepKind::Cv { .. } => "cv",
-            SweepKind::Calibrate { .. } => "calibrate",
-            SweepKind::Grid => "grid",
-        }
-    }
-
-    /// The kind each point's run is recorded with.
-    fn run_kind(&self) -> RunKind {
-        match self {
-            SweepKind::Cv { .. } => RunKind::Cv,
-            SweepKind::Calibrate { .. } => RunKind::Calibrate,
-            SweepKind::Grid => RunKind::Sweep,
-        }
-    }
-}
-
 /// A sweep: its front end and the manifest it sweeps over.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SweepSpec {
@@ -99,7 +88,7 @@ impl SweepSpec {
         let hash = sha256_hex(
             canonical_json(&json!({"kind": self.kind, "manifest": self.manifest_text}))?.as_bytes(),
         );
-        Ok(format!("{}-{}", self.kind.name(), &hash[..12]))
+        Ok(format!("{}-{}", self.kind.front_end().name(), &hash[..12]))
     }
 }
 
@@ -111,90 +100,23 @@ pub struct Point {
     pub label: String,
     pub manifest: Arc<Manifest>,
     pub plan: Plan,
-    /// The brightness of a calibration point.
-    pub brightness: Option<f64>,
-    /// The fold of a cross-validation point (recorded with its run).
-    pub cross_validation: Option<CrossValidationPlan>,
+    /// How its run is recorded (kind, and a cross-validation's fold);
+    /// `force` is the command's.
+    pub run: RunOptions,
 }
 
 /// The points of `spec`, with the manifest they come from. Bad input
 /// (manifest, detector, folds, grid) is reported here, before anything runs.
 pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
     let base = Arc::new(manifest::parse(&spec.manifest_text, &spec.manifest_path)?);
-    let points = match &spec.kind {
-        SweepKind::Cv { detector, folds } => {
-            // The whole plan checks the detector and fold count once.
-            cross_validation::plan(&base, &whole_cv(detector, *folds))?;
-            (1..=*folds)
-                .map(|fold| {
-                    let cv = CrossValidationPlan {
-                        fold: Some(fold),
-                        ..whole_cv(detector, *folds)
-                    };
-                    Ok(Point {
-                        index: fold - 1,
-                        label: format!("fold {fold}"),
-                        manifest: base.clone(),
-                        plan: cross_validation::plan(&base, &cv)?,
-                        brightness: None,
-                        cross_validation: Some(cv),
-                    })
-                })
-                .collect::<anyhow::Result<_>>()?
-        }
-        SweepKind::Calibrate {
-            detector,
-            brightness,
-        } => {
-            calibrate::reference_row(&base, detector, brightness)?;
-            brightness
-                .iter()
-                .enumerate()
-                .map(|(index, &b)| {
-                    let manifest = calibrate::restricted(&base, detector, b);
-                    Ok(Point {
-                        index,
-                        label: format!("N_qd={b}"),
-                        plan: Plan::from_manifest(&manifest)?,
-                        manifest: Arc::new(manifest),
-                        brightness: Some(b),
-                        cross_validation: None,
-                    })
-                })
-                .collect::<anyhow::Result<_>>()?
-        }
-        SweepKind::Grid => {
-            let axes = grid::axes(&spec.manifest_text, &spec.manifest_path)?;
-            if axes.is_empty() {
-                return Err(input_error(format!(
-                    "{}: no sweep block: `scanloc sweep run` needs `sweep:` axes (see docs/cluster.md)",
-                    spec.manifest_path
-                )));
-            }
-            grid::points(&spec.manifest_text, &spec.manifest_path, &axes)?
-                .into_iter()
-                .enumerate()
-                .map(|(index, point)| {
-                    Ok(Point {
-                        index,
-                        label: point.label,
-                        plan: Plan::from_manifest(&point.manifest)?,
-                        manifest: Arc::new(point.manifest),
-                        brightness: None,
-                        cross_validation: None,
-                    })
-                })
-                .collect::<anyhow::Result<_>>()?
-        }
-    };
+    let points = spec.kind.front_end().points(&base, spec)?;
     Ok((base, points))
 }
 
-/// Runs point `point` of a sweep of kind `kind` into `registry`, recorded
-/// as a run of the point's kind (`cv`, `calibrate`, `sweep`).
+/// Runs point `point` of a sweep into `registry`, recorded as its front
+/// end says (a run of kind `cv`, `calibrate` or `sweep`).
 pub fn run_point(
     registry: &mut Registry,
-    kind: &SweepKind,
     point: &Point,
     force: bool,
 ) -> anyhow::Result<RunOutcome> {
@@ -204,20 +126,9 @@ pub fn run_point(
         &point.plan,
         &RunOptions {
             force,
-            kind: kind.run_kind(),
-            parent_run: None,
-            cross_validation: point.cross_validation.clone(),
+            ..point.run.clone()
         },
     )
-}
-
-/// The plan of a whole cross-validation of `detector` with `folds` folds.
-fn whole_cv(detector: &str, folds: usize) -> CrossValidationPlan {
-    CrossValidationPlan {
-        detector: detector.to_string(),
-        folds,
-        fold: None,
-    }
 }
 
 /// Whether every artefact of `point` is stored in `registry` (rows only:
@@ -381,7 +292,7 @@ pub struct PointState {
     /// (never ran, or its results are lost), or a Slurm state while queued
     /// or running (`pending`, `running`), or `in shard` (finished, not yet
     /// imported).
-    pub status: String,
+    pub status: PointStatus,
     /// The run that computed it, when known.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub run: Option<String>,
@@ -413,7 +324,7 @@ pub struct SweepResult {
 impl SweepResult {
     /// The points that did not finish.
     pub fn failed(&self) -> Vec<&PointState> {
-        self.points.iter().filter(|p| p.status != "done").collect()
+        self.points.iter().filter(|p| !p.status.is_done()).collect()
     }
 
     /// The failures as an error for the exit code (1), or `Ok` if every
@@ -433,7 +344,7 @@ impl SweepResult {
                 .map(|p| format!(
                     "{} ({}{})",
                     p.label,
-                    p.error.as_deref().unwrap_or(&p.status),
+                    p.error.clone().unwrap_or_else(|| p.status.to_string()),
                     p.log
                         .as_ref()
                         .map(|l| format!(", log {l}"))
@@ -460,7 +371,7 @@ pub fn run(
             let mut states = Vec::new();
             if *jobs <= 1 {
                 for point in &points {
-                    states.push(match run_point(registry, &spec.kind, point, force) {
+                    states.push(match run_point(registry, point, force) {
                         Ok(outcome) => state_of_run(point, &outcome),
                         Err(error) => {
                             // Input errors stop the sweep; a point that fails
@@ -493,7 +404,7 @@ fn state_of_run(point: &Point, outcome: &RunOutcome) -> PointState {
     PointState {
         index: point.index,
         label: point.label.clone(),
-        status: "done".to_string(),
+        status: PointStatus::DONE,
         run: Some(outcome.run.clone()),
         error: None,
         log: None,
@@ -506,7 +417,7 @@ fn failed_state(point: &Point, error: String, log: Option<&Path>) -> PointState 
     PointState {
         index: point.index,
         label: point.label.clone(),
-        status: "failed".to_string(),
+        status: PointStatus::FAILED,
         run: None,
         error: Some(error),
         log: log.map(|l| l.display().to_string()),
@@ -586,7 +497,7 @@ fn task_state(log: &Path, point: &Point) -> PointState {
     PointState {
         index: point.index,
         label: point.label.clone(),
-        status: "done".to_string(),
+        status: PointStatus::DONE,
         run: summary.as_ref().map(|s| s.run.clone()),
         error: None,
         log: None,
@@ -649,7 +560,7 @@ pub fn task(dir: &Path, index: usize, direct: bool, force: bool) -> anyhow::Resu
         target.display(),
         crate::registry::host_name()
     );
-    let outcome = run_point(&mut registry, &file.spec.kind, point, force)?;
+    let outcome = run_point(&mut registry, point, force)?;
     Ok(TaskSummary {
         sweep: file.id.clone(),
         point: index,
@@ -699,21 +610,24 @@ pub fn import_shards(
 }
 
 /// The last run recorded in point `index`'s shard: (id, status, error).
-fn shard_run(file: &SweepFile, index: usize) -> Option<(String, String, Option<String>)> {
+/// A status this scanloc does not know reads as no run.
+fn shard_run(file: &SweepFile, index: usize) -> Option<(String, RunStatus, Option<String>)> {
     let conn = shard::open_read_only(&file.shard(index)).ok()?;
-    conn.query_row(
-        "SELECT id, status, error FROM runs ORDER BY started_at DESC, id DESC LIMIT 1",
-        [],
-        |row| Ok((row.get(0)?, row.get(1)?, row.get(2)?)),
-    )
-    .ok()
+    let (id, status, error): (String, String, Option<String>) = conn
+        .query_row(
+            "SELECT id, status, error FROM runs ORDER BY started_at DESC, id DESC LIMIT 1",
+            [],
+            |row| Ok((row.get(0)?, row.get(1)?, row.get(2)?)),
+        )
+        .ok()?;
+    Some((id, RunStatus::parse(&status)?, error))
 }
 
 /// Why point `index` has no result, as its shard tells (read after its
 /// task ended).
 fn shard_failure(file: &SweepFile, index: usize) -> String {
     match shard_run(file, index) {
-        Some((run, status, _)) if status == "running" || status == "unfinished" => format!(
+        Some((run, RunStatus::Running | RunStatus::Unfinished, _)) => format!(
             "run {run} did not finish: its task was killed (time limit, cancellation, preemption or node failure)"
         ),
         Some((run, status, error)) => format!(
@@ -736,146 +650,22 @@ pub fn aggregate(
     points: &[Point],
     known: Option<Vec<PointState>>,
 ) -> anyhow::Result<SweepResult> {
-    let mut states = Vec::new();
-    for point in points {
-        let stored = point_is_stored(registry, point)?;
-        let known = known
-            .as_ref()
-            .and_then(|k| k.iter().find(|s| s.index == point.index).cloned());
-        let state = match (stored, known) {
-            (true, Some(state)) if state.status == "done" => state,
-            // Ran elsewhere (a Slurm task, or earlier): its log says which run.
-            (true, _) => PointState {
-                log: None,
-                ..task_state(&file.log(point.index), point)
-            },
-            (false, Some(state)) if state.status != "done" => state,
-            (false, _) => {
-                let log = file.log(point.index);
-                let log = log.is_file().then_some(log);
-                let error = shard_failure(file, point.index);
-                failed_state(point, error, log.as_deref())
-            }
-        };
-        states.push(state);
-    }
-    let done: Vec<&Point> = points
-        .iter()
-        .filter(|p| states[p.index].status == "done")
-        .collect();
-    let all_done = done.len() == points.len();
-    let (mut text, json) = match &file.spec.kind {
-        SweepKind::Cv { detector, folds } => {
-            if all_done {
-                let cv = whole_cv(detector, *folds);
-                let plan = cross_validation::plan(base, &cv)?;
-                let run = execute(
-                    registry,
-                    base,
-                    &plan,
-                    &RunOptions {
-                        kind: RunKind::Cv,
-                        cross_validation: Some(cv.clone()),
-                        ..RunOptions::default()
-                    },
-                )?;
-                let training_set = cross_validation::training_set(base, detector)?;
-                let outcome = CrossValidationOutcome {
-                    detector: detector.clone(),
-                    folds: *folds,
-                    cells: cross_validation::summarise(&run.auc, &cv, training_set),
-                    run,
-                };
-                let sum = |f: fn(&PointState) -> usize| states.iter().map(f).sum::<usize>();
-                (
-                    cross_validation::render(&outcome),
-                    json!({
-                        "run": outcome.run.run,
-                        "detector": outcome.detector,
-                        "folds": outcome.folds,
-                        "cells": outcome.cells,
-                        "cached_steps": outcome.run.counts.cached + sum(|s| s.cached_steps),
-                        "computed_steps": outcome.run.counts.computed + sum(|s| s.computed_steps),
-                        "sweep": file.id,
-                        "points": states,
-                    }),
-                )
-            } else {
-                (
-                    format!(
-                        "{folds}-fold cross-validation of {detector}: no table, {} of {folds} folds did not finish\n",
-                        folds - done.len()
-                    ),
-                    json!({"sweep": file.id, "detector": detector, "folds": folds, "points": states}),
-                )
-            }
-        }
-        SweepKind::Calibrate { detector, .. } => {
-            let reference = calibrate::reference_row(
-                base,
-                detector,
-                &points
-                    .iter()
-                    .filter_map(|p| p.brightness)
-                    .collect::<Vec<_>>(),
-            )?;
-            let mut scored: Vec<CalibrationPoint> = Vec::new();
-            for point in &done {
-                let auc = point_auc(registry, point)?;
-                let run = states[point.index].run.clone().unwrap_or_default();
-                scored.push(calibrate::score_point(
-                    reference,
-                    point.brightness.unwrap_or(f64::NAN),
-                    run,
-                    &auc,
-                ));
-            }
-            let result = calibrate::conclude(detector, scored);
-            let mut text = format!("{:>10} {:>10} {:>14}  run\n", "N_qd", "SSE", "cells ≤ 0.05");
-            for point in &result.points {
-                text.push_str(&format!(
-                    "{:>10} {:>10.4} {:>11}/{:<2}  {}\n",
-                    point.brightness, point.sse, point.cells_within_0_05, point.cells, point.run
-                ));
-            }
-            text.push_str(&format!(
-                "best N_qd for {}: {}\n",
-                result.detector, result.best_brightness
-            ));
-            let mut json = serde_json::to_value(&result)?;
-            json["sweep"] = json!(file.id);
-            (text, json)
-        }
-        SweepKind::Grid => {
-            let mut text = format!("sweep {} of {}\n", file.id, file.spec.manifest_path);
-            let mut rows = Vec::new();
-            for point in &done {
-                let auc = point_auc(registry, point)?;
-                text.push_str(&format!("{}\n", point.label));
-                for row in &auc {
-                    text.push_str(&format!(
-                        "  {:<12} {:<16} ε={:<4} AUC {:.4}\n",
-                        row.detector, row.dataset, row.eps_px, row.auc
-                    ));
-                }
-                rows.push(json!({
-                    "point": point.index,
-                    "label": point.label,
-                    "run": states[point.index].run,
-                    "auc": auc,
-                }));
-            }
-            (
-                text,
-                json!({"sweep": file.id, "grid": rows, "points": states}),
-            )
-        }
+    let states = point_states(registry, file, points, known)?;
+    let finished = Finished {
+        file,
+        base,
+        points,
+        states: &states,
     };
-    for state in states.iter().filter(|s| s.status != "done") {
+    let (mut text, json) = file.spec.kind.front_end().aggregate(registry, &finished)?;
+    for state in states.iter().filter(|s| !s.status.is_done()) {
         text.push_str(&format!(
             "FAILED {}: {}{}\n",
             state.label,
-            state.error.as_deref().unwrap_or(&state.status),
+            state
+                .error
+                .clone()
+                .unwrap_or_else(|| state.status.to_string()),
             state
                 .log
                 .as_ref()
@@ -896,6 +686,41 @@ pub fn aggregate(
         serde_json::to_string_pretty(&result)?.as_bytes(),
     )?;
     Ok(result)
+}
+
+/// Every point's state, by index: `known` where this process ran it (or
+/// learnt why it failed), else what the registry, the task's log and its
+/// shard tell.
+fn point_states(
+    registry: &Registry,
+    file: &SweepFile,
+    points: &[Point],
+    known: Option<Vec<PointState>>,
+) -> anyhow::Result<Vec<PointState>> {
+    let mut states = Vec::new();
+    for point in points {
+        let stored = point_is_stored(registry, point)?;
+        let known = known
+            .as_ref()
+            .and_then(|k| k.iter().find(|s| s.index == point.index).cloned());
+        let state = match (stored, known) {
+            (true, Some(state)) if state.status.is_done() => state,
+            // Ran elsewhere (a Slurm task, or earlier): its log says which run.
+            (true, _) => PointState {
+                log: None,
+                ..task_state(&file.log(point.index), point)
+            },
+            (false, Some(state)) if !state.status.is_done() => state,
+            (false, _) => {
+                let log = file.log(point.index);
+                let log = log.is_file().then_some(log);
+                let error = shard_failure(file, point.index);
+                failed_state(point, error, log.as_deref())
+            }
+        };
+        states.push(state);
+    }
+    Ok(states)
 }
 
 /// The aggregation step of a sweep folder (what the Slurm aggregation job

@@ -24,12 +24,12 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    Point, PointState, RESULT_FILE, SweepFile, SweepResult, aggregate, import_and_aggregate,
-    import_shards, point_is_stored, shard_failure, shard_run,
+    Point, PointState, PointStatus, RESULT_FILE, SweepFile, SweepResult, aggregate,
+    import_and_aggregate, import_shards, point_is_stored, shard_failure, shard_run,
 };
 use crate::error::input_error;
 use crate::manifest::Manifest;
-use crate::registry::{Registry, utc_now};
+use crate::registry::{Registry, RunStatus, utc_now};
 
 /// Options of `--executor slurm`.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -259,19 +259,7 @@ pub fn submit(
     options: &SlurmOptions,
 ) -> anyhow::Result<(SweepFile, Option<SweepResult>)> {
     check_options(options)?;
-    if let Some(last) = file.submissions.last() {
-        for job in [&last.array_job, &last.aggregate_job] {
-            if let Some(records) = job_states(job)?
-                && records.iter().any(|r| !is_terminal(&r.state))
-            {
-                return Err(input_error(format!(
-                    "sweep {}: job {job} of its last submission is still queued or running; \
-                     wait for it (scanloc sweep status {}) or cancel it (scancel {job})",
-                    file.id, file.id
-                )));
-            }
-        }
-    }
+    refuse_while_queued(&file)?;
     import_shards(registry, &file, points)?;
     let mut missing = Vec::new();
     for point in points {
@@ -287,11 +275,84 @@ pub fn submit(
         let result = aggregate(registry, &file, base, points, None)?;
         return Ok((file, Some(result)));
     }
+    let submission = submit_jobs(&file, missing, options)?;
+    eprintln!(
+        "sweep {}: submitted array job {} ({} of {} points: {}) and aggregation job {}; logs in {}",
+        file.id,
+        submission.array_job,
+        submission.points.len(),
+        points.len(),
+        array_list(&submission.points),
+        submission.aggregate_job,
+        file.dir().join("logs").display()
+    );
+    file.submissions.push(submission.clone());
+    file.save()?;
+    if !options.wait {
+        return Ok((file, None));
+    }
+    follow(&file, &submission, points.len())?;
+    let result = wait_for_result(registry, &file, &submission)?;
+    Ok((file, Some(result)))
+}
 
+/// Refuses to submit while a job of the sweep's last submission is still
+/// queued or running.
+fn refuse_while_queued(file: &SweepFile) -> anyhow::Result<()> {
+    let Some(last) = file.submissions.last() else {
+        return Ok(());
+    };
+    for job in [&last.array_job, &last.aggregate_job] {
+        if let Some(records) = job_states(job)?
+            && records.iter().any(|r| !is_terminal(&r.state))
+        {
+            return Err(input_error(format!(
+                "sweep {}: job {job} of its last submission is still queued or running; \
+                 wait for it (scanloc sweep status {}) or cancel it (scancel {job})",
+                file.id, file.id
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Writes the batch scripts and submits the array of the `missing` points
+/// and the aggregation job that depends on it.
+fn submit_jobs(
+    file: &SweepFile,
+    missing: Vec<usize>,
+    options: &SlurmOptions,
+) -> anyhow::Result<Submission> {
+    let dir = file.dir();
+    let task_script = dir.join("task.sh");
+    let task = task_script_text(file, &missing, options);
+    crate::io::write_bytes_atomically(&task_script, task.as_bytes())?;
+    let array_job = sbatch(&task_script, &[])?;
+    let aggregate_script = dir.join("aggregate.sh");
+    let aggregate_text = aggregate_script_text(file, &array_job, options);
+    crate::io::write_bytes_atomically(&aggregate_script, aggregate_text.as_bytes())?;
+    let aggregate_job = match sbatch(&aggregate_script, &[]) {
+        Ok(id) => id,
+        Err(error) => {
+            // An array nobody will import: take it back.
+            let _ = Command::new("scancel").arg(&array_job).status();
+            return Err(error.context(format!("array job {array_job} cancelled")));
+        }
+    };
+    Ok(Submission {
+        array_job,
+        aggregate_job,
+        points: missing,
+        submitted_at: utc_now(),
+    })
+}
+
+/// The array job's script: one task per point of `missing` (array index =
+/// point index), each `scanloc sweep task` into its shard.
+fn task_script_text(file: &SweepFile, missing: &[usize], options: &SlurmOptions) -> String {
     let dir = file.dir();
     let scanloc = shell_quote(&file.scanloc.display().to_string());
     let dir_word = shell_quote(&dir.display().to_string());
-    let logs = dir.join("logs");
     let mut task = format!(
         "#!/bin/bash\n\
          # scanloc sweep {id}: one array task per point (array index = point index),\n\
@@ -303,12 +364,12 @@ pub fn submit(
          #SBATCH --output={logs}/task-%a.out\n",
         id = file.id,
         dir = dir.display(),
-        array = array_list(&missing),
+        array = array_list(missing),
         throttle = options
             .max_parallel
             .map(|n| format!("%{n}"))
             .unwrap_or_default(),
-        logs = logs.display(),
+        logs = dir.join("logs").display(),
     );
     if let Some(cpus) = options.cpus_per_task {
         task.push_str(&format!("#SBATCH --cpus-per-task={cpus}\n"));
@@ -322,12 +383,16 @@ pub fn submit(
          export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
          exec {scanloc} sweep task {dir_word} \"$SLURM_ARRAY_TASK_ID\"\n"
     ));
-    let task_script = dir.join("task.sh");
-    crate::io::write_bytes_atomically(&task_script, task.as_bytes())?;
-    let array_job = sbatch(&task_script, &[])?;
+    task
+}
 
-    let aggregate_script = dir.join("aggregate.sh");
-    let mut aggregate_text = format!(
+/// The aggregation job's script: after array job `array_job`, imports the
+/// shards and writes the table.
+fn aggregate_script_text(file: &SweepFile, array_job: &str, options: &SlurmOptions) -> String {
+    let dir = file.dir();
+    let scanloc = shell_quote(&file.scanloc.display().to_string());
+    let dir_word = shell_quote(&dir.display().to_string());
+    let mut text = format!(
         "#!/bin/bash\n\
          # scanloc sweep {id}: imports the shards of array job {array_job} into the\n\
          # registry (one writer) and writes the table to {dir}/{RESULT_FILE}.\n\
@@ -339,43 +404,23 @@ pub fn submit(
          #SBATCH --output={logs}/aggregate.out\n",
         id = file.id,
         dir = dir.display(),
-        logs = logs.display(),
+        logs = dir.join("logs").display(),
     );
-    aggregate_text.push_str(&common_directives(options));
-    aggregate_text.push_str(&format!("exec {scanloc} sweep aggregate {dir_word}\n"));
-    crate::io::write_bytes_atomically(&aggregate_script, aggregate_text.as_bytes())?;
-    let aggregate_job = match sbatch(&aggregate_script, &[]) {
-        Ok(id) => id,
-        Err(error) => {
-            // An array nobody will import: take it back.
-            let _ = Command::new("scancel").arg(&array_job).status();
-            return Err(error.context(format!("array job {array_job} cancelled")));
-        }
-    };
+    text.push_str(&common_directives(options));
+    text.push_str(&format!("exec {scanloc} sweep aggregate {dir_word}\n"));
+    text
+}
 
-    let submission = Submission {
-        array_job,
-        aggregate_job,
-        points: missing,
-        submitted_at: utc_now(),
-    };
-    eprintln!(
-        "sweep {}: submitted array job {} ({} of {} points: {}) and aggregation job {}; logs in {}",
-        file.id,
-        submission.array_job,
-        submission.points.len(),
-        points.len(),
-        array_list(&submission.points),
-        submission.aggregate_job,
-        logs.display()
-    );
-    file.submissions.push(submission.clone());
-    file.save()?;
-    if !options.wait {
-        return Ok((file, None));
-    }
-    follow(&file, &submission, points.len())?;
-    let result = match job_states(&submission.aggregate_job)? {
+/// The sweep's result once the jobs of `submission` have ended: the
+/// aggregation job's `result.json`, or if that job did not complete, an
+/// aggregation here.
+fn wait_for_result(
+    registry: &mut Registry,
+    file: &SweepFile,
+    submission: &Submission,
+) -> anyhow::Result<SweepResult> {
+    let dir = file.dir();
+    Ok(match job_states(&submission.aggregate_job)? {
         Some(records) if records.iter().all(|r| r.state == "COMPLETED") => {
             let path = dir.join(RESULT_FILE);
             let text = std::fs::read_to_string(&path)
@@ -392,8 +437,7 @@ pub fn submit(
             );
             import_and_aggregate(registry, &dir)?
         }
-    };
-    Ok((file, Some(result)))
+    })
 }
 
 /// Polls the jobs of `submission` until the aggregation job has ended,
@@ -468,30 +512,30 @@ pub fn status(dir: &Path) -> anyhow::Result<(SweepFile, Vec<PointState>, Option<
         let log = log.is_file().then(|| log.display().to_string());
         let shard = shard_run(&file, point.index);
         let (status, run, error) = if point_is_stored(&registry, point)? {
-            ("done".to_string(), None, None)
-        } else if let Some((run, status, error)) =
-            shard.as_ref().filter(|(_, status, _)| status == "done")
+            (PointStatus::DONE, None, None)
+        } else if let Some((run, ..)) = shard
+            .as_ref()
+            .filter(|(_, status, _)| *status == RunStatus::Done)
         {
-            let _ = (status, error);
-            ("in shard".to_string(), Some(run.clone()), None)
+            (PointStatus::InShard, Some(run.clone()), None)
         } else if let Some(state) = slurm_tasks
             .get(&point.index)
             .filter(|s| !is_terminal(s) || shard.is_none())
         {
             let failed = is_terminal(state) && state != "COMPLETED";
             (
-                state.to_lowercase(),
+                PointStatus::Slurm(state.to_lowercase()),
                 None,
                 failed.then(|| format!("task {state}")),
             )
         } else if let Some((run, ..)) = shard {
             (
-                "failed".to_string(),
+                PointStatus::FAILED,
                 Some(run),
                 Some(shard_failure(&file, point.index)),
             )
         } else {
-            ("missing".to_string(), None, None)
+            (PointStatus::Missing, None, None)
         };
         states.push(PointState {
             index: point.index,

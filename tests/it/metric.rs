@@ -552,14 +552,14 @@ fn a_manifest_threshold_changes_only_its_detectors_evaluation_keys() {
     assert_eq!(before.steps.len(), after.steps.len());
     for (a, b) in before.steps.iter().zip(&after.steps) {
         assert_eq!(a.id, b.id);
-        let changed = a.id.starts_with("evaluation/cnn@");
+        let changed = a.id.to_string().starts_with("evaluation/cnn@");
         assert_eq!(a.key != b.key, changed, "{}", a.id);
         if let (Action::Score { reading: ra, .. }, Action::Score { reading: rb, .. }) =
             (&a.action, &b.action)
         {
             // The CNN's score is a probability (default threshold 0.5);
             // trackpy's mass is not (no threshold).
-            let cnn = a.id.starts_with("evaluation/cnn@");
+            let cnn = a.id.to_string().starts_with("evaluation/cnn@");
             assert_eq!(ra.probability, cnn);
             assert_eq!(ra.threshold, cnn.then_some(0.5));
             assert_eq!(rb.threshold, cnn.then_some(0.7).or(ra.threshold));

@@ -654,10 +654,10 @@ fn reproduce_compares_the_numbers_inside_an_altered_evaluation() {
 fn the_paper_manifests_content_keys_are_stable() {
     let manifest = scanloc::manifest::load(std::path::Path::new("experiments/paper.yaml")).unwrap();
     let plan = scanloc::run::Plan::from_manifest(&manifest).unwrap();
-    let planned: Vec<(&str, &str)> = plan
+    let planned: Vec<(String, &str)> = plan
         .steps
         .iter()
-        .map(|step| (step.id.as_str(), step.key.as_str()))
+        .map(|step| (step.id.to_string(), step.key.as_str()))
         .collect();
     let recorded = [
         (
@@ -813,7 +813,7 @@ fn the_paper_manifests_content_keys_are_stable() {
             "15cc412e1b7756fd625ce0d5665d6e259ccfe2ea6a851f537546feb3c92d7a18",
         ),
     ];
-    assert_eq!(planned, recorded);
+    assert_eq!(planned, recorded.map(|(id, key)| (id.to_string(), key)));
 }
 
 /// The companion manifests say they reuse the paper run's artefacts (the
@@ -830,7 +830,7 @@ fn the_companion_manifests_reuse_the_paper_runs_artefacts() {
             .unwrap()
             .steps
             .into_iter()
-            .map(|step| (step.id, step.key))
+            .map(|step| (step.id.to_string(), step.key))
             .collect::<std::collections::BTreeMap<String, String>>()
     };
     let paper = plan_of("experiments/paper.yaml");
@@ -878,7 +878,7 @@ fn a_teacher_gives_the_model_a_key_of_its_own() {
         let plan = scanloc::run::Plan::from_manifest(&manifest).unwrap();
         plan.steps
             .iter()
-            .map(|step| (step.id.clone(), step.key.clone()))
+            .map(|step| (step.id.to_string(), step.key.clone()))
             .collect::<Vec<_>>()
     };
     let text = std::fs::read_to_string("experiments/paper.yaml").unwrap();
@@ -930,11 +930,11 @@ fn a_cross_validation_of_fresh_frames_only_keys_its_fold_models_apart() {
     for (a, b) in fresh_only.iter().zip(&mixed) {
         assert_eq!(a.id, b.id);
         let marked = |step: &scanloc::run::Step| step.spec.contains("fresh frames only");
-        if a.id.starts_with("model/") {
+        if a.id.to_string().starts_with("model/") {
             fold_models += 1;
             assert!(marked(a), "{}: {}", a.id, a.spec);
             assert!(!marked(b), "{}: {}", b.id, b.spec);
-        } else if a.id.starts_with("dataset/") {
+        } else if a.id.to_string().starts_with("dataset/") {
             assert_eq!(a.key, b.key, "{}", a.id);
         }
     }

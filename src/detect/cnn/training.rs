@@ -642,119 +642,32 @@ fn train_member(
         settings,
         training,
         selection,
-        fresh_params,
-        teacher,
+        ..
     } = job;
-    let n = training.frames.n;
-    let emitters = truth_by_frame(&training.truth, n)?;
-
-    // Seeded split into training and validation frames (none held out when
-    // the validation frames are given).
-    let mut order: Vec<usize> = (0..n).collect();
-    shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
-    let n_split_off = match selection.external {
-        // The recipe in which the training set never trains keeps to it
-        // when another set selects (a cross-validation's held-out fold).
-        Some(_) if settings.trains_on_fresh_frames_only() => n,
-        Some(_) => 0,
-        None => settings.held_out_frames(n),
-    };
-    let training_indices = order[n_split_off..].to_vec();
-    let split_off;
-    let validation = match selection.external {
-        Some(external) => external,
-        None => {
-            let mut validation_indices = order[..n_split_off].to_vec();
-            validation_indices.sort_unstable();
-            split_off = subset(training, &validation_indices)?;
-            &split_off
-        }
-    };
-    let n_validation = validation.frames.n;
-
-    let samples_per_epoch = training_indices.len() + settings.fresh_frames_per_epoch;
-    if samples_per_epoch == 0 {
-        crate::bail_input!(
-            "training: no frames to train on ({n} given, {n_split_off} held out for validation, no fresh frames)"
-        );
-    }
-    if let Some(params) = fresh_params
-        && !training_indices.is_empty()
-        && (params.height, params.width) != (training.frames.height, training.frames.width)
-    {
-        crate::bail_input!(
-            "training: fresh frames are {}×{} but the dataset's are {}×{}; both are trained on in the same batches",
-            params.height,
-            params.width,
-            training.frames.height,
-            training.frames.width
-        );
-    }
-
-    let (emitters, true_centroids) = match teacher {
-        Some(taught) => (taught.to_vec(), Some(emitters)),
-        None => (emitters, None),
-    };
-    let fixed = Source {
-        frames: &training.frames,
-        emitters,
-        true_centroids,
-    };
+    let emitters = truth_by_frame(&training.truth, training.frames.n)?;
+    let split = split_frames(job, seed)?;
+    let training_indices = split.training;
+    let validation = selection
+        .external
+        .or(split.held_out.as_ref())
+        .expect("frames are held out unless the job brings a validation set");
+    let samples_per_epoch = check_trainable(job, &training_indices, split.n_split_off)?;
+    let fixed = fixed_source(job, emitters);
     let device = super::inference_device().autodiff();
     let init_seed = stream(seed, STREAM_INIT, 0).random::<u64>();
     let mut net = Net::new(arch, init_seed, &device);
     let mut optimiser = AdamConfig::new().init();
     let steps_per_epoch = samples_per_epoch.div_ceil(settings.batch_size);
     let total_steps = steps_per_epoch * settings.epochs;
-    // One bar over every member's steps (each member has as many).
-    progress.set_length((total_steps * member.count) as u64);
-    if member.index == 0 {
-        progress.set_position(0);
-    }
+    start_progress(progress, member, total_steps);
     let label = member.label();
-    // Say who is training now: from member 2 on, the bar still shows the
-    // previous member's last epoch until this member's first one ends.
-    if let Some(name) = member.name() {
-        progress.set_message(name);
-    }
 
     let mut epochs = Vec::with_capacity(settings.epochs);
-    let mut best: Option<(f64, usize, Net)> = None;
+    let mut best = BestEpoch::default();
     let mut step = 0usize;
     for epoch in 1..=settings.epochs {
-        let fresh_dataset = match fresh_params {
-            Some(params) => {
-                let fresh_seed = stream(seed, STREAM_FRESH, epoch as u64).random::<u64>();
-                sim::simulate(
-                    params,
-                    fresh_seed,
-                    0..settings.fresh_frames_per_epoch,
-                    &ProgressBar::hidden(),
-                )?
-            }
-            None => Dataset::default(),
-        };
-        let fresh_truth = truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?;
-        let (emitters, true_centroids) = match fresh_params {
-            Some(params) if settings.teacher_fresh_frames => {
-                let taught = posterior_targets(
-                    &fresh_dataset.frames,
-                    &fresh_truth,
-                    params,
-                    settings.teacher_particles,
-                    stream(seed, STREAM_TEACHER, epoch as u64).random::<u64>(),
-                    &format!("{label}posterior targets of epoch {epoch}'s fresh frames"),
-                    progress,
-                )?;
-                (taught, Some(fresh_truth))
-            }
-            _ => (fresh_truth, None),
-        };
-        let fresh = Source {
-            emitters,
-            true_centroids,
-            frames: &fresh_dataset.frames,
-        };
+        let fresh_dataset = fresh_frames(job, seed, epoch)?;
+        let fresh = fresh_source(job, seed, epoch, &fresh_dataset, &label, progress)?;
         let mut items: Vec<(&Source, usize)> = training_indices
             .iter()
             .map(|&i| (&fixed, i))
@@ -763,8 +676,7 @@ fn train_member(
         shuffle(&mut items, &mut stream(seed, STREAM_SHUFFLE, epoch as u64));
 
         let epoch_learning_rate = learning_rate(settings, step, total_steps);
-        let (mut sum_loss, mut sum_score, mut sum_offset) = (0.0, 0.0, 0.0);
-        let (mut sum_sigma, mut sum_within) = (0.0, 0.0);
+        let mut sums = LossSums::default();
         for (batch_index, batch) in items.chunks(settings.batch_size).enumerate() {
             let BatchLoss {
                 total: loss,
@@ -779,17 +691,12 @@ fn train_member(
                     batch_index + 1
                 );
             }
-            sum_loss += loss_value;
-            sum_score += values.score;
-            sum_offset += values.offset;
-            sum_sigma += values.sigma;
-            sum_within += values.within;
+            sums.add(&values);
             let gradients = network_step.gradients(loss.backward(), &net);
             net = optimiser.step(learning_rate(settings, step, total_steps), net, gradients);
             step += 1;
             progress.inc(1);
         }
-        let batches = steps_per_epoch as f64;
         let valid_net = net.valid();
         // Epochs before `validate_from_epoch` are neither scored nor kept.
         let candidate = epoch >= settings.validate_from_epoch;
@@ -799,82 +706,314 @@ fn train_member(
             &Dataset::default()
         };
         let validation_auc =
-            validate(&valid_net, arch, settings, scored, selection.score).map_err(|error| {
-                if error.is::<NonFiniteOutput>() {
-                    // The last step blew the weights up; the loss that
-                    // step saw was still finite.
-                    crate::error::input_error(format!(
-                        "training diverged: {label}the network's output is not finite after epoch {epoch}, batch {steps_per_epoch} of {steps_per_epoch} ({error}); lower training.learning_rate"
-                    ))
-                } else {
-                    error
-                }
-            })?;
-        let validation_mean_auc = (!validation_auc.is_empty())
-            .then(|| validation_auc.iter().sum::<f64>() / validation_auc.len() as f64);
-        let record = EpochRecord {
+            validate_epoch(job, &valid_net, scored, &label, epoch, steps_per_epoch)?;
+        let record = sums.record(
             epoch,
-            samples: items.len(),
-            learning_rate: epoch_learning_rate,
-            loss: sum_loss / batches,
-            score_loss: sum_score / batches,
-            offset_loss: sum_offset / batches,
-            sigma_loss: sum_sigma / batches,
-            within_loss: sum_within / batches,
-            validation_auc: validation_auc.clone(),
-            validation_mean_auc,
-        };
-        let message = format!(
-            "{label}epoch {epoch}/{}: loss {:.4} (score {:.4}, offset {:.4}, sigma {:.4}, within {:.4}){}",
-            settings.epochs,
-            record.loss,
-            record.score_loss,
-            record.offset_loss,
-            record.sigma_loss,
-            record.within_loss,
-            match validation_mean_auc {
-                Some(mean) => format!(
-                    ", validation AUC {} (mean {mean:.4})",
-                    validation_auc
-                        .iter()
-                        .map(|a| format!("{a:.3}"))
-                        .collect::<Vec<_>>()
-                        .join("/")
-                ),
-                None => String::new(),
-            }
+            items.len(),
+            epoch_learning_rate,
+            steps_per_epoch as f64,
+            validation_auc,
         );
-        tracing::info!("{message}");
-        progress.set_message(format!(
-            "{label}loss {:.3}{}",
-            record.loss,
-            validation_mean_auc
-                .map(|m| format!(" AUC {m:.3}"))
-                .unwrap_or_default()
-        ));
-        progress.println(&message);
-        let criterion = validation_mean_auc.unwrap_or(f64::INFINITY);
-        // Without validation every epoch ties at +∞ and the last one wins.
-        let better = match &best {
-            None => true,
-            Some((best_criterion, _, _)) => {
-                criterion > *best_criterion || validation_mean_auc.is_none()
-            }
-        };
-        if candidate && better {
-            best = Some((criterion, epoch, valid_net));
+        report_epoch(&record, settings, &label, progress);
+        if candidate {
+            best.offer(record.validation_mean_auc, epoch, valid_net);
         }
         epochs.push(record);
     }
-    let (_, best_epoch, best_net) = best.expect("at least one epoch ran");
+    let (best_epoch, best_net) = best.take().expect("at least one epoch ran");
     let record = TrainingRecord {
         seed,
         training_frames: training_indices.len(),
-        validation_frames: n_validation,
+        validation_frames: validation.frames.n,
         epochs,
         best_epoch,
     };
     Ok((best_net, record))
+}
+
+/// The training set as a source: its truth per frame (`truth`), or the
+/// teacher's targets with the truth beside them.
+fn fixed_source(job: Job<'_>, truth: Vec<Vec<(f64, f64)>>) -> Source<'_> {
+    let (emitters, true_centroids) = match job.teacher {
+        Some(taught) => (taught.to_vec(), Some(truth)),
+        None => (truth, None),
+    };
+    Source {
+        frames: &job.training.frames,
+        emitters,
+        true_centroids,
+    }
+}
+
+/// A member's frames: the indices of `training` it trains on, and the
+/// frames split off to select its epoch on (none when the job brings a
+/// validation set of its own).
+struct SplitFrames {
+    training: Vec<usize>,
+    held_out: Option<Dataset>,
+    n_split_off: usize,
+}
+
+/// The seeded split of the training frames into training and validation
+/// frames (none held out when the validation frames are given).
+fn split_frames(job: Job<'_>, seed: u64) -> anyhow::Result<SplitFrames> {
+    let (settings, training, selection) = (job.settings, job.training, job.selection);
+    let n = training.frames.n;
+    let mut order: Vec<usize> = (0..n).collect();
+    shuffle(&mut order, &mut stream(seed, STREAM_SPLIT, 0));
+    let n_split_off = match selection.external {
+        // The recipe in which the training set never trains keeps to it
+        // when another set selects (a cross-validation's held-out fold).
+        Some(_) if settings.trains_on_fresh_frames_only() => n,
+        Some(_) => 0,
+        None => settings.held_out_frames(n),
+    };
+    let held_out = match selection.external {
+        Some(_) => None,
+        None => {
+            let mut validation_indices = order[..n_split_off].to_vec();
+            validation_indices.sort_unstable();
+            Some(subset(training, &validation_indices)?)
+        }
+    };
+    Ok(SplitFrames {
+        training: order[n_split_off..].to_vec(),
+        held_out,
+        n_split_off,
+    })
+}
+
+/// The samples of one epoch, refusing a training without any and fresh
+/// frames of another size than the dataset's (both go in one batch).
+fn check_trainable(
+    job: Job<'_>,
+    training_indices: &[usize],
+    n_split_off: usize,
+) -> anyhow::Result<usize> {
+    let (settings, training) = (job.settings, job.training);
+    let n = training.frames.n;
+    let samples_per_epoch = training_indices.len() + settings.fresh_frames_per_epoch;
+    if samples_per_epoch == 0 {
+        crate::bail_input!(
+            "training: no frames to train on ({n} given, {n_split_off} held out for validation, no fresh frames)"
+        );
+    }
+    if let Some(params) = job.fresh_params
+        && !training_indices.is_empty()
+        && (params.height, params.width) != (training.frames.height, training.frames.width)
+    {
+        crate::bail_input!(
+            "training: fresh frames are {}×{} but the dataset's are {}×{}; both are trained on in the same batches",
+            params.height,
+            params.width,
+            training.frames.height,
+            training.frames.width
+        );
+    }
+    Ok(samples_per_epoch)
+}
+
+/// Sets the bar over every member's steps (each member has as many) and
+/// names the member now training.
+fn start_progress(progress: &ProgressBar, member: Member<'_>, total_steps: usize) {
+    progress.set_length((total_steps * member.count) as u64);
+    if member.index == 0 {
+        progress.set_position(0);
+    }
+    // Say who is training now: from member 2 on, the bar still shows the
+    // previous member's last epoch until this member's first one ends.
+    if let Some(name) = member.name() {
+        progress.set_message(name);
+    }
+}
+
+/// Epoch `epoch`'s fresh frames (none without fresh parameters).
+fn fresh_frames(job: Job<'_>, seed: u64, epoch: usize) -> anyhow::Result<Dataset> {
+    Ok(match job.fresh_params {
+        Some(params) => {
+            let fresh_seed = stream(seed, STREAM_FRESH, epoch as u64).random::<u64>();
+            sim::simulate(
+                params,
+                fresh_seed,
+                0..job.settings.fresh_frames_per_epoch,
+                &ProgressBar::hidden(),
+            )?
+        }
+        None => Dataset::default(),
+    })
+}
+
+/// Epoch `epoch`'s fresh frames as a source: their truth, or the
+/// teacher's posterior targets when the settings say so.
+fn fresh_source<'a>(
+    job: Job<'_>,
+    seed: u64,
+    epoch: usize,
+    fresh_dataset: &'a Dataset,
+    label: &str,
+    progress: &ProgressBar,
+) -> anyhow::Result<Source<'a>> {
+    let settings = job.settings;
+    let fresh_truth = truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?;
+    let (emitters, true_centroids) = match job.fresh_params {
+        Some(params) if settings.teacher_fresh_frames => {
+            let taught = posterior_targets(
+                &fresh_dataset.frames,
+                &fresh_truth,
+                params,
+                settings.teacher_particles,
+                stream(seed, STREAM_TEACHER, epoch as u64).random::<u64>(),
+                &format!("{label}posterior targets of epoch {epoch}'s fresh frames"),
+                progress,
+            )?;
+            (taught, Some(fresh_truth))
+        }
+        _ => (fresh_truth, None),
+    };
+    Ok(Source {
+        emitters,
+        true_centroids,
+        frames: &fresh_dataset.frames,
+    })
+}
+
+/// The validation AUCs of the network after epoch `epoch` on `scored`; an
+/// output that is not finite means the last step diverged (bad input: the
+/// settings).
+fn validate_epoch(
+    job: Job<'_>,
+    net: &Net,
+    scored: &Dataset,
+    label: &str,
+    epoch: usize,
+    steps_per_epoch: usize,
+) -> anyhow::Result<Vec<f64>> {
+    validate(net, job.arch, job.settings, scored, job.selection.score).map_err(|error| {
+        if error.is::<NonFiniteOutput>() {
+            // The last step blew the weights up; the loss that
+            // step saw was still finite.
+            crate::error::input_error(format!(
+                "training diverged: {label}the network's output is not finite after epoch {epoch}, batch {steps_per_epoch} of {steps_per_epoch} ({error}); lower training.learning_rate"
+            ))
+        } else {
+            error
+        }
+    })
+}
+
+/// An epoch's losses summed over its batches, in batch order.
+#[derive(Default)]
+struct LossSums {
+    loss: f64,
+    score: f64,
+    offset: f64,
+    sigma: f64,
+    within: f64,
+}
+
+impl LossSums {
+    fn add(&mut self, values: &LossValues) {
+        self.loss += values.total;
+        self.score += values.score;
+        self.offset += values.offset;
+        self.sigma += values.sigma;
+        self.within += values.within;
+    }
+
+    /// The epoch's record: the mean losses over `batches` and the
+    /// validation AUCs.
+    fn record(
+        &self,
+        epoch: usize,
+        samples: usize,
+        learning_rate: f64,
+        batches: f64,
+        validation_auc: Vec<f64>,
+    ) -> EpochRecord {
+        let validation_mean_auc = (!validation_auc.is_empty())
+            .then(|| validation_auc.iter().sum::<f64>() / validation_auc.len() as f64);
+        EpochRecord {
+            epoch,
+            samples,
+            learning_rate,
+            loss: self.loss / batches,
+            score_loss: self.score / batches,
+            offset_loss: self.offset / batches,
+            sigma_loss: self.sigma / batches,
+            within_loss: self.within / batches,
+            validation_auc,
+            validation_mean_auc,
+        }
+    }
+}
+
+/// Logs an epoch's losses and validation AUCs and shows them on the bar.
+fn report_epoch(
+    record: &EpochRecord,
+    settings: &TrainingSettings,
+    label: &str,
+    progress: &ProgressBar,
+) {
+    let message = format!(
+        "{label}epoch {}/{}: loss {:.4} (score {:.4}, offset {:.4}, sigma {:.4}, within {:.4}){}",
+        record.epoch,
+        settings.epochs,
+        record.loss,
+        record.score_loss,
+        record.offset_loss,
+        record.sigma_loss,
+        record.within_loss,
+        match record.validation_mean_auc {
+            Some(mean) => format!(
+                ", validation AUC {} (mean {mean:.4})",
+                record
+                    .validation_auc
+                    .iter()
+                    .map(|a| format!("{a:.3}"))
+                    .collect::<Vec<_>>()
+                    .join("/")
+            ),
+            None => String::new(),
+        }
+    );
+    tracing::info!("{message}");
+    progress.set_message(format!(
+        "{label}loss {:.3}{}",
+        record.loss,
+        record
+            .validation_mean_auc
+            .map(|m| format!(" AUC {m:.3}"))
+            .unwrap_or_default()
+    ));
+    progress.println(&message);
+}
+
+/// The epoch kept so far: the best mean validation AUC, the last epoch on
+/// a tie at +∞ (no validation frames).
+#[derive(Default)]
+struct BestEpoch {
+    best: Option<(f64, usize, Net)>,
+}
+
+impl BestEpoch {
+    /// Offers the network after epoch `epoch`, of mean validation AUC
+    /// `mean_auc` (`None`: not validated).
+    fn offer(&mut self, mean_auc: Option<f64>, epoch: usize, net: Net) {
+        let criterion = mean_auc.unwrap_or(f64::INFINITY);
+        // Without validation every epoch ties at +∞ and the last one wins.
+        let better = match &self.best {
+            None => true,
+            Some((best_criterion, _, _)) => criterion > *best_criterion || mean_auc.is_none(),
+        };
+        if better {
+            self.best = Some((criterion, epoch, net));
+        }
+    }
+
+    /// The kept epoch and its network.
+    fn take(self) -> Option<(usize, Net)> {
+        self.best.map(|(_, epoch, net)| (epoch, net))
+    }
 }
 
 /// The learning rate of optimiser step `step` of `total`.

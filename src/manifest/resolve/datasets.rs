@@ -3,9 +3,10 @@
 
 use super::microscope::apply_sim_overrides;
 use crate::error::{FieldError, Segment, display_path};
+use crate::manifest::DatasetSpec;
 use crate::manifest::serde_adapters::Named;
-use crate::manifest::{DatasetSpec, derive_seed};
 use crate::sim::SimParams;
+use crate::types::derive_seed;
 
 /// Every dataset, in manifest order, with its microscope and derived seed.
 pub(super) fn resolve_datasets(

@@ -2,7 +2,8 @@
 
 use crate::error::FieldError;
 use crate::manifest::serde_adapters::{Named, SingletonMap};
-use crate::manifest::{DatasetSpec, DetectorEntry, DetectorSpec, derive_seed};
+use crate::manifest::{DatasetSpec, DetectorEntry, DetectorSpec};
+use crate::types::derive_seed;
 
 /// Every detector, in manifest order, with its derived seed; a trained
 /// detector's training set must be a dataset of the manifest.
@@ -27,7 +28,7 @@ fn resolve_detector(
     let path = super::path_of(&["detectors", &name]);
     super::check_name(&path, &name)?;
     // The parameters sit under the kind's key: `detectors.cnn.cnn.training`.
-    let parameters_path = super::field(&path, spec.kind());
+    let parameters_path = super::field(&path, spec.kind().as_str());
     spec.validate().map_err(|e| e.under(&parameters_path))?;
     if let Some(training_set) = spec.training_dataset() {
         super::require_dataset(

@@ -53,27 +53,41 @@ pub(super) fn apply_sim_overrides(
         single.insert(field.clone(), value.clone());
         if let Err(error) = serde_yaml::from_value::<SimParams>(serde_yaml::Value::Mapping(single))
         {
-            let message = error.to_string();
-            // A `{name: ...}` mapping of an unknown kind arrives tagged,
-            // which the untagged enums (`emitters`' and the distributions')
-            // refuse with a message naming neither.
-            let tagged = message.contains("do not support enum input");
-            let message = if message.contains("untagged enum Distribution")
-                || (tagged && name != "emitters")
-            {
-                "must be a number or {uniform: [LOW, HIGH]}".to_string()
-            } else if message.contains("untagged enum EmitterCount") || tagged {
-                "must be a whole number or {choice: [N, ...]} with optional weights: [W, ...]"
-                    .to_string()
-            } else {
-                message
-            };
-            return Err(FieldError::at(&field_path, message));
+            return Err(FieldError::at(
+                &field_path,
+                refusal(&merged, field).unwrap_or_else(|| error.to_string()),
+            ));
         }
         merged.insert(field.clone(), value);
     }
     serde_yaml::from_value(serde_yaml::Value::Mapping(merged))
         .map_err(|e| FieldError::at(path, e.to_string()))
+}
+
+/// What field `field` accepts, said in the manifest's terms, when it is
+/// one of the untagged enums, whose serde errors name neither the field
+/// nor what it takes (`None` for other fields, whose serde error says it).
+/// The field's type is told by what it accepts on top of `merged` (fields
+/// that read): a distribution field takes `{uniform: [0, 1]}`, a count
+/// `{choice: [1]}`.
+fn refusal(merged: &serde_yaml::Mapping, field: &serde_yaml::Value) -> Option<String> {
+    let accepts = |probe: &str| {
+        let probe: serde_yaml::Value =
+            serde_yaml::from_str(probe).expect("a probe value is valid YAML");
+        let mut single = merged.clone();
+        single.insert(field.clone(), as_tagged_enum(&probe));
+        serde_yaml::from_value::<SimParams>(serde_yaml::Value::Mapping(single)).is_ok()
+    };
+    if accepts("{uniform: [0, 1]}") {
+        Some("must be a number or {uniform: [LOW, HIGH]}".to_string())
+    } else if accepts("{choice: [1]}") {
+        Some(
+            "must be a whole number or {choice: [N, ...]} with optional weights: [W, ...]"
+                .to_string(),
+        )
+    } else {
+        None
+    }
 }
 
 /// `params` as a YAML mapping of its fields, each written as a manifest

@@ -1,179 +1,26 @@
-//! `scanloc report RUN`: a Markdown report of a recorded run, with its AUC
-//! table beside the reference (the paper's Table 1), each reference cell
-//! judged against the test set's luck (a bootstrap over frames), where the AUC is lost
-//! (the ranking headroom of the top predictions), each detector's gap to
-//! the attainable bound with its bootstrap uncertainty, the scene figures at the
-//! score threshold, the calibration of probability scores, precision–recall
-//! curves, reliability diagrams, example frames, localisation panels and
-//! error histograms.
+//! The report's tables: the AUC table beside the reference, the judgement
+//! of each reference cell against the test set's luck, the gap to the
+//! bound, where the AUC is lost, the scene figures, calibration and
+//! uncertainty.
 
-use std::collections::HashMap;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use super::figures::{Curve, FramePanel, MarkerKind, frame_panels, histograms, line_chart};
-use super::recorded::RecordedManifest;
-use crate::error::input_error;
 use crate::manifest::Reference;
-use crate::metrics::Score;
 use crate::metrics::paired::{AucSpread, bootstrap_auc};
-use crate::progress::hidden;
-use crate::registry::{Registry, RunRecord};
-use crate::run::{cross_validation, load_artefact};
-use crate::sim::{self, Distribution, SimParams};
-use crate::types::{Dataset, Prediction};
+use crate::registry::RunRecord;
+use crate::report::recorded::RecordedManifest;
+use crate::run::cross_validation;
+use crate::sim::Distribution;
+use crate::types::DetectorKind;
 
-/// One scored (detector, dataset) pair of the run.
-struct Evaluation {
-    detector: String,
-    detector_kind: String,
-    dataset: String,
-    diffusion: Option<f64>,
-    dataset_key: String,
-    predictions_key: String,
-    score: Score,
-}
-
-/// Writes `report.md` and its figures (PNG and SVG) for run `run_id` into
-/// `out`; returns the path of the Markdown file.
-pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Result<PathBuf> {
-    let record = registry.run_record(run_id)?;
-    let resolved = RecordedManifest::of(&record)?;
-    std::fs::create_dir_all(out)
-        .map_err(|e| input_error(format!("{}: cannot create: {e}", out.display())))?;
-    let reference = resolved.reference.as_ref();
-    let evaluations = load_evaluations(registry, &record, &resolved)?;
-    let mut markdown = String::new();
-    writeln!(
-        markdown,
-        "# scanloc report: {}, run {run_id}\n",
-        resolved.name
-    )?;
-    writeln!(
-        markdown,
-        "Status **{}**, started {}, ended {}; scanloc {} (commit {}, dirty {}), {} on {} with {} threads.\n",
-        record.status,
-        record.started_at,
-        record.ended_at.as_deref().unwrap_or("—"),
-        record.code.crate_version,
-        record.code.git_commit,
-        record.code.git_dirty,
-        record.code.rustc,
-        record.host,
-        record.threads,
-    )?;
-    writeln!(
-        markdown,
-        "Steps: {} cached, {} computed. Re-run bit for bit with `scanloc reproduce {run_id}`.\n",
-        record.counts.cached, record.counts.computed
-    )?;
-
-    write_auc_table(&mut markdown, &evaluations, reference)?;
-    if let Some(reference) = reference {
-        write_reference_note(
-            &mut markdown,
-            &evaluations,
-            reference,
-            &resolved.microscope.brightness,
-        )?;
-    }
-    write_cross_validation_table(&mut markdown, &record, &resolved)?;
-    write_quality_table(&mut markdown, &evaluations)?;
-    write_headroom_table(&mut markdown, &evaluations)?;
-    let mut artefacts = Artefacts::new(registry);
-    if let Some(reference) = reference {
-        write_reference_spread_table(&mut artefacts, &mut markdown, &evaluations, reference)?;
-    }
-    write_bound_comparison_table(&mut artefacts, &mut markdown, &evaluations)?;
-    if let Some(reference) = reference {
-        write_reference_bound_table(&mut artefacts, &mut markdown, &evaluations, reference)?;
-    }
-    write_scene_table(&mut markdown, &evaluations)?;
-    write_calibration_table(&mut markdown, &evaluations)?;
-    write_uncertainty_table(&mut markdown, &evaluations)?;
-
-    writeln!(markdown, "\n## Figures\n")?;
-    example_frames(out, &resolved.microscope, resolved.seed)?;
-    writeln!(
-        markdown,
-        "**Example frames** at D = 0, 0.75, 1 and 1.75 µm²/s (the paper's Fig. 1): the QD's path in green, its start (green circle), end (cyan circle) and trajectory centroid (green cross).\n\n![example frames](example_frames.png)\n"
-    )?;
-    let localisation = localisation_panels(registry, out, &resolved, &evaluations)?;
-    if localisation {
-        writeln!(
-            markdown,
-            "**Localisations** (the paper's localisation figure): trajectory and centroid in green, each detector's top prediction (CNN blue, Crocker–Grier purple).\n\n![localisations](localisations.png)\n"
-        )?;
-    }
-    for file in precision_recall_curves(out, &evaluations)? {
-        writeln!(markdown, "![precision–recall]({file}.png)\n")?;
-    }
-    for file in reliability_diagrams(out, &evaluations)? {
-        writeln!(markdown, "![reliability]({file}.png)\n")?;
-    }
-    for file in error_histograms(registry, out, &evaluations)? {
-        writeln!(markdown, "![errors]({file}.png)\n")?;
-    }
-    let path = out.join("report.md");
-    crate::io::write_bytes_atomically(&path, markdown.as_bytes())?;
-    Ok(path)
-}
-
-fn load_evaluations(
-    registry: &Registry,
-    record: &RunRecord,
-    resolved: &RecordedManifest,
-) -> anyhow::Result<Vec<Evaluation>> {
-    let mut keys: Vec<&str> = Vec::new();
-    for row in &record.auc {
-        if !keys.contains(&row.evaluation_key.as_str()) {
-            keys.push(&row.evaluation_key);
-        }
-    }
-    // Evaluations of sets without ground truth have no AUC row.
-    for step in &record.steps {
-        if step.kind == crate::registry::ArtefactKind::Evaluation
-            && !keys.contains(&step.artefact_key.as_str())
-        {
-            keys.push(&step.artefact_key);
-        }
-    }
-    let mut evaluations = Vec::new();
-    for key in keys {
-        let Some(row) = registry.evaluation(key)? else {
-            continue;
-        };
-        let score = load_artefact(registry, key)?.evaluation()?.as_ref().clone();
-        // Fold models of a cross-validation are not manifest detectors:
-        // their kind is their detector's.
-        let detector_kind = resolved
-            .detector(&row.detector)
-            .or_else(|| {
-                let cv = record.cross_validation.as_ref()?;
-                resolved.detector(&cv.detector)
-            })
-            .map_or("", |d| d.spec.kind())
-            .to_string();
-        evaluations.push(Evaluation {
-            detector_kind,
-            detector: row.detector,
-            dataset: row.dataset,
-            diffusion: row.diffusion,
-            dataset_key: row.dataset_key,
-            predictions_key: row.predictions_key,
-            score,
-        });
-    }
-    Ok(evaluations)
-}
+use super::{Artefacts, Evaluation};
 
 /// A cross-validation run's table (nothing for other runs): per dataset
 /// and ε, the mean ± sample standard deviation of the fold models' AUC, the
 /// reference beside it.
-fn write_cross_validation_table(
+pub(super) fn write_cross_validation_table(
     markdown: &mut String,
     record: &RunRecord,
     resolved: &RecordedManifest,
@@ -233,7 +80,7 @@ fn write_cross_validation_table(
 
 /// The AUC table in the paper's layout: rows detectors, columns D × ε, each
 /// cell ours with the reference value and the difference.
-fn write_auc_table(
+pub(super) fn write_auc_table(
     markdown: &mut String,
     evaluations: &[Evaluation],
     reference: Option<&Reference>,
@@ -325,7 +172,7 @@ fn write_auc_table(
 /// calibrate` fits the brightness N_qd (which the paper does not print) to
 /// the row of an untrained detector (Crocker–Grier), so that row agrees by
 /// construction; only trained detectors' rows are out-of-sample.
-fn write_reference_note(
+pub(super) fn write_reference_note(
     markdown: &mut String,
     evaluations: &[Evaluation],
     reference: &Reference,
@@ -335,14 +182,14 @@ fn write_reference_note(
         evaluations
             .iter()
             .find(|e| e.detector == detector)
-            .map(|e| e.detector_kind.as_str())
+            .map(|e| e.detector_kind)
     };
     let mut fitted = Vec::new();
     let mut tested = Vec::new();
     for row in &reference.rows {
         let label = format!("{} ({})", row.label, row.detector);
         match kind_of(&row.detector) {
-            Some("crocker_grier") => fitted.push(label),
+            Some(Some(DetectorKind::CrockerGrier)) => fitted.push(label),
             Some(_) => tested.push(label),
             None => {}
         }
@@ -370,7 +217,10 @@ fn write_reference_note(
     Ok(())
 }
 
-fn write_quality_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
+pub(super) fn write_quality_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
     writeln!(markdown, "\n## Localisation quality\n")?;
     writeln!(
         markdown,
@@ -394,7 +244,7 @@ fn write_quality_table(markdown: &mut String, evaluations: &[Evaluation]) -> any
 }
 
 /// A value with 3 decimals, or a dash.
-fn or_dash(value: Option<f64>) -> String {
+pub(super) fn or_dash(value: Option<f64>) -> String {
     value.map_or("—".to_string(), |v| format!("{v:.3}"))
 }
 
@@ -402,7 +252,10 @@ fn or_dash(value: Option<f64>) -> String {
 /// oracle-rank and random-rank AUC of the top predictions
 /// (docs/metric.md, "Headroom"). Nothing for evaluations stored before
 /// the metric had it.
-fn write_headroom_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
+pub(super) fn write_headroom_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
     let rows: Vec<(&Evaluation, &crate::metrics::EpsScore)> = evaluations
         .iter()
         .flat_map(|e| e.score.per_eps.iter().map(move |s| (e, s)))
@@ -455,7 +308,7 @@ fn write_headroom_table(markdown: &mut String, evaluations: &[Evaluation]) -> an
 /// test set of the same size and kind), which makes the difference's
 /// standard error √2 times ours; ahead or behind only beyond twice that
 /// plus the reference's rounding (docs/metric.md, "The test set's luck").
-fn write_reference_spread_table<'k>(
+pub(super) fn write_reference_spread_table<'k>(
     artefacts: &mut Artefacts<'_, 'k>,
     markdown: &mut String,
     evaluations: &'k [Evaluation],
@@ -616,19 +469,19 @@ const REPORT_BOOTSTRAP_SEED: u64 = 0;
 /// the AUC difference (docs/metric.md, "Comparing two detectors"), so the
 /// gap to the bound is stated with its uncertainty. Nothing when no
 /// likelihood detector shares a test set with another detector.
-fn write_bound_comparison_table<'k>(
+pub(super) fn write_bound_comparison_table<'k>(
     artefacts: &mut Artefacts<'_, 'k>,
     markdown: &mut String,
     evaluations: &'k [Evaluation],
 ) -> anyhow::Result<()> {
     let pairs: Vec<(&Evaluation, &Evaluation)> = evaluations
         .iter()
-        .filter(|bound| bound.detector_kind == "likelihood")
+        .filter(|bound| bound.detector_kind == Some(DetectorKind::Likelihood))
         .flat_map(|bound| {
             evaluations
                 .iter()
                 .filter(move |other| {
-                    other.detector_kind != "likelihood"
+                    other.detector_kind != Some(DetectorKind::Likelihood)
                         && other.dataset_key == bound.dataset_key
                         && !other.score.per_eps.is_empty()
                 })
@@ -692,7 +545,7 @@ fn write_bound_comparison_table<'k>(
 /// margin). A figure the bound is level with or behind cannot be beaten by a
 /// margin on this test set by any method that sees only the frames (and is
 /// told no more than the bound). Nothing without such a bound.
-fn write_reference_bound_table<'k>(
+pub(super) fn write_reference_bound_table<'k>(
     artefacts: &mut Artefacts<'_, 'k>,
     markdown: &mut String,
     evaluations: &'k [Evaluation],
@@ -701,7 +554,7 @@ fn write_reference_bound_table<'k>(
     let bounds: Vec<&Evaluation> = evaluations
         .iter()
         .filter(|bound| {
-            bound.detector_kind == "likelihood"
+            bound.detector_kind == Some(DetectorKind::Likelihood)
                 && bound.score.per_eps.iter().any(|s| {
                     reference
                         .rows
@@ -756,58 +609,14 @@ fn write_reference_bound_table<'k>(
     Ok(())
 }
 
-/// The run's datasets and predictions, each read from the registry once
-/// however many tables use it (a test set serves every detector scored on
-/// it, a detector's predictions every bound they are compared with).
-struct Artefacts<'r, 'k> {
-    registry: &'r Registry,
-    datasets: HashMap<&'k str, Arc<Dataset>>,
-    predictions: HashMap<&'k str, Arc<Vec<Prediction>>>,
-}
-
-impl<'r, 'k> Artefacts<'r, 'k> {
-    fn new(registry: &'r Registry) -> Self {
-        Self {
-            registry,
-            datasets: HashMap::new(),
-            predictions: HashMap::new(),
-        }
-    }
-
-    fn dataset(&mut self, key: &'k str) -> anyhow::Result<Arc<Dataset>> {
-        let registry = self.registry;
-        cached(&mut self.datasets, key, || {
-            Ok(load_artefact(registry, key)?.dataset()?.clone())
-        })
-    }
-
-    fn predictions(&mut self, key: &'k str) -> anyhow::Result<Arc<Vec<Prediction>>> {
-        let registry = self.registry;
-        cached(&mut self.predictions, key, || {
-            Ok(load_artefact(registry, key)?.predictions()?.clone())
-        })
-    }
-}
-
-/// The value of `key` in `cache`, loaded by `load` the first time.
-fn cached<'k, T>(
-    cache: &mut HashMap<&'k str, Arc<T>>,
-    key: &'k str,
-    load: impl FnOnce() -> anyhow::Result<Arc<T>>,
-) -> anyhow::Result<Arc<T>> {
-    if let Some(value) = cache.get(key) {
-        return Ok(value.clone());
-    }
-    let value = load()?;
-    cache.insert(key, value.clone());
-    Ok(value)
-}
-
 /// The scene figures: per evaluation and ε, recall, precision, Jaccard
 /// index and RMSE of the localisations at or above the score threshold,
 /// and the false localisations per empty frame (docs/metric.md,
 /// "Scenes").
-fn write_scene_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyhow::Result<()> {
+pub(super) fn write_scene_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
     let scored: Vec<&Evaluation> = evaluations
         .iter()
         .filter(|e| e.score.reading.is_some())
@@ -869,7 +678,7 @@ fn write_scene_table(markdown: &mut String, evaluations: &[Evaluation]) -> anyho
 
 /// The expected calibration error of every probability score
 /// (docs/metric.md, "Calibration"); the diagrams are figures.
-fn write_calibration_table(
+pub(super) fn write_calibration_table(
     markdown: &mut String,
     evaluations: &[Evaluation],
 ) -> anyhow::Result<()> {
@@ -907,7 +716,7 @@ fn write_calibration_table(
 /// How well each detector's own uncertainty (`sigma_x`, `sigma_y`)
 /// describes its localisations' error (docs/metric.md, "Calibration of
 /// the uncertainty"); absent when no detector reports one.
-fn write_uncertainty_table(
+pub(super) fn write_uncertainty_table(
     markdown: &mut String,
     evaluations: &[Evaluation],
 ) -> anyhow::Result<()> {
@@ -953,268 +762,16 @@ fn write_uncertainty_table(
     Ok(())
 }
 
-/// One reliability diagram per dataset with a probability-scored
-/// evaluation: each detector's mean score against observed frequency per
-/// non-empty bin, beside the diagonal of a calibrated score.
-fn reliability_diagrams(out: &Path, evaluations: &[Evaluation]) -> anyhow::Result<Vec<String>> {
-    let mut files = Vec::new();
-    let mut datasets: Vec<&str> = Vec::new();
-    for e in evaluations {
-        if e.score.reliability.is_some() && !datasets.contains(&e.dataset.as_str()) {
-            datasets.push(&e.dataset);
-        }
-    }
-    for dataset in datasets {
-        let mut curves = vec![Curve {
-            label: "calibrated".to_string(),
-            points: vec![(0.0, 0.0), (1.0, 1.0)],
-        }];
-        for e in evaluations.iter().filter(|e| e.dataset == dataset) {
-            let Some(reliability) = &e.score.reliability else {
-                continue;
-            };
-            curves.push(Curve {
-                label: format!(
-                    "{} (ECE {})",
-                    e.detector,
-                    or_dash(reliability.expected_calibration_error)
-                ),
-                points: reliability
-                    .bins
-                    .iter()
-                    .filter_map(|b| Some((b.mean_score?, b.observed_frequency?)))
-                    .collect(),
-            });
-        }
-        let file = format!("reliability_{dataset}");
-        line_chart(
-            &out.join(&file),
-            &format!("{dataset}: reliability of the score (within 1 px)"),
-            (
-                "score (predicted probability)",
-                "observed frequency within 1 px",
-            ),
-            ((0.0, 1.0), (0.0, 1.05)),
-            &curves,
-        )?;
-        files.push(file);
-    }
-    Ok(files)
-}
-
-fn example_frames(out: &Path, microscope: &SimParams, seed: u64) -> anyhow::Result<()> {
-    let panels = [0.0, 0.75, 1.0, 1.75]
-        .iter()
-        .enumerate()
-        .map(|(i, &d)| {
-            let params = SimParams {
-                diffusion_um2_s: Distribution::Fixed(d),
-                emitters: 1.into(),
-                ..microscope.clone()
-            };
-            let dataset = sim::simulate(&params, seed, i..i + 1, &hidden())?;
-            let truth = dataset.truth[0];
-            Ok(FramePanel {
-                title: format!("D = {d} µm²/s"),
-                height: params.height,
-                width: params.width,
-                counts: dataset.frames.frame(0).to_vec(),
-                trajectory: sim::trajectories(&params, seed, i).remove(0),
-                markers: vec![
-                    (MarkerKind::Start, truth.x_start, truth.y_start),
-                    (MarkerKind::End, truth.x_end, truth.y_end),
-                    (MarkerKind::Truth, truth.x, truth.y),
-                ],
-            })
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    frame_panels(&out.join("example_frames"), &panels)
-}
-
-fn top_per_frame(predictions: &[Prediction], frames: usize) -> Vec<Option<Prediction>> {
-    let mut top: Vec<Option<Prediction>> = vec![None; frames];
-    for p in predictions {
-        if p.frame < frames && top[p.frame].is_none_or(|best| p.score > best.score) {
-            top[p.frame] = Some(*p);
-        }
-    }
-    top
-}
-
-fn localisation_panels(
-    registry: &Registry,
-    out: &Path,
-    resolved: &RecordedManifest,
-    evaluations: &[Evaluation],
-) -> anyhow::Result<bool> {
-    // The first dataset with a fixed D that every detector scored.
-    let Some(first) = evaluations.iter().find(|e| e.diffusion.is_some()) else {
-        return Ok(false);
-    };
-    let Some(dataset_entry) = resolved.dataset(&first.dataset) else {
-        return Ok(false);
-    };
-    let (params, seed) = (&dataset_entry.params, dataset_entry.seed);
-    let dataset: Dataset = load_artefact(registry, &first.dataset_key)?
-        .dataset()?
-        .as_ref()
-        .clone();
-    let mut tops = Vec::new();
-    for e in evaluations.iter().filter(|e| e.dataset == first.dataset) {
-        let predictions = load_artefact(registry, &e.predictions_key)?
-            .predictions()?
-            .as_ref()
-            .clone();
-        let kind = if e.detector_kind == "cnn" {
-            MarkerKind::Cnn
-        } else {
-            MarkerKind::CrockerGrier
-        };
-        tops.push((kind, top_per_frame(&predictions, dataset.frames.n)));
-    }
-    let panels: Vec<FramePanel> = (0..dataset.frames.n.min(4))
-        .map(|i| {
-            let truth = dataset.truth.iter().find(|t| t.frame == i).copied();
-            let mut markers = Vec::new();
-            if let Some(t) = truth {
-                markers.push((MarkerKind::Truth, t.x, t.y));
-            }
-            for (kind, top) in &tops {
-                if let Some(p) = top[i] {
-                    markers.push((*kind, p.x, p.y));
-                }
-            }
-            FramePanel {
-                title: format!("{} frame {i}", first.dataset),
-                height: dataset.frames.height,
-                width: dataset.frames.width,
-                counts: dataset.frames.frame(i).to_vec(),
-                trajectory: sim::trajectories(params, seed, i)
-                    .into_iter()
-                    .next()
-                    .unwrap_or_default(),
-                markers,
-            }
-        })
-        .collect();
-    frame_panels(&out.join("localisations"), &panels)?;
-    Ok(true)
-}
-
-fn precision_recall_curves(out: &Path, evaluations: &[Evaluation]) -> anyhow::Result<Vec<String>> {
-    let mut files = Vec::new();
-    let mut datasets: Vec<&str> = Vec::new();
-    for e in evaluations {
-        if !datasets.contains(&e.dataset.as_str()) {
-            datasets.push(&e.dataset);
-        }
-    }
-    for dataset in datasets {
-        let of_dataset: Vec<&Evaluation> = evaluations
-            .iter()
-            .filter(|e| e.dataset == dataset)
-            .collect();
-        let eps: Vec<f64> = of_dataset[0]
-            .score
-            .per_eps
-            .iter()
-            .map(|s| s.eps_px)
-            .collect();
-        for e in eps {
-            let curves: Vec<Curve> = of_dataset
-                .iter()
-                .filter_map(|ev| {
-                    let per_eps = ev.score.per_eps.iter().find(|s| s.eps_px == e)?;
-                    if per_eps.curve.is_empty() {
-                        return None;
-                    }
-                    // Thin long curves: every point is not needed to draw them.
-                    let step = (per_eps.curve.len() / 2000).max(1);
-                    Some(Curve {
-                        label: format!("{} (AUC {:.2})", ev.detector, per_eps.auc),
-                        points: per_eps
-                            .curve
-                            .iter()
-                            .step_by(step)
-                            .map(|p| (p.recall, p.precision))
-                            .collect(),
-                    })
-                })
-                .collect();
-            if curves.is_empty() {
-                continue;
-            }
-            let file = format!("pr_{dataset}_eps{e}");
-            line_chart(
-                &out.join(&file),
-                &format!("{dataset}, ε = {e} px"),
-                ("recall", "precision"),
-                ((0.0, 1.0), (0.0, 1.05)),
-                &curves,
-            )?;
-            files.push(file);
-        }
-    }
-    Ok(files)
-}
-
-fn error_histograms(
-    registry: &Registry,
-    out: &Path,
-    evaluations: &[Evaluation],
-) -> anyhow::Result<Vec<String>> {
-    let mut files = Vec::new();
-    let mut datasets: Vec<(&str, &str)> = Vec::new();
-    for e in evaluations {
-        if !datasets.iter().any(|(d, _)| *d == e.dataset) {
-            datasets.push((&e.dataset, &e.dataset_key));
-        }
-    }
-    for (dataset, key) in datasets {
-        let data = load_artefact(registry, key)?.dataset()?.as_ref().clone();
-        if data.truth.is_empty() {
-            // A set of empty frames: no distance to a QD to draw.
-            continue;
-        }
-        let mut series = Vec::new();
-        for e in evaluations.iter().filter(|e| e.dataset == dataset) {
-            let predictions = load_artefact(registry, &e.predictions_key)?
-                .predictions()?
-                .as_ref()
-                .clone();
-            let top = top_per_frame(&predictions, data.frames.n);
-            let errors: Vec<f64> = data
-                .truth
-                .iter()
-                .filter_map(|t| {
-                    top[t.frame].map(|p| ((p.x - t.x).powi(2) + (p.y - t.y).powi(2)).sqrt())
-                })
-                .collect();
-            series.push((e.detector.clone(), errors));
-        }
-        let file = format!("errors_{dataset}");
-        histograms(
-            &out.join(&file),
-            &format!("{dataset}: distance of the top prediction to the trajectory centroid"),
-            "distance (px); the last bin holds all beyond",
-            6.0,
-            24,
-            &series,
-        )?;
-        files.push(file);
-    }
-    Ok(files)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::manifest::{ReferenceCell, ReferenceRow};
+    use crate::metrics::Score;
 
     fn evaluation(detector: &str, kind: &str) -> Evaluation {
         Evaluation {
             detector: detector.to_string(),
-            detector_kind: kind.to_string(),
+            detector_kind: kind.parse().ok(),
             dataset: "test-1.00".to_string(),
             diffusion: Some(1.0),
             dataset_key: String::new(),
