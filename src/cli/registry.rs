@@ -78,8 +78,9 @@ enum RegistryCommand {
     Model {
         /// RUN:DETECTOR, or a model's content key or unique prefix.
         model: String,
-        /// The model folder to write (created; existing files in it are
-        /// replaced, anything but a regular file is refused).
+        /// The model folder to write, whole or not at all: a new path, or a
+        /// model folder, which is replaced; a folder holding anything else
+        /// (a link, a FIFO, another file) is refused and left as it is.
         #[arg(long)]
         out: PathBuf,
     },
@@ -199,6 +200,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
                 for file in &report.leftover_temporaries {
                     println!("note: leftover temporary {file} (gc removes it)");
                 }
+                for stray in &report.strays {
+                    println!("note: {stray} is not a blob file; left alone");
+                }
             }
             if !report.ok() {
                 return Err(anyhow::Error::new(CheckFailed(format!(
@@ -210,6 +214,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
             }
         }
         RegistryCommand::Gc { dry_run } => {
+            if !dry_run {
+                registry.refuse_read_only("registry gc")?;
+            }
             let report = registry.gc(dry_run)?;
             if json {
                 println!("{}", serde_json::to_string(&report)?);
@@ -230,6 +237,9 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
                 }
                 for file in &report.temporaries {
                     println!("  temporary {file}");
+                }
+                for stray in &report.strays {
+                    println!("skipped {stray}: not a blob file; left alone");
                 }
             }
         }
@@ -272,7 +282,7 @@ pub fn run(args: RegistryArgs) -> anyhow::Result<ExitCode> {
 
 /// `registry import`: every shard in turn; the exit code says the worst.
 fn import(registry: &Path, shards: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
-    let mut registry = Registry::open(registry)?;
+    let mut registry = Registry::open_to_write(registry, "registry import")?;
     let shards: Vec<&Path> = shards.iter().map(PathBuf::as_path).collect();
     let results = shard::import_all(&mut registry, &shards);
     let (mut bad_shards, mut conflicts) = (Vec::new(), 0);

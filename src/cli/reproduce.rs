@@ -41,6 +41,14 @@ pub fn run(args: ReproduceArgs) -> anyhow::Result<ExitCode> {
     };
     let (scratch, _guard) = reproduce::scratch_dir(args.scratch.as_deref())?;
     let report = reproduce::reproduce(&mut registry, &run_id, &scratch)?;
+    if registry.is_read_only() {
+        // It re-executed in the scratch folder; only its record is missing.
+        eprintln!(
+            "warning: {} is read-only: reproduction run {} is not recorded there",
+            args.registry.display(),
+            report.reproduction_run
+        );
+    }
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {

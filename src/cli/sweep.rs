@@ -94,7 +94,7 @@ pub fn run_sweep(
     force: bool,
     json: bool,
 ) -> anyhow::Result<ExitCode> {
-    let mut registry = Registry::open(registry)?;
+    let mut registry = Registry::open_to_write(registry, "sweep")?;
     let (file, result) = sweep::run(&mut registry, &spec, &executor.executor(), force)?;
     match result {
         Some(result) => {
@@ -247,6 +247,7 @@ pub fn run(args: SweepArgs) -> anyhow::Result<ExitCode> {
             let dir = sweep::find(&args.registry, &id)?;
             let file = sweep::SweepFile::load(&dir)?;
             let mut registry = Registry::open_existing(&file.registry)?;
+            registry.refuse_read_only("sweep aggregate")?;
             let result = sweep::import_and_aggregate(&mut registry, &dir)?;
             if json {
                 println!("{}", result.json);

@@ -52,6 +52,7 @@ impl Registry {
         reference: &str,
         detector_kind: &str,
     ) -> anyhow::Result<StoredModel> {
+        super::sql::check_id_length(reference)?;
         let (key, run) = match reference.split_once(':') {
             Some((run, detector)) => {
                 let run = self.unique_run(run)?;
@@ -114,7 +115,7 @@ impl Registry {
             return Ok(id.to_string());
         }
         self.unique_prefix(
-            "SELECT id FROM runs WHERE id LIKE ?1 LIMIT 2",
+            "SELECT id FROM runs WHERE id LIKE ?1 ESCAPE '\\' LIMIT 2",
             id,
             "run with this id",
             "",
@@ -124,7 +125,7 @@ impl Registry {
     /// The model whose content key is `key` or starts with it.
     fn unique_model_key(&self, key: &str) -> anyhow::Result<String> {
         self.unique_prefix(
-            "SELECT key FROM models WHERE key LIKE ?1 LIMIT 2",
+            "SELECT key FROM models WHERE key LIKE ?1 ESCAPE '\\' LIMIT 2",
             key,
             "model with this key",
             " (name a model by RUN:DETECTOR or its key)",
@@ -203,7 +204,7 @@ impl Registry {
         )
     }
 
-    /// The first column of `sql` (one `LIKE ?1` parameter) for rows
+    /// The first column of `sql` (one `LIKE ?1 ESCAPE '\'` parameter) for rows
     /// starting with `prefix` (at least [`MIN_PREFIX`] characters, taken
     /// literally).
     fn matching_prefix(&self, sql: &str, prefix: &str) -> anyhow::Result<Vec<String>> {
@@ -212,12 +213,11 @@ impl Registry {
                 "{prefix:?}: give a full id or key, or a prefix of at least {MIN_PREFIX} characters"
             );
         }
-        if prefix.contains(['%', '_', '\\']) {
-            return Ok(Vec::new());
-        }
         let mut statement = self.connection().prepare(sql)?;
         let found = statement
-            .query_map([format!("{prefix}%")], |row| row.get::<_, String>(0))?
+            .query_map([super::sql::like_prefix(prefix)], |row| {
+                row.get::<_, String>(0)
+            })?
             .collect::<Result<_, _>>()?;
         Ok(found)
     }
