@@ -213,7 +213,7 @@ fn check_folder_destination(destination: &Path, owns: fn(&str) -> bool) -> anyho
     };
     if !metadata.is_dir() {
         crate::bail_input!(
-            "{}: is {}; an output folder goes here (give a folder or a new path)",
+            "{}: is {}, not a folder; an output folder goes here (give a folder or a new path)",
             destination.display(),
             kind_of(&metadata.file_type())
         );
