@@ -12,6 +12,13 @@
 /// `registry`).
 pub const SCANLOC_REGISTRY: &str = "SCANLOC_REGISTRY";
 
+/// `1` opens every existing registry read-only, as if its folder could not
+/// be written (a read-only mount): commands that only read work, commands
+/// that write refuse with exit code 2, and the database is opened as an
+/// immutable file. A new registry (`reproduce`'s scratch folder) is still
+/// made. To guard registries against writes, or to test.
+pub const SCANLOC_REGISTRY_READ_ONLY: &str = "SCANLOC_REGISTRY_READ_ONLY";
+
 /// What the log on standard error shows, as a `tracing` filter
 /// (`warn` by default; e.g. `info` or `scanloc=debug`).
 pub const SCANLOC_LOG: &str = "SCANLOC_LOG";

@@ -132,7 +132,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Train(args) => train::run(args, stdout, stderr),
         Command::Run(args) => run::run(args, stdout),
         Command::Check(args) => check::run(args, stdout, stderr),
-        Command::Reproduce(args) => reproduce::run(args, stdout),
+        Command::Reproduce(args) => reproduce::run(args, stdout, stderr),
         Command::Registry(args) => registry::run(args, stdout, stderr),
         Command::Report(args) => report::run(args, stdout),
         Command::Calibrate(args) => calibrate::run(args, stdout),

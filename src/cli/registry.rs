@@ -79,8 +79,9 @@ enum RegistryCommand {
     Model {
         /// RUN:DETECTOR, or a model's content key or unique prefix.
         model: String,
-        /// The model folder to write (created; existing files in it are
-        /// replaced, anything but a regular file is refused).
+        /// The model folder to write, whole or not at all: a new path, or a
+        /// model folder, which is replaced; a folder holding anything else
+        /// (a link, a FIFO, another file) is refused and left as it is.
         #[arg(long)]
         out: PathBuf,
     },
@@ -272,6 +273,9 @@ fn verify(registry: &Registry, json: bool, stdout: &mut dyn Write) -> anyhow::Re
         for file in &report.leftover_temporaries {
             writeln!(stdout, "note: leftover temporary {file} (gc removes it)")?;
         }
+        for stray in &report.strays {
+            writeln!(stdout, "note: {stray} is not a blob file; left alone")?;
+        }
     }
     if !report.ok() {
         return Err(anyhow::Error::new(CheckFailed(format!(
@@ -291,6 +295,9 @@ fn gc(
     json: bool,
     stdout: &mut dyn Write,
 ) -> anyhow::Result<()> {
+    if !dry_run {
+        registry.refuse_read_only("registry gc")?;
+    }
     let report = registry.gc(dry_run)?;
     if json {
         writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
@@ -313,6 +320,9 @@ fn gc(
         for file in &report.temporaries {
             writeln!(stdout, "  temporary {file}")?;
         }
+        for stray in &report.strays {
+            writeln!(stdout, "skipped {stray}: not a blob file; left alone")?;
+        }
     }
     Ok(())
 }
@@ -325,7 +335,7 @@ fn import(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> anyhow::Result<ExitCode> {
-    let mut registry = Registry::open(registry)?;
+    let mut registry = Registry::open_to_write(registry, "registry import")?;
     let shards: Vec<&Path> = shards.iter().map(PathBuf::as_path).collect();
     let results = shard::import_all(&mut registry, &shards);
     let (mut bad_shards, mut conflicts) = (Vec::new(), 0);

@@ -22,7 +22,10 @@ pub struct ReportArgs {
     /// The run id (a unique prefix is enough), or `latest` for the most
     /// recent finished run of kind `run`.
     run: String,
-    /// Output folder.
+    /// Output folder, written whole or not at all: a new path, or a report
+    /// folder (report.md and figures), which is replaced; a folder holding
+    /// anything else (a link, a FIFO, another file) is refused and left as
+    /// it is.
     #[arg(long, default_value = "reports/latest")]
     out: PathBuf,
     #[command(flatten)]

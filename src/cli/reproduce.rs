@@ -29,7 +29,11 @@ pub struct ReproduceArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: ReproduceArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub fn run(
+    args: ReproduceArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
     let mut registry = Registry::open_existing(&args.registry)?;
     let run_id = match registry.resolve_id(&args.run)? {
         Found::Run(id) => id,
@@ -41,6 +45,15 @@ pub fn run(args: ReproduceArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
     };
     let (scratch, _guard) = reproduce::scratch_dir(args.scratch.as_deref())?;
     let report = reproduce::reproduce(&mut registry, &run_id, &scratch)?;
+    if registry.is_read_only() {
+        // It re-executed in the scratch folder; only its record is missing.
+        writeln!(
+            stderr,
+            "warning: {} is read-only: reproduction run {} is not recorded there",
+            args.registry.display(),
+            report.reproduction_run
+        )?;
+    }
     if args.format.json {
         writeln!(stdout, "{}", serde_json::to_string(&report)?)?;
     } else {

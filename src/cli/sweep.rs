@@ -96,7 +96,7 @@ pub fn run_sweep(
     json: bool,
     stdout: &mut dyn Write,
 ) -> anyhow::Result<ExitCode> {
-    let mut registry = Registry::open(registry)?;
+    let mut registry = Registry::open_to_write(registry, "sweep")?;
     let (file, result) = sweep::run(&mut registry, &spec, &executor.executor(), force)?;
     match result {
         Some(result) => {
@@ -253,6 +253,7 @@ pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             let dir = sweep::find(&args.registry, &id)?;
             let file = sweep::SweepFile::load(&dir)?;
             let mut registry = Registry::open_existing(&file.registry)?;
+            registry.refuse_read_only("sweep aggregate")?;
             let result = sweep::import_and_aggregate(&mut registry, &dir)?;
             if json {
                 writeln!(stdout, "{}", result.json)?;

@@ -128,7 +128,8 @@ pub struct TrainArgs {
     /// the training frames' start depth.
     #[arg(long, default_value = "1")]
     test_emitters: EmitterCount,
-    /// Output model folder.
+    /// Output model folder, written whole or not at all: a new path, or a
+    /// model folder, which is replaced.
     #[arg(long)]
     out: PathBuf,
 }

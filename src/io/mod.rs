@@ -5,13 +5,18 @@
 //! - Ground truth and localisations: CSV with a header ([`csv_tables`]).
 //!
 //! Writers never leave a partial file behind: they write to a temporary file
-//! in the destination folder and rename it into place only when complete.
+//! in the destination folder and rename it into place only when complete;
+//! output folders are written whole or not at all, and a recorded name
+//! becomes a file name only through [`safe_file_name`] ([`folders`]).
 //! Readers report problems as [`InputError`](crate::error::InputError)s that
 //! name the file.
 
 pub mod csv_tables;
+pub mod folders;
 pub mod npy;
 pub mod tiff_stack;
+
+pub use folders::{PendingFolder, safe_file_name};
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

@@ -2,8 +2,9 @@
 //! `blobs/<first two hex digits>/<sha256>`, beside the database.
 //!
 //! Writing never leaves a partial blob that looks complete: bytes go to a
-//! temporary file in `tmp/`, are synced to disk, made read-only and renamed
-//! into place (a rename within one file system is atomic), then the folder
+//! temporary file in `tmp/` (created read-only: mode 0444 minus the
+//! umask, so whom the umask lets read a blob can), are synced to disk and
+//! renamed into place (a rename within one file system is atomic), then the folder
 //! is synced. A blob is re-hashed every time it is read; one whose bytes no
 //! longer match its name is reported as damaged and never used.
 
@@ -74,15 +75,28 @@ impl BlobStore {
         let path = self.path(&sha256);
         let folder = path.parent().expect("blob paths have a folder");
         fs::create_dir_all(folder).with_context(|| format!("creating {}", folder.display()))?;
-        let mut temporary = tempfile::Builder::new()
-            .prefix(&format!("{sha256}."))
+        let mut builder = tempfile::Builder::new();
+        let prefix = format!("{sha256}.");
+        builder.prefix(&prefix);
+        #[cfg(unix)]
+        {
+            // Read-only, and readable by whom the umask allows: created
+            // 0444, the kernel takes the umask off (the open file stays
+            // writable for this write).
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(fs::Permissions::from_mode(0o444));
+        }
+        let mut temporary = builder
             .tempfile_in(self.tmp_dir())
             .context("creating a temporary blob")?;
         temporary.write_all(bytes).context("writing a blob")?;
         temporary.as_file().sync_all().context("syncing a blob")?;
-        let mut permissions = temporary.as_file().metadata()?.permissions();
-        permissions.set_readonly(true);
-        fs::set_permissions(temporary.path(), permissions)?;
+        #[cfg(not(unix))]
+        {
+            let mut permissions = temporary.as_file().metadata()?.permissions();
+            permissions.set_readonly(true);
+            fs::set_permissions(temporary.path(), permissions)?;
+        }
         temporary
             .persist(&path)
             .map_err(|e| e.error)
@@ -134,31 +148,106 @@ impl BlobStore {
     }
 
     /// Every blob file in the store: (sha256 named by the file, path, size).
+    /// Only regular files: anything else found there is a stray (see
+    /// [`BlobStore::strays`]).
     pub fn list(&self) -> anyhow::Result<Vec<(String, PathBuf, u64)>> {
         let mut blobs = Vec::new();
-        let top = self.root.join("blobs");
-        for prefix in fs::read_dir(&top).with_context(|| format!("listing {}", top.display()))? {
-            let prefix = prefix?;
-            if !prefix.file_type()?.is_dir() {
-                continue;
-            }
-            for entry in fs::read_dir(prefix.path())? {
-                let entry = entry?;
-                let name = entry.file_name().to_string_lossy().into_owned();
-                blobs.push((name, entry.path(), entry.metadata()?.len()));
+        for entry in self.entries()? {
+            if let StoreEntry::File { path, size } = entry {
+                let name = path
+                    .file_name()
+                    .map(|name| name.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                blobs.push((name, path, size));
             }
         }
         blobs.sort();
         Ok(blobs)
     }
 
-    /// Temporary files left by interrupted writes.
+    /// What lies in `blobs/<prefix>/` or `tmp/` and is not a regular file
+    /// (a folder, a symbolic link, a FIFO, …): no write of scanloc's puts
+    /// it there, so `gc` and `verify` name it and leave it alone. Each is
+    /// (path, what it is).
+    pub fn strays(&self) -> anyhow::Result<Vec<(PathBuf, &'static str)>> {
+        let mut strays: Vec<(PathBuf, &'static str)> = self
+            .entries()?
+            .into_iter()
+            .chain(self.tmp_entries()?)
+            .filter_map(|entry| match entry {
+                StoreEntry::Stray { path, kind } => Some((path, kind)),
+                StoreEntry::File { .. } => None,
+            })
+            .collect();
+        strays.sort();
+        Ok(strays)
+    }
+
+    /// Temporary files left by interrupted writes (regular files only; see
+    /// [`BlobStore::strays`]).
     pub fn leftovers(&self) -> anyhow::Result<Vec<PathBuf>> {
-        let mut files = Vec::new();
-        for entry in fs::read_dir(self.tmp_dir())? {
-            files.push(entry?.path());
-        }
+        let mut files: Vec<PathBuf> = self
+            .tmp_entries()?
+            .into_iter()
+            .filter_map(|entry| match entry {
+                StoreEntry::File { path, .. } => Some(path),
+                StoreEntry::Stray { .. } => None,
+            })
+            .collect();
         files.sort();
         Ok(files)
     }
+
+    /// Everything in the prefix folders of `blobs/`.
+    fn entries(&self) -> anyhow::Result<Vec<StoreEntry>> {
+        let mut entries = Vec::new();
+        let top = self.root.join("blobs");
+        for prefix in fs::read_dir(&top).with_context(|| format!("listing {}", top.display()))? {
+            let prefix = prefix?;
+            if !prefix.file_type()?.is_dir() {
+                continue;
+            }
+            entries.extend(list_folder(&prefix.path())?);
+        }
+        Ok(entries)
+    }
+
+    /// Everything in `tmp/` (nothing if it is missing, as in a read-only
+    /// registry's folder that never had one).
+    fn tmp_entries(&self) -> anyhow::Result<Vec<StoreEntry>> {
+        let tmp = self.tmp_dir();
+        if !tmp.exists() {
+            return Ok(Vec::new());
+        }
+        list_folder(&tmp)
+    }
+}
+
+/// One entry of a store folder: a regular file, or anything else.
+enum StoreEntry {
+    File { path: PathBuf, size: u64 },
+    Stray { path: PathBuf, kind: &'static str },
+}
+
+/// The entries of `folder`, typed without following symbolic links.
+fn list_folder(folder: &Path) -> anyhow::Result<Vec<StoreEntry>> {
+    let mut entries = Vec::new();
+    for entry in fs::read_dir(folder).with_context(|| format!("listing {}", folder.display()))? {
+        let entry = entry?;
+        let path = entry.path();
+        let metadata =
+            fs::symlink_metadata(&path).with_context(|| format!("reading {}", path.display()))?;
+        entries.push(if metadata.is_file() {
+            StoreEntry::File {
+                path,
+                size: metadata.len(),
+            }
+        } else {
+            StoreEntry::Stray {
+                path,
+                kind: crate::io::folders::kind_of(&metadata.file_type()),
+            }
+        });
+    }
+    Ok(entries)
 }

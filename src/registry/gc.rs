@@ -21,6 +21,9 @@ pub struct GcReport {
     pub blobs: Vec<String>,
     pub bytes: u64,
     pub temporaries: Vec<String>,
+    /// What lies among the blobs or temporaries and is not a regular file
+    /// (`PATH (a folder)`): named, and left alone.
+    pub strays: Vec<String>,
 }
 
 impl Registry {
@@ -155,6 +158,17 @@ impl Registry {
                 .into_iter()
                 .map(|p| p.display().to_string())
                 .collect(),
+            strays: stray_labels(self.blobs())?,
         })
     }
+}
+
+/// `PATH (what it is)` of every stray in the blob store (see
+/// [`BlobStore::strays`](super::BlobStore::strays)).
+pub(crate) fn stray_labels(store: &super::BlobStore) -> anyhow::Result<Vec<String>> {
+    Ok(store
+        .strays()?
+        .into_iter()
+        .map(|(path, kind)| format!("{} ({kind})", path.display()))
+        .collect())
 }

@@ -249,10 +249,8 @@ impl Registry {
         Self::connect(dir, Integrity::CheckBeforeWriting)
     }
 
-    /// Opens the registry in `dir`, which cannot be written, read-only: as
-    /// it is (`mode=ro`), or, when SQLite cannot even share it for reading
-    /// (no write-ahead-log index beside it on a read-only mount), as an
-    /// immutable file.
+    /// Opens the registry in `dir`, which cannot be written, read-only (see
+    /// [`open_database_read_only`]); blobs are read, nothing is created.
     fn connect_read_only(dir: &Path) -> anyhow::Result<Self> {
         refuse_lost_database(dir)?;
         let path = dir.join(DATABASE_FILE);
@@ -262,29 +260,8 @@ impl Registry {
                 dir.display()
             )));
         }
-        let uri = |options: &str| {
-            let escaped = path
-                .display()
-                .to_string()
-                .replace('%', "%25")
-                .replace('?', "%3f")
-                .replace('#', "%23");
-            format!("file:{escaped}?{options}")
-        };
-        let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_URI;
-        let version = |conn: &Connection| -> rusqlite::Result<i64> {
-            conn.query_row("PRAGMA user_version", [], |row| row.get(0))
-        };
-        let mut conn = Connection::open_with_flags(uri("mode=ro"), flags)?;
-        let schema = match version(&conn) {
-            Ok(v) => v,
-            Err(_) => {
-                conn = Connection::open_with_flags(uri("mode=ro&immutable=1"), flags)?;
-                version(&conn).map_err(|e| {
-                    input_error(format!("{}: cannot read the registry: {e}", path.display()))
-                })?
-            }
-        };
+        let conn = open_database_read_only(dir)?;
+        let schema: i64 = conn.query_row("PRAGMA user_version", [], |row| row.get(0))?;
         if schema != SCHEMA_VERSION {
             return Err(input_error(format!(
                 "{}: the registry is read-only and its schema (version {schema}) is not this scanloc's ({SCHEMA_VERSION}); open it once where it can be written",
@@ -295,10 +272,30 @@ impl Registry {
         Ok(Self {
             dir: dir.to_path_buf(),
             conn,
-            blobs: BlobStore::open(dir)?,
+            blobs: BlobStore::read_only(dir),
             read_only: true,
             writer_run: None,
         })
+    }
+
+    /// Refuses, as bad input, a `command` that needs to write on a
+    /// registry opened read-only.
+    pub fn refuse_read_only(&self, command: &str) -> anyhow::Result<()> {
+        if self.read_only {
+            return Err(input_error(format!(
+                "the registry at {} is read-only; {command} needs to write",
+                self.dir.display()
+            )));
+        }
+        Ok(())
+    }
+
+    /// [`Registry::open`] for a `command` that writes: a registry that
+    /// cannot be written is refused (see [`Registry::refuse_read_only`]).
+    pub fn open_to_write(dir: &Path, command: &str) -> anyhow::Result<Self> {
+        let registry = Self::open(dir)?;
+        registry.refuse_read_only(command)?;
+        Ok(registry)
     }
 
     /// Begins a write transaction (`BEGIN IMMEDIATE`), waiting for the
@@ -319,6 +316,12 @@ impl Registry {
     }
 
     /// Opens an existing registry; a folder without a database is bad input.
+    /// A registry this process cannot write (a read-only mount, no write
+    /// permission, or [`SCANLOC_REGISTRY_READ_ONLY`]) is opened read-only,
+    /// so every command that only reads works on it (see
+    /// [`Registry::refuse_read_only`] for those that write).
+    ///
+    /// [`SCANLOC_REGISTRY_READ_ONLY`]: crate::env_vars::SCANLOC_REGISTRY_READ_ONLY
     pub fn open_existing(dir: &Path) -> anyhow::Result<Self> {
         refuse_lost_database(dir)?;
         if !dir.join(DATABASE_FILE).is_file() {
@@ -327,12 +330,16 @@ impl Registry {
                 dir.display()
             )));
         }
+        if !writable(dir) {
+            return Self::connect_read_only(dir);
+        }
         Self::connect(dir, Integrity::Unchecked)
     }
 
     fn connect(dir: &Path, integrity: Integrity) -> anyhow::Result<Self> {
         refuse_lost_database(dir)?;
         let path = dir.join(DATABASE_FILE);
+        create_database_file(&path)?;
         let conn = Connection::open(&path).map_err(|e| {
             input_error(format!("{}: cannot open the registry: {e}", path.display()))
         })?;
@@ -971,19 +978,129 @@ impl Registry {
     }
 }
 
-/// Whether this process can create files in `dir` (tried, not inferred
-/// from permission bits, which do not apply to root or to a read-only mount).
+/// Creates the (empty) database file if missing, with mode 0666 minus the
+/// umask like any other file a user makes (SQLite's own default is 0644
+/// whatever the umask; its `-wal` and `-shm` files copy the database's
+/// mode), so that a group sharing a registry can share its database.
+fn create_database_file(path: &Path) -> anyhow::Result<()> {
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o666);
+    }
+    match options.open(path) {
+        Ok(_) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+        Err(e) => Err(input_error(format!(
+            "{}: cannot create the registry database: {e}",
+            path.display()
+        ))),
+    }
+}
+
+/// Whether every registry is to be opened read-only
+/// ([`SCANLOC_REGISTRY_READ_ONLY`](crate::env_vars::SCANLOC_REGISTRY_READ_ONLY)
+/// is `1`).
+fn read_only_forced() -> bool {
+    std::env::var_os(crate::env_vars::SCANLOC_REGISTRY_READ_ONLY).is_some_and(|v| v == "1")
+}
+
+/// Whether this process can create files in `dir` and write its database
+/// (tried, not inferred from permission bits, which do not apply to root
+/// or to a read-only mount); never for an existing registry when read-only
+/// is forced (a new one, such as `reproduce`'s scratch registry, is made).
 fn writable(dir: &Path) -> bool {
+    if read_only_forced() && dir.join(DATABASE_FILE).is_file() {
+        return false;
+    }
+    let refused = |e: &std::io::Error| {
+        matches!(
+            e.kind(),
+            std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
+        )
+    };
+    let database = dir.join(DATABASE_FILE);
+    if database.is_file()
+        && let Err(e) = std::fs::OpenOptions::new().write(true).open(&database)
+        && refused(&e)
+    {
+        return false;
+    }
     match tempfile::Builder::new()
         .prefix(".scanloc-write-probe-")
         .tempfile_in(dir)
     {
         Ok(_) => true,
-        Err(e) => !matches!(
-            e.kind(),
-            std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
-        ),
+        Err(e) => !refused(&e),
     }
+}
+
+/// Opens the database of the registry in `dir` for reading only, creating
+/// no file: as a database others may be writing (`mode=ro`) while SQLite
+/// can share it so, else (a read-only folder holds no write-ahead-log
+/// index for it, and none can be made) as an immutable file. With
+/// [`SCANLOC_REGISTRY_READ_ONLY`](crate::env_vars::SCANLOC_REGISTRY_READ_ONLY)
+/// it is opened immutable at once (a shared read would create that index).
+pub fn open_database_read_only(dir: &Path) -> anyhow::Result<Connection> {
+    let path = dir.join(DATABASE_FILE);
+    let flags = OpenFlags::SQLITE_OPEN_READ_ONLY
+        | OpenFlags::SQLITE_OPEN_URI
+        | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+    let cannot = |e: rusqlite::Error| {
+        input_error(format!("{}: cannot read the registry: {e}", path.display()))
+    };
+    let readable = |conn: &Connection| {
+        conn.query_row("PRAGMA user_version", [], |row| row.get::<_, i64>(0))
+            .map(|_| ())
+    };
+    if !read_only_forced() {
+        let conn =
+            Connection::open_with_flags(database_uri(&path, "mode=ro"), flags).map_err(cannot)?;
+        match readable(&conn) {
+            Ok(()) => return Ok(conn),
+            // Where the folder can be written, a shared read should work:
+            // the error is the database's, not the folder's.
+            Err(e) if writable(dir) => return Err(cannot(e)),
+            Err(_) => {}
+        }
+    }
+    let conn = Connection::open_with_flags(database_uri(&path, "mode=ro&immutable=1"), flags)
+        .map_err(cannot)?;
+    readable(&conn).map_err(cannot)?;
+    Ok(conn)
+}
+
+/// The SQLite URI of the file `path` with `options`: every byte of the
+/// path but unreserved ASCII percent-encoded, so no character of a folder
+/// name (`%`, `?`, `#`, spaces, bytes that are not UTF-8) is read as URI
+/// syntax.
+fn database_uri(path: &Path, options: &str) -> String {
+    #[cfg(unix)]
+    let bytes = {
+        use std::os::unix::ffi::OsStrExt;
+        path.as_os_str().as_bytes().to_vec()
+    };
+    #[cfg(not(unix))]
+    let bytes = path.to_string_lossy().into_owned().into_bytes();
+    // An absolute path after an empty authority (`file:///…`), so that
+    // one starting with `//` is not read as a host name.
+    let mut uri = String::from(if path.is_absolute() {
+        "file://"
+    } else {
+        "file:"
+    });
+    for byte in bytes {
+        if byte.is_ascii_alphanumeric() || b"/._-~".contains(&byte) {
+            uri.push(byte as char);
+        } else {
+            uri.push_str(&format!("%{byte:02X}"));
+        }
+    }
+    uri.push('?');
+    uri.push_str(options);
+    uri
 }
 
 /// Whether a registry is checked for damage when opened.

@@ -54,6 +54,7 @@ impl Registry {
         reference: &str,
         detector_kind: DetectorKind,
     ) -> anyhow::Result<StoredModel> {
+        super::sql::check_id_length(reference)?;
         let (key, run) = match reference.split_once(':') {
             Some((run, detector)) => {
                 let run = self.unique_run(run)?;
@@ -116,7 +117,7 @@ impl Registry {
             return Ok(id.to_string());
         }
         self.unique_prefix(
-            "SELECT id FROM runs WHERE id LIKE ?1 LIMIT 2",
+            "SELECT id FROM runs WHERE id LIKE ?1 ESCAPE '\\' LIMIT 2",
             id,
             "run with this id",
             "",
@@ -126,7 +127,7 @@ impl Registry {
     /// The model whose content key is `key` or starts with it.
     fn unique_model_key(&self, key: &str) -> anyhow::Result<String> {
         self.unique_prefix(
-            "SELECT key FROM models WHERE key LIKE ?1 LIMIT 2",
+            "SELECT key FROM models WHERE key LIKE ?1 ESCAPE '\\' LIMIT 2",
             key,
             "model with this key",
             " (name a model by RUN:DETECTOR or its key)",
@@ -211,7 +212,7 @@ impl Registry {
             .collect()
     }
 
-    /// The first column of `sql` (one `LIKE ?1` parameter) for rows
+    /// The first column of `sql` (one `LIKE ?1 ESCAPE '\'` parameter) for rows
     /// starting with `prefix` (at least [`MIN_PREFIX`] characters, taken
     /// literally).
     fn matching_prefix(&self, sql: &str, prefix: &str) -> anyhow::Result<Vec<String>> {
@@ -220,12 +221,11 @@ impl Registry {
                 "{prefix:?}: give a full id or key, or a prefix of at least {MIN_PREFIX} characters"
             );
         }
-        if prefix.contains(['%', '_', '\\']) {
-            return Ok(Vec::new());
-        }
         let mut statement = self.connection().prepare(sql)?;
         let found = statement
-            .query_map([format!("{prefix}%")], |row| row.get::<_, String>(0))?
+            .query_map([super::sql::like_prefix(prefix)], |row| {
+                row.get::<_, String>(0)
+            })?
             .collect::<Result<_, _>>()?;
         Ok(found)
     }

@@ -49,6 +49,38 @@ pub fn query(conn: &Connection, sql: &str, args: &[&dyn rusqlite::ToSql]) -> any
 
 pub use super::sql_guard::read_only_sql;
 
+/// The longest run id, content key or model reference (`RUN:DETECTOR`)
+/// looked up, in characters: far beyond any real one (a key has 64), and
+/// short enough that no lookup or message grows with what was typed.
+pub const MAX_ID_CHARS: usize = 256;
+
+/// Refuses (exit code 2, one short line) an id longer than
+/// [`MAX_ID_CHARS`], before it reaches a query or a message.
+pub fn check_id_length(id: &str) -> anyhow::Result<()> {
+    let length = id.chars().count();
+    if length > MAX_ID_CHARS {
+        let start: String = id.chars().take(16).collect();
+        return Err(input_error(format!(
+            "{start:?}…: an id of {length} characters; run ids and keys have at most {MAX_ID_CHARS}"
+        )));
+    }
+    Ok(())
+}
+
+/// The `LIKE … ESCAPE '\'` pattern of the strings starting with `prefix`,
+/// taken literally (its `%`, `_` and `\` escaped).
+pub fn like_prefix(prefix: &str) -> String {
+    let mut pattern = String::with_capacity(prefix.len() + 1);
+    for c in prefix.chars() {
+        if matches!(c, '%' | '_' | '\\') {
+            pattern.push('\\');
+        }
+        pattern.push(c);
+    }
+    pattern.push('%');
+    pattern
+}
+
 impl Registry {
     /// Every run, newest first, with its status in effect, as a table
     /// (the commit shortened to 12 characters).
@@ -146,6 +178,7 @@ impl Registry {
     /// Resolves a run id or artefact key, or a unique prefix of one (at
     /// least 4 characters).
     pub fn resolve_id(&self, id: &str) -> anyhow::Result<Found> {
+        check_id_length(id)?;
         if self.run_exists(id)? {
             return Ok(Found::Run(id.to_string()));
         }
@@ -154,7 +187,7 @@ impl Registry {
                 "{id:?}: give a full run id or artefact key, or a prefix of at least 4 characters"
             )));
         }
-        let pattern = format!("{}%", id.replace(['%', '_'], ""));
+        let pattern = like_prefix(id);
         let matching = |sql: &str| -> anyhow::Result<Vec<String>> {
             let mut statement = self.connection().prepare(sql)?;
             let ids = statement
@@ -162,15 +195,16 @@ impl Registry {
                 .collect::<Result<_, _>>()?;
             Ok(ids)
         };
-        let found: Vec<Found> = matching("SELECT id FROM runs WHERE id LIKE ?1 LIMIT 3")?
-            .into_iter()
-            .map(Found::Run)
-            .chain(
-                matching("SELECT key FROM artefacts WHERE key LIKE ?1 LIMIT 3")?
-                    .into_iter()
-                    .map(Found::Artefact),
-            )
-            .collect();
+        let found: Vec<Found> =
+            matching("SELECT id FROM runs WHERE id LIKE ?1 ESCAPE '\\' LIMIT 3")?
+                .into_iter()
+                .map(Found::Run)
+                .chain(
+                    matching("SELECT key FROM artefacts WHERE key LIKE ?1 ESCAPE '\\' LIMIT 3")?
+                        .into_iter()
+                        .map(Found::Artefact),
+                )
+                .collect();
         match found.len() {
             0 => Err(input_error(format!(
                 "{id}: no run or artefact with this id in {}",

@@ -23,7 +23,6 @@ use std::time::{Duration, Instant};
 
 use rusqlite::hooks::{AuthAction, AuthContext, Authorization};
 use rusqlite::types::ValueRef;
-use rusqlite::{Connection, OpenFlags};
 use serde_json::{Value, json};
 
 use super::DATABASE_FILE;
@@ -141,11 +140,8 @@ pub fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
             dir.display()
         )));
     }
-    let conn = Connection::open_with_flags(
-        &path,
-        OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
-    )
-    .map_err(|e| input_error(format!("{}: cannot open the registry: {e}", path.display())))?;
+    // Read-only, and on a registry that cannot be written as well.
+    let conn = super::open_database_read_only(dir)?;
     conn.busy_timeout(Duration::from_secs(30))?;
     conn.execute_batch(&format!(
         "PRAGMA query_only = ON; PRAGMA hard_heap_limit = {SQL_HEAP_LIMIT_BYTES};"

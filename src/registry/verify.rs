@@ -33,6 +33,9 @@ pub struct VerifyReport {
     pub unrecorded_files: Vec<String>,
     /// Temporary files left by interrupted writes.
     pub leftover_temporaries: Vec<String>,
+    /// What lies among the blobs or temporaries and is not a regular file
+    /// (`PATH (a folder)`): named, and left alone.
+    pub strays: Vec<String>,
     /// SQLite's own `PRAGMA integrity_check` result.
     pub database_integrity: String,
     /// Artefacts whose stored spec no longer hashes to their key (edited
@@ -149,6 +152,7 @@ impl Registry {
                 .collect(),
             database_integrity: integrity,
             bad_specs,
+            strays: super::gc::stray_labels(store)?,
         })
     }
 }

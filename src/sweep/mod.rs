@@ -540,7 +540,7 @@ pub fn task(dir: &Path, index: usize, direct: bool, force: bool) -> anyhow::Resu
     } else {
         file.shard(index)
     };
-    let mut registry = Registry::open(&target)?;
+    let mut registry = Registry::open_to_write(&target, "sweep task")?;
     let mut seeded = 0;
     if !direct {
         let keys: Vec<String> = point.plan.steps.iter().map(|s| s.key.clone()).collect();

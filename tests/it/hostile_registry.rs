@@ -343,14 +343,14 @@ fn an_artefact_whose_spec_no_longer_hashes_to_its_key_fails_verify() {
 
 /// `dir` bound read-only at `at` for as long as it lives (a real read-only
 /// mount: writes fail with EROFS whoever the user is, root included).
-struct ReadOnlyMount {
-    at: std::path::PathBuf,
+pub(crate) struct ReadOnlyMount {
+    pub(crate) at: std::path::PathBuf,
 }
 
 impl ReadOnlyMount {
     /// `None` where this process may not mount (not root, no mount
     /// namespace rights): the caller then says so and skips.
-    fn bind(dir: &Path, at: &Path) -> Option<Self> {
+    pub(crate) fn bind(dir: &Path, at: &Path) -> Option<Self> {
         std::fs::create_dir_all(at).unwrap();
         let mount = |args: &[&str]| {
             std::process::Command::new("mount")

@@ -30,6 +30,7 @@ mod hostile_cli_fuzz;
 mod hostile_files;
 mod hostile_fuzz_guard;
 mod hostile_manifest;
+mod hostile_outputs;
 mod hostile_real_frames;
 mod hostile_registry;
 mod layers;

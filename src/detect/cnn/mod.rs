@@ -578,18 +578,22 @@ pub fn inference_device() -> Device {
     Device::flex()
 }
 
-/// Checks that a model can be saved at `dir`: a folder or a path that
-/// does not exist yet (not a file, which a model folder would replace).
+/// Checks that a model can be saved at `dir`: a path that does not exist
+/// yet, or a folder holding only the regular files of a model folder
+/// ([`is_model_file`]); see [`PendingFolder`](crate::io::PendingFolder).
 /// Checked before training, so a long training does not end in an
 /// unwritable destination.
 pub fn check_model_destination(dir: &Path) -> anyhow::Result<()> {
-    match std::fs::metadata(dir) {
-        Ok(metadata) if !metadata.is_dir() => crate::bail_input!(
-            "{}: exists and is not a folder; a model is saved as a folder (give a new path or a folder)",
-            dir.display()
-        ),
-        _ => Ok(()),
-    }
+    crate::io::PendingFolder::check(dir, is_model_file)
+}
+
+/// Whether `name` is a file a model folder holds: `config.json`, and a
+/// member's weights or training record ([`weights_file`],
+/// [`training_file`]) for members 1 to [`MAX_MEMBERS`] (and one more, the
+/// extra member [`TrainedCnn::load`] refuses).
+pub fn is_model_file(name: &str) -> bool {
+    name == CONFIG_FILE
+        || (1..=MAX_MEMBERS + 1).any(|m| name == weights_file(m) || name == training_file(m))
 }
 
 /// One member as read from storage: its training record and weights, and
@@ -820,19 +824,17 @@ impl TrainedCnn {
         Self::from_parts(header.architecture, header.settings, stored)
     }
 
-    /// Saves into folder `dir` (created if missing): each member's weights
-    /// in burn's burnpack record format and its training record
-    /// ([`weights_file`], [`training_file`]: `model.bpk` and
-    /// `training.json` for member 1, `model-2.bpk` and `training-2.json`
-    /// for member 2, …) and `config.json` (format, architecture,
-    /// settings). Each file is written atomically; member files of a model
-    /// with more members saved there before are removed, so the folder
-    /// holds one model. `dir` must be a folder or a new path (see
-    /// [`check_model_destination`]).
+    /// Saves into folder `dir`: each member's weights in burn's burnpack
+    /// record format and its training record ([`weights_file`],
+    /// [`training_file`]: `model.bpk` and `training.json` for member 1,
+    /// `model-2.bpk` and `training-2.json` for member 2, …) and
+    /// `config.json` (format, architecture, settings). The folder is
+    /// written whole or not at all and replaces a model folder there
+    /// before; `dir` must be a new path or such a folder (see
+    /// [`check_model_destination`] and
+    /// [`PendingFolder`](crate::io::PendingFolder)).
     pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
-        check_model_destination(dir)?;
-        std::fs::create_dir_all(dir)
-            .map_err(|e| input_error(format!("{}: cannot create: {e}", dir.display())))?;
+        let folder = crate::io::PendingFolder::create(dir, is_model_file)?;
         let config = SavedConfig {
             format: FORMAT.to_string(),
             architecture: self.architecture.clone(),
@@ -840,32 +842,21 @@ impl TrainedCnn {
         };
         let weights = self.weight_bytes()?;
         for (index, member) in weights.iter().enumerate() {
-            crate::io::write_atomically(&dir.join(weights_file(index + 1)), |w| {
+            crate::io::write_atomically(&folder.file(&weights_file(index + 1)), |w| {
                 Ok(w.write_all(member)?)
             })?;
         }
-        crate::io::write_atomically(&dir.join(CONFIG_FILE), |w| {
+        crate::io::write_atomically(&folder.file(CONFIG_FILE), |w| {
             serde_json::to_writer_pretty(&mut *w, &config)?;
             Ok(w.write_all(b"\n")?)
         })?;
         for (index, record) in self.records().enumerate() {
-            crate::io::write_atomically(&dir.join(training_file(index + 1)), |w| {
+            crate::io::write_atomically(&folder.file(&training_file(index + 1)), |w| {
                 serde_json::to_writer_pretty(&mut *w, record)?;
                 Ok(w.write_all(b"\n")?)
             })?;
         }
-        for member in self.members() + 1..=MAX_MEMBERS + 1 {
-            for name in [weights_file(member), training_file(member)] {
-                let path = dir.join(name);
-                match std::fs::remove_file(&path) {
-                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                        crate::bail_input!("{}: cannot remove: {e}", path.display())
-                    }
-                    _ => {}
-                }
-            }
-        }
-        Ok(())
+        folder.commit()
     }
 
     /// Loads a folder written by [`save`](Self::save). Every member that

@@ -51,7 +51,7 @@ pub(super) fn reliability_diagrams(
                     .collect(),
             });
         }
-        let file = format!("reliability_{dataset}");
+        let file = crate::io::safe_file_name(&format!("reliability_{dataset}"));
         line_chart(
             &out.join(&file),
             &format!("{dataset}: reliability of the score (within 1 px)"),
@@ -212,7 +212,7 @@ pub(super) fn precision_recall_curves(
             if curves.is_empty() {
                 continue;
             }
-            let file = format!("pr_{dataset}_eps{e}");
+            let file = crate::io::safe_file_name(&format!("pr_{dataset}_eps{e}"));
             line_chart(
                 &out.join(&file),
                 &format!("{dataset}, ε = {e} px"),
@@ -260,7 +260,7 @@ pub(super) fn error_histograms(
                 .collect();
             series.push((e.detector.clone(), errors));
         }
-        let file = format!("errors_{dataset}");
+        let file = crate::io::safe_file_name(&format!("errors_{dataset}"));
         histograms(
             &out.join(&file),
             &format!("{dataset}: distance of the top prediction to the trajectory centroid"),

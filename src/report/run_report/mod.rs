@@ -16,7 +16,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use super::recorded::RecordedManifest;
-use crate::error::input_error;
 use crate::metrics::Score;
 use crate::registry::{Registry, RunRecord};
 use crate::run::load_artefact;
@@ -50,12 +49,22 @@ struct Evaluation {
 }
 
 /// Writes `report.md` and its figures (PNG and SVG) for run `run_id` into
-/// `out`; returns the path of the Markdown file.
-pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Result<PathBuf> {
+/// the folder `destination`; returns the path of the Markdown file. The
+/// folder is written whole or not at all (see
+/// [`PendingFolder`](crate::io::PendingFolder)): `destination` must be a
+/// new path or a folder holding only such files ([`is_report_file`]), and
+/// is replaced whole. Figures named after a dataset get a file name made
+/// by [`safe_file_name`](crate::io::safe_file_name): recorded names are
+/// data, never paths.
+pub fn write_report(
+    registry: &Registry,
+    run_id: &str,
+    destination: &Path,
+) -> anyhow::Result<PathBuf> {
+    let folder = crate::io::PendingFolder::create(destination, is_report_file)?;
     let record = registry.run_record(run_id)?;
     let resolved = RecordedManifest::of(&record)?;
-    std::fs::create_dir_all(out)
-        .map_err(|e| input_error(format!("{}: cannot create: {e}", out.display())))?;
+    let out = folder.path();
     let reference = resolved.reference.as_ref();
     let evaluations = load_evaluations(registry, &record, &resolved)?;
     let mut markdown = String::new();
@@ -129,9 +138,18 @@ pub fn write_report(registry: &Registry, run_id: &str, out: &Path) -> anyhow::Re
     for file in error_histograms(registry, out, &evaluations)? {
         writeln!(markdown, "![errors]({file}.png)\n")?;
     }
-    let path = out.join("report.md");
-    crate::io::write_bytes_atomically(&path, markdown.as_bytes())?;
-    Ok(path)
+    crate::io::write_bytes_atomically(&folder.file(REPORT_FILE), markdown.as_bytes())?;
+    folder.commit()?;
+    Ok(destination.join(REPORT_FILE))
+}
+
+/// The Markdown file of a report folder.
+pub const REPORT_FILE: &str = "report.md";
+
+/// Whether `name` is a file a report folder holds: `report.md` and the
+/// figures (`.png`, `.svg`).
+pub fn is_report_file(name: &str) -> bool {
+    name == REPORT_FILE || name.ends_with(".png") || name.ends_with(".svg")
 }
 
 fn load_evaluations(
