@@ -6,6 +6,7 @@ mod bench_cnn;
 mod calibrate;
 mod check;
 mod cv;
+mod link;
 mod locate;
 mod registry;
 mod report;
@@ -55,6 +56,7 @@ enum Command {
     Calibrate(calibrate::CalibrateArgs),
     Cv(cv::CvArgs),
     Sweep(sweep::SweepArgs),
+    Link(link::LinkArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -124,6 +126,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
         Command::Calibrate(args) => calibrate::run(args),
         Command::Cv(args) => cv::run(args),
         Command::Sweep(args) => sweep::run(args),
+        Command::Link(args) => link::run(args, stdout),
     }
 }
 

@@ -10,6 +10,7 @@
 //! name the file.
 
 pub mod csv_tables;
+pub mod localisation_table;
 pub mod npy;
 pub mod tiff_stack;
 
