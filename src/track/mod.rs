@@ -130,13 +130,20 @@ pub(crate) fn assign(
     death: &[f64],
     birth: &[f64],
 ) -> anyhow::Result<Vec<Option<usize>>> {
-    // The trivial shapes without a matrix: most problems are one source.
-    if sources == 1 {
+    // The shapes without a matrix (most problems): one source links to the
+    // destination that gains most, one destination to the source that
+    // gains most, if linking beats leaving both unlinked.
+    if sources == 1 || destinations == 1 {
+        let gain = |c: &Candidate| death[c.from] + birth[c.to] - c.cost;
         let best = candidates
             .iter()
-            .filter(|c| c.cost < death[0] + birth[c.to])
-            .min_by(|a, b| a.cost.total_cmp(&b.cost));
-        return Ok(vec![best.map(|c| c.to)]);
+            .filter(|c| gain(c) > 0.0)
+            .max_by(|a, b| gain(a).total_cmp(&gain(b)));
+        let mut links = vec![None; sources];
+        if let Some(c) = best {
+            links[c.from] = Some(c.to);
+        }
+        return Ok(links);
     }
     let n = sources + destinations;
     // More than any assignment without a forbidden entry can cost, so the

@@ -31,7 +31,7 @@
 //!   trajectories do not.
 
 use rstar::RTree;
-use rstar::primitives::GeomWithData;
+use rstar::primitives::{GeomWithData, Rectangle};
 
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
 use crate::error::input_error;
@@ -89,12 +89,31 @@ pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<
     Ok(state.finish())
 }
 
-/// A subnetwork: its key (TrackPy's: a destination's index in its frame),
-/// sources and destinations (indices into the level's lists).
-struct Subnet {
-    key: usize,
+/// Each destination's candidate sources, flat: those of destination `d`
+/// are `list[offsets[d]..offsets[d + 1]]`, (source index, squared
+/// distance), nearest first.
+struct Candidates {
+    list: Vec<(usize, f64)>,
+    offsets: Vec<usize>,
+}
+
+impl Candidates {
+    fn of(&self, destination: usize) -> &[(usize, f64)] {
+        &self.list[self.offsets[destination]..self.offsets[destination + 1]]
+    }
+
+    fn destinations(&self) -> usize {
+        self.offsets.len() - 1
+    }
+}
+
+/// The subnetworks of a frame in key order: subnetwork `i` has the sources
+/// `sources[spans[i].0]` and destinations `destinations[spans[i].1]`
+/// (indices into the frame's lists, ascending).
+struct Subnets {
     sources: Vec<usize>,
     destinations: Vec<usize>,
+    spans: Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>,
 }
 
 /// The linker between frames.
@@ -158,18 +177,21 @@ impl<'a> State<'a> {
         let candidates = self.candidates(&sources, destinations);
         let subnets = subnets(sources.len(), &candidates);
         let mut source_linked = vec![false; sources.len()];
-        for subnet in &subnets {
-            let links = self.solve(subnet, &candidates)?;
-            for (&s, link) in subnet.sources.iter().zip(&links) {
+        let mut claimed = Vec::new();
+        for (source_span, destination_span) in &subnets.spans {
+            let subnet_sources = &subnets.sources[source_span.clone()];
+            let subnet_destinations = &subnets.destinations[destination_span.clone()];
+            let links = self.solve(subnet_sources, subnet_destinations, &candidates)?;
+            claimed.clear();
+            for (&s, link) in subnet_sources.iter().zip(&links) {
                 if let Some(d) = *link {
                     self.link(sources[s], destinations[d]);
                     source_linked[s] = true;
+                    claimed.push(d);
                 }
             }
-            let mut claimed: Vec<usize> = links.iter().flatten().copied().collect();
-            claimed.sort_unstable();
-            for &d in &subnet.destinations {
-                if claimed.binary_search(&d).is_err() {
+            for &d in subnet_destinations {
+                if !claimed.contains(&d) {
                     self.new_trajectory(destinations[d]);
                 }
             }
@@ -186,69 +208,97 @@ impl<'a> State<'a> {
     }
 
     /// For each destination, its up to [`MAX_NEIGHBORS`] nearest sources
-    /// within the search range: (source index, squared distance), nearest
-    /// first.
-    fn candidates(&self, sources: &[usize], destinations: &[usize]) -> Vec<Vec<(usize, f64)>> {
+    /// within the search range.
+    fn candidates(&self, sources: &[usize], destinations: &[usize]) -> Candidates {
+        let mut candidates = Candidates {
+            list: Vec::new(),
+            offsets: Vec::with_capacity(destinations.len() + 1),
+        };
+        candidates.offsets.push(0);
         if sources.is_empty() {
-            return vec![Vec::new(); destinations.len()];
+            candidates.offsets.resize(destinations.len() + 1, 0);
+            return candidates;
         }
-        let points = sources
+        // One join of two R*-trees (sources as squares of the search range,
+        // destinations as points) instead of a query per destination.
+        let limit = self.search_range + RANGE_SLACK;
+        let position = |d: usize| [self.detections[d].x, self.detections[d].y];
+        let squares = sources
             .iter()
             .enumerate()
-            .map(|(s, &d)| GeomWithData::new([self.detections[d].x, self.detections[d].y], s))
-            .collect();
-        let tree = RTree::bulk_load(points);
-        let limit = self.search_range + RANGE_SLACK;
-        destinations
-            .iter()
-            .map(|&d| {
-                let p = &self.detections[d];
-                tree.nearest_neighbor_iter_with_distance_2([p.x, p.y])
-                    .take_while(|&(_, d2)| d2 < limit * limit)
-                    .take(MAX_NEIGHBORS)
-                    .map(|(source, d2)| (source.data, d2))
-                    .collect()
+            .map(|(s, &d)| {
+                let [x, y] = position(d);
+                let square =
+                    Rectangle::from_corners([x - limit, y - limit], [x + limit, y + limit]);
+                GeomWithData::new(square, s)
             })
-            .collect()
+            .collect();
+        let points = destinations
+            .iter()
+            .enumerate()
+            .map(|(j, &d)| GeomWithData::new(position(d), j))
+            .collect();
+        let (squares, points): (RTree<_>, RTree<_>) =
+            (RTree::bulk_load(squares), RTree::bulk_load(points));
+        // (destination, squared distance, source), sorted: each
+        // destination's candidates nearest first.
+        let mut found: Vec<(usize, f64, usize)> = squares
+            .intersection_candidates_with_other_tree(&points)
+            .filter_map(|(square, point)| {
+                let [x, y] = position(sources[square.data]);
+                let [px, py] = *point.geom();
+                let d2 = (x - px) * (x - px) + (y - py) * (y - py);
+                // TrackPy's bound is strict.
+                (d2 < limit * limit).then_some((point.data, d2, square.data))
+            })
+            .collect();
+        found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut at = 0;
+        for j in 0..destinations.len() {
+            let mut kept = 0;
+            while at < found.len() && found[at].0 == j {
+                if kept < MAX_NEIGHBORS {
+                    candidates.list.push((found[at].2, found[at].1));
+                    kept += 1;
+                }
+                at += 1;
+            }
+            candidates.offsets.push(candidates.list.len());
+        }
+        candidates
     }
 
-    /// The links of one subnetwork: the destination (index in the frame) of
-    /// each of its sources, or none.
+    /// The links of one subnetwork (sources and destinations as indices
+    /// into the frame's lists, ascending): the destination of each source,
+    /// or none.
     fn solve(
         &mut self,
-        subnet: &Subnet,
-        candidates: &[Vec<(usize, f64)>],
+        sources: &[usize],
+        destinations: &[usize],
+        candidates: &Candidates,
     ) -> anyhow::Result<Vec<Option<usize>>> {
-        match (subnet.sources.len(), subnet.destinations.len()) {
+        match (sources.len(), destinations.len()) {
             (0, _) => return Ok(Vec::new()),
-            (1, 1) => return Ok(vec![Some(subnet.destinations[0])]),
+            (1, 1) => return Ok(vec![Some(destinations[0])]),
             (s, d) => {
                 self.stats.contested += 1;
                 self.stats.largest = self.stats.largest.max(s + d);
             }
         }
-        // Local indices: sources and destinations by position in the subnet.
-        let local_source = |s: usize| subnet.sources.binary_search(&s).ok();
         let mut local = Vec::new();
-        for (to, &d) in subnet.destinations.iter().enumerate() {
-            for &(s, d2) in &candidates[d] {
-                if let Some(from) = local_source(s) {
+        for (to, &d) in destinations.iter().enumerate() {
+            for &(s, d2) in candidates.of(d) {
+                if let Ok(from) = sources.binary_search(&s) {
                     local.push(Candidate { from, to, cost: d2 });
                 }
             }
         }
-        let death = vec![self.search_range * self.search_range; subnet.sources.len()];
-        let birth = vec![0.0; subnet.destinations.len()];
-        let links = assign(
-            subnet.sources.len(),
-            subnet.destinations.len(),
-            &local,
-            &death,
-            &birth,
-        )?;
+        let death = vec![self.search_range * self.search_range; sources.len()];
+        let birth = vec![0.0; destinations.len()];
+        let links = assign(sources.len(), destinations.len(), &local, &death, &birth)?;
         Ok(links
             .into_iter()
-            .map(|to| to.map(|t| subnet.destinations[t]))
+            .map(|to| to.map(|t| destinations[t]))
             .collect())
     }
 
@@ -286,65 +336,97 @@ impl<'a> State<'a> {
 /// keyed by its index; going through destinations in order and their
 /// candidates nearest first, a source joins its destination's subnetwork,
 /// or, if it is in another, that one merges into the destination's (which
-/// keeps its key). Returned in key order, members sorted; sources without
-/// candidates are in none.
-fn subnets(sources: usize, candidates: &[Vec<(usize, f64)>]) -> Vec<Subnet> {
-    let mut groups: Vec<Subnet> = (0..candidates.len())
-        .map(|d| Subnet {
-            key: d,
-            sources: Vec::new(),
-            destinations: vec![d],
-        })
-        .collect();
-    let mut group_of_destination: Vec<usize> = (0..candidates.len()).collect();
-    let mut group_of_source: Vec<Option<usize>> = vec![None; sources];
-    for (d, list) in candidates.iter().enumerate() {
-        for &(s, _) in list {
-            let target = group_of_destination[d];
-            match group_of_source[s] {
-                None => {
-                    groups[target].sources.push(s);
-                    group_of_source[s] = Some(target);
-                }
-                Some(other) if other != target => {
-                    // Move the smaller group's members; the key stays the
-                    // destination's.
-                    let key = groups[target].key;
-                    let (from, into) = if groups[other].sources.len()
-                        + groups[other].destinations.len()
-                        > groups[target].sources.len() + groups[target].destinations.len()
-                    {
-                        (target, other)
-                    } else {
-                        (other, target)
-                    };
-                    let moved_sources = std::mem::take(&mut groups[from].sources);
-                    let moved_destinations = std::mem::take(&mut groups[from].destinations);
-                    for &m in &moved_sources {
-                        group_of_source[m] = Some(into);
-                    }
-                    for &m in &moved_destinations {
-                        group_of_destination[m] = into;
-                    }
-                    groups[into].sources.extend(moved_sources);
-                    groups[into].destinations.extend(moved_destinations);
-                    groups[into].key = key;
-                }
-                Some(_) => {}
-            }
+/// keeps its key). Sources without candidates are in none.
+fn subnets(sources: usize, candidates: &Candidates) -> Subnets {
+    let destinations = candidates.destinations();
+    // Disjoint sets over destinations (0..) and sources (after); each root
+    // holds its subnetwork's key and size.
+    let mut sets = KeyedSets::new(destinations, sources);
+    for d in 0..destinations {
+        for &(s, _) in candidates.of(d) {
+            sets.join(d, destinations + s);
         }
     }
-    let mut live: Vec<Subnet> = groups
-        .into_iter()
-        .filter(|g| !g.destinations.is_empty())
-        .map(|mut g| {
-            g.sources.sort_unstable();
-            g.destinations.sort_unstable();
-            g
-        })
+    let mut keyed_destinations: Vec<(usize, usize)> =
+        (0..destinations).map(|d| (sets.key(d), d)).collect();
+    let mut keyed_sources: Vec<(usize, usize)> = (0..sources)
+        .map(|s| (sets.key(destinations + s), s))
+        .filter(|&(key, _)| key != usize::MAX)
         .collect();
-    live.sort_by_key(|g| g.key);
-    live
+    keyed_destinations.sort_unstable();
+    keyed_sources.sort_unstable();
+    let mut subnets = Subnets {
+        sources: keyed_sources.iter().map(|&(_, s)| s).collect(),
+        destinations: keyed_destinations.iter().map(|&(_, d)| d).collect(),
+        spans: Vec::new(),
+    };
+    // Every subnetwork has a destination: sweep the keys of destinations.
+    let (mut d, mut s) = (0, 0);
+    while d < keyed_destinations.len() {
+        let key = keyed_destinations[d].0;
+        let (d_start, s_start) = (d, s);
+        while d < keyed_destinations.len() && keyed_destinations[d].0 == key {
+            d += 1;
+        }
+        while s < keyed_sources.len() && keyed_sources[s].0 == key {
+            s += 1;
+        }
+        subnets.spans.push((s_start..s, d_start..d));
+    }
+    subnets
+}
+
+/// Disjoint sets of destinations and sources whose roots carry TrackPy's
+/// subnetwork key.
+struct KeyedSets {
+    parent: Vec<usize>,
+    size: Vec<usize>,
+    key: Vec<usize>,
+}
+
+impl KeyedSets {
+    fn new(destinations: usize, sources: usize) -> Self {
+        let n = destinations + sources;
+        Self {
+            parent: (0..n).collect(),
+            size: vec![1; n],
+            // A source alone has no subnetwork (usize::MAX: not joined).
+            key: (0..n)
+                .map(|i| if i < destinations { i } else { usize::MAX })
+                .collect(),
+        }
+    }
+
+    fn find(&mut self, mut x: usize) -> usize {
+        while self.parent[x] != x {
+            self.parent[x] = self.parent[self.parent[x]];
+            x = self.parent[x];
+        }
+        x
+    }
+
+    fn key(&mut self, x: usize) -> usize {
+        let root = self.find(x);
+        self.key[root]
+    }
+
+    /// Puts source `source` into destination `destination`'s subnetwork,
+    /// merging its own into it; the result keeps the destination's key.
+    fn join(&mut self, destination: usize, source: usize) {
+        let (rd, rs) = (self.find(destination), self.find(source));
+        if rd == rs {
+            return;
+        }
+        let key = self.key[rd];
+        let (small, large) = if self.size[rd] < self.size[rs] {
+            (rd, rs)
+        } else {
+            (rs, rd)
+        };
+        self.parent[small] = large;
+        self.size[large] += self.size[small];
+        self.key[large] = key;
+    }
 }
 
 #[cfg(test)]
