@@ -208,8 +208,12 @@ pub struct LinkBench {
     #[arg(long, default_value_t = 38)]
     seed: u64,
     /// Timed repeats of scanloc; the best is reported.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 20)]
     repeats: usize,
+    /// Timed repeats of TrackPy (about 2 s each on the default walks); the
+    /// best is reported.
+    #[arg(long, default_value_t = 3)]
+    reference_repeats: usize,
     /// Python interpreter with trackpy 0.7 (the reference is skipped if missing).
     #[arg(long, default_value = "python3")]
     python: String,
@@ -262,6 +266,8 @@ pub fn bench(args: LinkBench) -> anyhow::Result<ExitCode> {
             &args.search_range.to_string(),
             "--memory",
             &args.memory.to_string(),
+            "--repeats",
+            &args.reference_repeats.to_string(),
         ],
         &[],
         ["localisations_per_second"],
