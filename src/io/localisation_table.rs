@@ -187,10 +187,11 @@ mod tests {
         let table = read_localisation_table_from(text.as_bytes(), "t.csv").unwrap();
         assert_eq!(table.frames, [1, 0]);
         let mut bytes = Vec::new();
+        // Labels are indexed by table row; rows are written in `order`.
         write_track_table_to(&mut bytes, &table, &[1, 0], &[7, 3]).unwrap();
         assert_eq!(
             String::from_utf8(bytes).unwrap(),
-            "x,y,frame,mass,particle\n3,4,0.0,20,7\n1.50,2,1,10,3\n"
+            "x,y,frame,mass,particle\n3,4,0.0,20,3\n1.50,2,1,10,7\n"
         );
     }
 
