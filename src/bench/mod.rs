@@ -3,6 +3,7 @@
 //! so speed is reported as a ratio measured under the same load.
 
 pub mod cnn;
+pub mod link;
 pub mod locate;
 pub mod reference;
 pub mod simulate;

@@ -36,6 +36,10 @@ enum BenchCommand {
     Train(super::bench_cnn::BenchTrainArgs),
     /// A saved CNN's AUC table and inference speed on fresh test sets.
     CnnLocate(super::bench_cnn::BenchLocateArgs),
+    /// `scanloc link --linker trackpy` against TrackPy 0.7's link on the same
+    /// random walks (localisations/s, the ratio, and whether the
+    /// trajectories are the same).
+    Link(super::link::LinkBench),
 }
 
 /// A stage of `scanloc bench tradeoffs`.
@@ -174,6 +178,7 @@ pub fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         BenchCommand::Tradeoffs(args) => tradeoffs(args, stdout),
         BenchCommand::Train(args) => super::bench_cnn::run_train(args, stdout),
         BenchCommand::CnnLocate(args) => super::bench_cnn::run_locate(args, stdout),
+        BenchCommand::Link(args) => super::link::bench(args, stdout),
     }
 }
 

@@ -6,6 +6,7 @@ mod bench_cnn;
 mod calibrate;
 mod check;
 mod cv;
+mod link;
 mod locate;
 mod microscope;
 mod registry;
@@ -58,6 +59,7 @@ enum Command {
     Calibrate(calibrate::CalibrateArgs),
     Cv(cv::CvArgs),
     Sweep(sweep::SweepArgs),
+    Link(link::LinkArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -138,6 +140,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Calibrate(args) => calibrate::run(args, stdout),
         Command::Cv(args) => cv::run(args, stdout),
         Command::Sweep(args) => sweep::run(args, stdout),
+        Command::Link(args) => link::run(args, stdout),
     }
 }
 

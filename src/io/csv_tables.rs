@@ -339,7 +339,7 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
 
 /// Starts reading CSV from `reader`: its header, checked to have every
 /// `required` column (an error names `source` and the missing columns).
-fn open_table<R: Read>(
+pub(crate) fn open_table<R: Read>(
     reader: R,
     source: &str,
     required: &[&str],

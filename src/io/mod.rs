@@ -13,6 +13,7 @@
 
 pub mod csv_tables;
 pub mod folders;
+pub mod localisation_table;
 pub mod npy;
 pub mod tiff_stack;
 

@@ -35,6 +35,7 @@ mod hostile_real_frames;
 mod hostile_registry;
 mod layers;
 mod likelihood;
+mod link;
 mod manifest_errors;
 mod manifest_fuzz;
 mod metric;

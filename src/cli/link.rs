@@ -1,0 +1,291 @@
+//! `scanloc link`: localisations to trajectories (docs/tracking-linking.md).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, ValueEnum};
+use scanloc::error::input_error;
+use scanloc::io::{PendingFile, localisation_table};
+use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
+
+/// Link localisations into trajectories (docs/tracking-linking.md).
+///
+/// Reads a localisation table (CSV with a header: frame, x, y in TrackPy
+/// pixel coordinates; sigma_x, sigma_y used by --linker lap when present;
+/// any other columns are copied) and writes the same rows and columns plus
+/// `particle`, the trajectory label, sorted by frame (rows of one frame in
+/// input order), as TrackPy's `link` returns its table. Unsorted input is
+/// sorted the same way. Prints one summary line.
+///
+/// --linker trackpy (the default) gives TrackPy 0.7's `link` trajectories
+/// (search range, memory), checked against TrackPy itself on committed
+/// fixtures: the reference everyone's pipelines use, so results compare
+/// with theirs. --linker lap links by global assignment with gap closing
+/// over blinks (Jaqaman et al. 2008), costs from the localisation
+/// uncertainty and the expected step: better where particles blink and
+/// crowd, at the price of a diffusion model to state.
+#[derive(Debug, Args)]
+pub struct LinkArgs {
+    /// Localisation table (CSV with frame, x, y; optionally sigma_x, sigma_y).
+    #[arg(long)]
+    locs: PathBuf,
+    /// Output track table: the input columns plus `particle`.
+    #[arg(long)]
+    out: PathBuf,
+    /// The linker (see above).
+    #[arg(long, value_enum, default_value_t = Linker::Trackpy)]
+    linker: Linker,
+    /// Largest displacement between consecutive frames, px (TrackPy's
+    /// search_range). For lap: taken as 3 standard deviations of a frame's
+    /// step, unless --diffusion gives the step.
+    #[arg(long)]
+    search_range: Option<f64>,
+    /// trackpy: frames a particle may vanish for and still be linked
+    /// (TrackPy's memory) [default: 0].
+    #[arg(long)]
+    memory: Option<usize>,
+    /// lap: the longest gap closed, in frames without the particle (0: none)
+    /// [default: 2].
+    #[arg(long)]
+    max_gap: Option<usize>,
+    /// lap: diffusion coefficient D in µm²/s giving the expected step
+    /// (2 D Δt per axis); needs --frame-time-ms and --pixel-size-um.
+    #[arg(long, requires_all = ["frame_time_ms", "pixel_size_um"])]
+    diffusion: Option<f64>,
+    /// lap: time between frames, ms (e.g. 27.6 for the paper's 24 × 25 frames).
+    #[arg(long)]
+    frame_time_ms: Option<f64>,
+    /// lap: pixel size, µm.
+    #[arg(long)]
+    pixel_size_um: Option<f64>,
+}
+
+/// --max-gap's default: blinks of up to 2 frames are closed.
+const DEFAULT_MAX_GAP: usize = 2;
+
+/// The linkers of `scanloc link`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Linker {
+    /// TrackPy 0.7's link: subnetworks solved for the least sum of squared
+    /// displacements, memory for blinks.
+    Trackpy,
+    /// Global assignment frame to frame and gap closing (Jaqaman et al. 2008).
+    Lap,
+}
+
+pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let linker = Configured::from_args(&args)?;
+    let mut pending = PendingFile::create(&args.out)?;
+    let table = localisation_table::read_localisation_table(&args.locs)?;
+    let detections = track::detections(&table);
+    let linking = match &linker {
+        Configured::Trackpy(params) => track::trackpy::link(&detections, params),
+        Configured::Lap(params) => track::lap::link(&detections, params),
+    }
+    .map_err(|e| e.context(format!("{}: linking", args.locs.display())))?;
+    let order = track::frame_order(&detections);
+    localisation_table::fill_track_table(&mut pending, &table, &order, &linking.particle)?;
+    pending.commit()?;
+    let trajectories = linking.particle.iter().max().map_or(0, |&m| m + 1);
+    writeln!(
+        stdout,
+        "linked {} localisations into {trajectories} trajectories ({}; {} links, {} over gaps, \
+         {} contested subnetworks) -> {}",
+        detections.len(),
+        linker.describe(),
+        linking.stats.links,
+        linking.stats.gap_links,
+        linking.stats.contested,
+        args.out.display()
+    )?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// A linker with its checked parameters.
+enum Configured {
+    Trackpy(TrackpyParams),
+    Lap(LapParams),
+}
+
+impl Configured {
+    fn from_args(args: &LinkArgs) -> anyhow::Result<Self> {
+        let positive = |flag: &str, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(value)
+            } else {
+                Err(input_error(format!(
+                    "{flag}: must be a finite number > 0, got {value}"
+                )))
+            }
+        };
+        match args.linker {
+            Linker::Trackpy => {
+                if args.diffusion.is_some() || args.max_gap.is_some() {
+                    return Err(input_error(
+                        "--diffusion and --max-gap are for --linker lap (trackpy uses --memory)",
+                    ));
+                }
+                let Some(search_range) = args.search_range else {
+                    return Err(input_error("--search-range: needed by --linker trackpy"));
+                };
+                Ok(Self::Trackpy(TrackpyParams {
+                    search_range: positive("--search-range", search_range)?,
+                    memory: args.memory.unwrap_or(0),
+                }))
+            }
+            Linker::Lap => {
+                if args.memory.is_some() {
+                    return Err(input_error(
+                        "--memory is for --linker trackpy (lap closes gaps up to --max-gap)",
+                    ));
+                }
+                let max_gap = args.max_gap.unwrap_or(DEFAULT_MAX_GAP);
+                let params = match (args.diffusion, args.search_range) {
+                    (Some(d), _) => LapParams::from_diffusion(
+                        positive("--diffusion", d)?,
+                        positive("--frame-time-ms", args.frame_time_ms.unwrap_or(f64::NAN))?,
+                        positive("--pixel-size-um", args.pixel_size_um.unwrap_or(f64::NAN))?,
+                        max_gap,
+                    ),
+                    (None, Some(r)) => {
+                        LapParams::from_search_range(positive("--search-range", r)?, max_gap)
+                    }
+                    (None, None) => {
+                        return Err(input_error(
+                            "--linker lap needs --search-range or --diffusion (with \
+                             --frame-time-ms and --pixel-size-um)",
+                        ));
+                    }
+                };
+                params.validate()?;
+                Ok(Self::Lap(params))
+            }
+        }
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            Self::Trackpy(p) => format!(
+                "trackpy, search range {} px, memory {}",
+                p.search_range, p.memory
+            ),
+            Self::Lap(p) => format!(
+                "lap, step variance {:.4} px², max gap {}",
+                p.step_variance, p.max_gap
+            ),
+        }
+    }
+}
+
+/// `scanloc bench link`: random walks of particles that appear, disappear
+/// and blink, linked by `--linker trackpy` and by TrackPy 0.7 (python3
+/// with trackpy; skipped with a message if it cannot run).
+#[derive(Debug, Args)]
+pub struct LinkBench {
+    /// Particles over the recording.
+    #[arg(long, default_value_t = 400)]
+    particles: usize,
+    /// Frames of the recording.
+    #[arg(long, default_value_t = 200)]
+    frames: usize,
+    /// Particles per px² of the field.
+    #[arg(long, default_value_t = 0.004)]
+    density: f64,
+    /// Standard deviation of a frame's step per axis, px.
+    #[arg(long, default_value_t = 1.0)]
+    step: f64,
+    /// Probability that a detection is missing (a blink).
+    #[arg(long, default_value_t = 0.05)]
+    blink: f64,
+    /// Search range, px.
+    #[arg(long, default_value_t = 4.0)]
+    search_range: f64,
+    /// Memory, frames.
+    #[arg(long, default_value_t = 2)]
+    memory: usize,
+    /// Seed of the walks.
+    #[arg(long, default_value_t = 38)]
+    seed: u64,
+    /// Timed repeats of scanloc; the best is reported.
+    #[arg(long, default_value_t = 20)]
+    repeats: usize,
+    /// Timed repeats of TrackPy (about 2 s each on the default walks); the
+    /// best is reported.
+    #[arg(long, default_value_t = 3)]
+    reference_repeats: usize,
+    /// Python interpreter with trackpy 0.7 (the reference is skipped if missing).
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// The TrackPy reference script.
+    #[arg(long, default_value = "benches/reference/trackpy_link.py")]
+    reference: PathBuf,
+}
+
+pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    use scanloc::bench::link as bench_link;
+    let spec = bench_link::WalkSpec {
+        particles: args.particles,
+        frames: args.frames,
+        density_per_px2: args.density,
+        step_px: args.step,
+        blink: args.blink,
+        seed: args.seed,
+    };
+    spec.validate()?;
+    let params = TrackpyParams {
+        search_range: args.search_range,
+        memory: args.memory,
+    };
+    params.validate()?;
+    let detections = bench_link::random_walks(&spec);
+    let (seconds, linking) = bench_link::time_trackpy_link(&detections, &params, args.repeats)?;
+    let rate = detections.len() as f64 / seconds;
+    writeln!(
+        stdout,
+        "scanloc link (trackpy): {} localisations in {} frames in {:.4} s = {rate:.0} localisations/s \
+         ({} contested subnetworks, largest {})",
+        detections.len(),
+        args.frames,
+        seconds,
+        linking.stats.contested,
+        linking.stats.largest
+    )?;
+    let folder = tempfile::tempdir()?;
+    let input = folder.path().join("locs.csv");
+    let output = folder.path().join("tracks.csv");
+    bench_link::write_detections(&input, &detections)?;
+    let figures = scanloc::bench::reference::run_python_figures(
+        &args.python,
+        &args.reference,
+        &[
+            "--input",
+            &input.to_string_lossy(),
+            "--out",
+            &output.to_string_lossy(),
+            "--search-range",
+            &args.search_range.to_string(),
+            "--memory",
+            &args.memory.to_string(),
+            "--repeats",
+            &args.reference_repeats.to_string(),
+        ],
+        &[],
+        ["localisations_per_second"],
+    );
+    match figures {
+        Ok([reference]) => {
+            let labels = bench_link::read_reference_labels(&output, detections.len())?;
+            let same = track::same_partition(&labels, &linking.particle);
+            writeln!(
+                stdout,
+                "trackpy 0.7 link: {reference:.0} localisations/s; scanloc is {:.0}× faster; \
+                 same trajectories: {}",
+                rate / reference,
+                if same { "yes" } else { "NO" }
+            )?;
+        }
+        Err(reason) => writeln!(stdout, "trackpy reference skipped: {reason}")?,
+    }
+    Ok(ExitCode::SUCCESS)
+}

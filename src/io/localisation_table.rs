@@ -1,0 +1,209 @@
+//! The localisation tables `scanloc link` reads and the track tables it
+//! writes.
+//!
+//! Input: CSV with a header that has at least `frame,x,y` (TrackPy pixel
+//! coordinates), optionally `sigma_x,sigma_y` (pixels, as
+//! [`csv_tables`](super::csv_tables) writes them), and any other columns,
+//! which are carried through untouched (their text, not a re-formatted
+//! number). Frames are whole numbers ≥ 0 (`3` or pandas' `3.0`); `x`, `y`
+//! finite numbers.
+//!
+//! Output: the input's columns plus `particle` (last; a `particle` column
+//! already in the input is overwritten in place, as TrackPy does), one row
+//! per input row, rows in the order the linker saw them (sorted by frame,
+//! ties in input order).
+
+use std::io::{Read, Write};
+use std::path::Path;
+
+use crate::error::input_error;
+use crate::io::{PendingFile, open_input};
+use crate::types::LocalisationSigma;
+
+/// The name of the column of trajectory labels.
+pub const PARTICLE_COLUMN: &str = "particle";
+
+/// A localisation table: its header and rows as text, and the columns the
+/// linkers use, parsed (one entry per row).
+#[derive(Debug, Clone)]
+pub struct LocalisationTable {
+    /// The header, as read.
+    pub header: csv::StringRecord,
+    /// Every row, as read.
+    pub records: Vec<csv::StringRecord>,
+    /// `frame` of each row.
+    pub frames: Vec<usize>,
+    /// `x` (column) of each row, pixels.
+    pub xs: Vec<f64>,
+    /// `y` (row) of each row, pixels.
+    pub ys: Vec<f64>,
+    /// `sigma_x,sigma_y` of each row when the table has both columns and the
+    /// row fills them (an empty pair is `None`).
+    pub sigmas: Vec<Option<LocalisationSigma>>,
+}
+
+impl LocalisationTable {
+    /// The whole numbers ≥ 0 of column `column` (e.g. `particle` of a track
+    /// table); `name` names the table in errors.
+    pub fn whole_numbers(&self, column: &str, name: &str) -> anyhow::Result<Vec<usize>> {
+        let Some(at) = self.header.iter().position(|h| h.trim() == column) else {
+            crate::bail_input!("{name}: missing column {column}");
+        };
+        self.records
+            .iter()
+            .enumerate()
+            .map(|(index, record)| {
+                let text = record.get(at).unwrap_or("").trim();
+                super::csv_tables::parse_frame_number(text)
+                    .map_err(|e| input_error(format!("{name}: row {}: {column}: {e}", index + 1)))
+            })
+            .collect()
+    }
+}
+
+/// Reads a localisation table from `path` (see the module's conventions);
+/// a problem is one [`InputError`](crate::error::InputError) naming the
+/// file, the row and the column.
+pub fn read_localisation_table(path: &Path) -> anyhow::Result<LocalisationTable> {
+    read_localisation_table_from(open_input(path)?, &path.display().to_string())
+}
+
+/// [`read_localisation_table`] from any reader; `name` names it in errors.
+pub fn read_localisation_table_from<R: Read>(
+    reader: R,
+    name: &str,
+) -> anyhow::Result<LocalisationTable> {
+    let (mut reader, header) = super::csv_tables::open_table(reader, name, &["frame", "x", "y"])?;
+    let column = |wanted: &str| header.iter().position(|h| h.trim() == wanted);
+    let [frame_at, x_at, y_at] = ["frame", "x", "y"].map(|c| column(c).unwrap_or_default());
+    let sigma_at = match (column("sigma_x"), column("sigma_y")) {
+        (Some(x), Some(y)) => Some((x, y)),
+        (None, None) => None,
+        (Some(_), None) => crate::bail_input!("{name}: column sigma_x needs a sigma_y column"),
+        (None, Some(_)) => crate::bail_input!("{name}: column sigma_y needs a sigma_x column"),
+    };
+    let mut table = LocalisationTable {
+        header: header.clone(),
+        records: Vec::new(),
+        frames: Vec::new(),
+        xs: Vec::new(),
+        ys: Vec::new(),
+        sigmas: Vec::new(),
+    };
+    for (index, record) in reader.records().enumerate() {
+        let row = index + 1;
+        let record = record.map_err(|e| input_error(format!("{name}: row {row}: {e}")))?;
+        let cell = |at: usize| record.get(at).unwrap_or("").trim();
+        let finite = |at: usize, column: &str| -> anyhow::Result<f64> {
+            match cell(at).parse::<f64>() {
+                Ok(value) if value.is_finite() => Ok(value),
+                _ => Err(input_error(format!(
+                    "{name}: row {row}: {column}: expected a finite number, got {:?}",
+                    cell(at)
+                ))),
+            }
+        };
+        let frame = super::csv_tables::parse_frame_number(cell(frame_at))
+            .map_err(|e| input_error(format!("{name}: row {row}: frame: {e}")))?;
+        let sigma = match sigma_at {
+            Some((sx, sy)) if !(cell(sx).is_empty() && cell(sy).is_empty()) => {
+                let positive = |at: usize, column: &str| -> anyhow::Result<f64> {
+                    match finite(at, column)? {
+                        value if value > 0.0 => Ok(value),
+                        value => Err(input_error(format!(
+                            "{name}: row {row}: {column}: expected a number > 0, got {value}"
+                        ))),
+                    }
+                };
+                Some(LocalisationSigma {
+                    x: positive(sx, "sigma_x")?,
+                    y: positive(sy, "sigma_y")?,
+                })
+            }
+            _ => None,
+        };
+        table.xs.push(finite(x_at, "x")?);
+        table.ys.push(finite(y_at, "y")?);
+        table.frames.push(frame);
+        table.sigmas.push(sigma);
+        table.records.push(record);
+    }
+    Ok(table)
+}
+
+/// Fills `pending` with the track table of `table`: the rows `order`
+/// (indices into the table) with their trajectory labels `particles`
+/// (indexed like the table's rows).
+pub fn fill_track_table(
+    pending: &mut PendingFile,
+    table: &LocalisationTable,
+    order: &[usize],
+    particles: &[usize],
+) -> anyhow::Result<()> {
+    pending.fill(|writer| write_track_table_to(writer, table, order, particles))
+}
+
+/// Writes the track table (see [`fill_track_table`]) to any writer, `\n`
+/// line ends.
+pub fn write_track_table_to<W: Write>(
+    writer: W,
+    table: &LocalisationTable,
+    order: &[usize],
+    particles: &[usize],
+) -> anyhow::Result<()> {
+    let mut csv = csv::WriterBuilder::new().from_writer(writer);
+    let existing = table
+        .header
+        .iter()
+        .position(|h| h.trim() == PARTICLE_COLUMN);
+    let mut header = table.header.clone();
+    if existing.is_none() {
+        header.push_field(PARTICLE_COLUMN);
+    }
+    csv.write_record(&header)?;
+    for &row in order {
+        let label = particles[row].to_string();
+        let record = &table.records[row];
+        let fields = (0..table.header.len()).map(|at| match existing {
+            Some(particle_at) if particle_at == at => label.as_str(),
+            _ => record.get(at).unwrap_or(""),
+        });
+        match existing {
+            Some(_) => csv.write_record(fields)?,
+            None => csv.write_record(fields.chain([label.as_str()]))?,
+        }
+    }
+    csv.flush()?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn other_columns_pass_through_and_particle_is_appended() {
+        let text = "x,y,frame,mass\n1.50,2,1,10\n3,4,0.0,20\n";
+        let table = read_localisation_table_from(text.as_bytes(), "t.csv").unwrap();
+        assert_eq!(table.frames, [1, 0]);
+        let mut bytes = Vec::new();
+        // Labels are indexed by table row; rows are written in `order`.
+        write_track_table_to(&mut bytes, &table, &[1, 0], &[7, 3]).unwrap();
+        assert_eq!(
+            String::from_utf8(bytes).unwrap(),
+            "x,y,frame,mass,particle\n3,4,0.0,20,3\n1.50,2,1,10,7\n"
+        );
+    }
+
+    #[test]
+    fn an_existing_particle_column_is_overwritten_in_place() {
+        let text = "frame,particle,x,y\n0,9,1,1\n";
+        let table = read_localisation_table_from(text.as_bytes(), "t.csv").unwrap();
+        let mut bytes = Vec::new();
+        write_track_table_to(&mut bytes, &table, &[0], &[0]).unwrap();
+        assert_eq!(
+            String::from_utf8(bytes).unwrap(),
+            "frame,particle,x,y\n0,0,1,1\n"
+        );
+    }
+}
