@@ -32,7 +32,8 @@ use scanloc::sim::SimParams;
 /// and margin) the
 /// columns are frame,x,y,score: one row per frame, the posterior mean of
 /// the QD's trajectory centroid and the posterior mass within
-/// --score-radius-px of it.
+/// --score-radius-px of it (with --max-candidates N above 1: up to N rows
+/// per frame and a column candidate, their rank).
 ///
 /// Integer frames are photon counts. Float frames (float32/float64 .npy or
 /// TIFF pages; fractional or negative values, e.g. background-subtracted)
@@ -123,6 +124,15 @@ pub struct LocateArgs {
     /// this many pixels of the estimate.
     #[arg(long, default_value_t = 1.0)]
     score_radius_px: f64,
+    /// With `--method likelihood`: guesses per frame; above 1 a ranked
+    /// list (column candidate, 1 = the frame's best) from the greedy disc
+    /// cover of the posterior, each scored by the mass it newly covers.
+    #[arg(long, default_value_t = 1)]
+    max_candidates: usize,
+    /// With `--method likelihood --max-candidates` above 1: radius (px) of
+    /// the cover's discs.
+    #[arg(long, default_value_t = 1.0)]
+    candidate_radius_px: f64,
     /// With `--method likelihood`: seed of the particle filter (frame i
     /// draws from stream i of it).
     #[arg(long, default_value_t = 0)]
@@ -239,6 +249,8 @@ pub fn run(args: LocateArgs) -> anyhow::Result<ExitCode> {
             let settings = LikelihoodParams {
                 particles: args.particles,
                 score_radius_px: args.score_radius_px,
+                max_candidates: args.max_candidates,
+                candidate_radius_px: args.candidate_radius_px,
                 ..LikelihoodParams::default()
             };
             settings

@@ -324,6 +324,7 @@ mod tests {
             y: 10.0,
             score,
             sigma: None,
+            candidate: None,
         }
     }
 
