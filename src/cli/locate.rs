@@ -31,7 +31,8 @@ use scanloc::registry::{ModelOrigin, Registry};
 /// or `--microscope FILE.yaml` describe, the paper's by default, at the
 /// frames' size) the columns are frame,x,y,score: one row per frame, the posterior mean of
 /// the QD's trajectory centroid and the posterior mass within
-/// --score-radius-px of it.
+/// --score-radius-px of it (with --max-candidates N above 1: up to N rows
+/// per frame and a column candidate, their rank).
 ///
 /// Integer frames are photon counts. Float frames (float32/float64 .npy or
 /// TIFF pages; fractional or negative values, e.g. background-subtracted)
@@ -164,6 +165,14 @@ struct LikelihoodArgs {
     /// estimate.
     #[arg(long, default_value_t = 1.0)]
     score_radius_px: f64,
+    /// Guesses per frame; above 1 a ranked list (column candidate, 1 = the
+    /// frame's best) from the greedy disc cover of the posterior, each
+    /// scored by the mass it newly covers.
+    #[arg(long, default_value_t = 1)]
+    max_candidates: usize,
+    /// With --max-candidates above 1: radius (px) of the cover's discs.
+    #[arg(long, default_value_t = 1.0)]
+    candidate_radius_px: f64,
     /// Seed of the particle filter (frame i draws from stream i of it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -290,6 +299,8 @@ fn locate_likelihood(args: &LocateArgs) -> anyhow::Result<()> {
     let settings = LikelihoodParams {
         particles: filter.particles,
         score_radius_px: filter.score_radius_px,
+        max_candidates: filter.max_candidates,
+        candidate_radius_px: filter.candidate_radius_px,
         ..LikelihoodParams::default()
     };
     settings

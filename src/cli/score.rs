@@ -333,8 +333,8 @@ fn maybe(value: Option<f64>) -> String {
 fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
     writeln!(
         out,
-        "{:>8} {:>8} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
-        "eps_px", "AUC", "TP", "FP", "oracle", "random", "share", "top_within"
+        "{:>8} {:>8} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
+        "eps_px", "AUC", "AUC_best", "TP", "FP", "oracle", "random", "share", "top_within"
     )?;
     if score.per_eps.is_empty() {
         writeln!(
@@ -346,9 +346,10 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
         let headroom = per_eps.headroom.as_ref();
         writeln!(
             out,
-            "{:>8} {:>8.4} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
+            "{:>8} {:>8.4} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>10}",
             per_eps.eps_px,
             per_eps.auc,
+            maybe(per_eps.auc_best_per_frame),
             per_eps.true_positives,
             per_eps.false_positives,
             maybe(headroom.map(|h| h.oracle_auc)),

@@ -1,6 +1,7 @@
 //! Detectors: each maps a frame to predictions `(x, y, score)` in TrackPy
 //! pixel coordinates (`x` column, `y` row, pixel centres at integers).
 
+pub mod candidates;
 pub mod cnn;
 pub mod cpu;
 pub mod crocker_grier;

@@ -7,7 +7,11 @@
 //!   columns (Crocker–Grier writes TrackPy's `mass,size,ecc,signal,raw_mass,ep`),
 //!   and predictions that carry an uncertainty add `sigma_x,sigma_y` (pixels)
 //!   before `score`. Tables without those columns read as predictions
-//!   without an uncertainty.
+//!   without an uncertainty. A detector giving a ranked list of guesses
+//!   per frame adds `candidate` (the rank, 1 = the frame's best) after
+//!   `score`; tables without it (every table with one guess per frame, and
+//!   every one written before it existed) keep their bytes and read as
+//!   unranked predictions.
 //!
 //! Floats are written in Rust's shortest round-trip form, so reading gives
 //! back the same bits. Each table has one writer and one reader over any
@@ -121,8 +125,13 @@ pub const PREDICTION_COLUMNS: [&str; 4] = ["frame", "x", "y", "score"];
 /// the table has one.
 pub const SIGMA_COLUMNS: [&str; 2] = ["sigma_x", "sigma_y"];
 
+/// The optional column of a guess's rank in a ranked list
+/// ([`Prediction::candidate`]), written after `score` when any prediction
+/// of the table has one.
+pub const CANDIDATE_COLUMN: &str = "candidate";
+
 /// Reads the `frame,x,y,score` columns of a localisation file, and
-/// `sigma_x,sigma_y` when present (other columns are ignored). Non-finite
+/// `sigma_x,sigma_y` and `candidate` when present (other columns are ignored). Non-finite
 /// coordinates or scores are refused.
 pub fn read_predictions(path: &Path) -> anyhow::Result<Vec<Prediction>> {
     read_predictions_from(open_input(path)?, &path.display().to_string())
@@ -138,7 +147,9 @@ pub fn read_predictions_from<R: Read>(reader: R, source: &str) -> anyhow::Result
 /// `mass` in TrackPy's own output): columns `frame`, `x`, `y` and
 /// `score_column`, and the uncertainty `sigma_x,sigma_y` if the table has
 /// both (a row with both cells empty has none; otherwise each must be a
-/// finite number > 0); others ignored. Frame numbers may be written as whole
+/// finite number > 0), and the rank `candidate` if the table has it (an
+/// empty cell: unranked; otherwise a whole number ≥ 1); others ignored.
+/// Frame numbers may be written as whole
 /// floats (`3.0`, as pandas writes them); non-finite coordinates or scores
 /// are refused, naming the row.
 pub fn read_predictions_scored_by(
@@ -165,6 +176,7 @@ pub fn read_predictions_scored_by_from<R: Read>(
         [Some(_), None] => crate::bail_input!("{name}: column sigma_x needs a sigma_y column"),
         [None, Some(_)] => crate::bail_input!("{name}: column sigma_y needs a sigma_x column"),
     };
+    let candidate_at = column(CANDIDATE_COLUMN);
     let mut predictions = Vec::new();
     for (index, record) in reader.records().enumerate() {
         let row = index + 1;
@@ -198,12 +210,22 @@ pub fn read_predictions_scored_by_from<R: Read>(
             }
             _ => None,
         };
+        let candidate = match candidate_at.map(cell) {
+            None | Some("") => None,
+            Some(text) => match text.parse::<u32>() {
+                Ok(rank) if rank >= 1 => Some(rank),
+                _ => crate::bail_input!(
+                    "{name}: row {row}: candidate: expected a whole number ≥ 1, got {text:?}"
+                ),
+            },
+        };
         predictions.push(Prediction {
             frame,
             x: number(x_at, "x")?,
             y: number(y_at, "y")?,
             score: number(score_at, score_column)?,
             sigma,
+            candidate,
         });
     }
     Ok(predictions)
@@ -258,7 +280,8 @@ pub fn write_predictions(path: &Path, predictions: &[Prediction]) -> anyhow::Res
 /// Writes predictions as `frame,x,y,score` CSV (header first, `\n` line
 /// ends) to any writer; if any prediction has an uncertainty, the columns
 /// are `frame,x,y,sigma_x,sigma_y,score` (empty cells for predictions
-/// without one). The registry's `predictions.csv` blobs are these bytes:
+/// without one), and `candidate` after `score` if any prediction is ranked
+/// (empty cells for unranked ones). The registry's `predictions.csv` blobs are these bytes:
 /// change them only with the blob format's version.
 pub fn write_predictions_to<W: Write>(writer: W, predictions: &[Prediction]) -> anyhow::Result<()> {
     write_localisations_to(writer, [], predictions.iter().map(|&p| (p, [])))
@@ -266,7 +289,8 @@ pub fn write_predictions_to<W: Write>(writer: W, predictions: &[Prediction]) -> 
 
 /// Writes a detector's localisations to `path` atomically, with its own
 /// columns: `frame,x,y`, then `extra_columns`, then `sigma_x,sigma_y` if
-/// any prediction has an uncertainty, then `score` (Crocker–Grier passes
+/// any prediction has an uncertainty, then `score`, then `candidate` if
+/// any prediction is ranked (Crocker–Grier passes
 /// TrackPy's `mass,size,ecc,signal,raw_mass,ep`). Each row is a prediction
 /// and its values of the extra columns, in order.
 pub fn write_localisations<const N: usize>(
@@ -291,12 +315,16 @@ fn write_localisations_to<W: Write, const N: usize>(
     // of detectors without an uncertainty keep their bytes.
     let with_sigma = rows.iter().any(|(p, _)| p.sigma.is_some());
     let sigma_columns: &[&str] = if with_sigma { &SIGMA_COLUMNS } else { &[] };
+    // Likewise the rank: tables of one guess per frame keep their bytes.
+    let ranked = rows.iter().any(|(p, _)| p.candidate.is_some());
+    let candidate_columns: &[&str] = if ranked { &[CANDIDATE_COLUMN] } else { &[] };
     let mut csv = csv::Writer::from_writer(writer);
     let header = ["frame", "x", "y"]
         .into_iter()
         .chain(extra_columns)
         .chain(sigma_columns.iter().copied())
-        .chain(["score"]);
+        .chain(["score"])
+        .chain(candidate_columns.iter().copied());
     csv.write_record(header)?;
     for (p, extra) in rows {
         let sigma_fields = match (with_sigma, p.sigma) {
@@ -308,7 +336,8 @@ fn write_localisations_to<W: Write, const N: usize>(
             .into_iter()
             .chain(extra.iter().map(f64::to_string))
             .chain(sigma_fields)
-            .chain([p.score.to_string()]);
+            .chain([p.score.to_string()])
+            .chain(ranked.then(|| p.candidate.map_or(String::new(), |r| r.to_string())));
         csv.write_record(fields)?;
     }
     csv.flush()?;
@@ -534,6 +563,39 @@ mod tests {
             read_predictions_from(old.as_bytes(), "old.csv").unwrap(),
             predictions
         );
+    }
+
+    #[test]
+    fn ranks_round_trip_in_their_own_column_after_the_score() {
+        let predictions = [
+            Prediction {
+                candidate: Some(1),
+                ..Prediction::new(0, 1.5, 2.0, 0.625)
+            },
+            Prediction {
+                candidate: Some(2),
+                ..Prediction::new(0, 4.0, 2.0, 0.25)
+            },
+            // An unranked row in a ranked table.
+            Prediction::new(1, 3.0, 4.0, 0.5),
+        ];
+        let text = write(&predictions);
+        assert_eq!(
+            text,
+            "frame,x,y,score,candidate\n0,1.5,2,0.625,1\n0,4,2,0.25,2\n1,3,4,0.5,\n"
+        );
+        assert_eq!(
+            read_predictions_from(text.as_bytes(), "t.csv").unwrap(),
+            predictions
+        );
+        for bad in ["0", "-1", "1.5", "x"] {
+            let text = format!("frame,x,y,score,candidate\n0,1,1,0.5,{bad}\n");
+            let error = read_predictions_from(text.as_bytes(), "bad.csv").unwrap_err();
+            assert!(
+                format!("{error:#}").contains("bad.csv: row 1: candidate: expected a whole number"),
+                "{bad}: {error:#}"
+            );
+        }
     }
 
     #[test]

@@ -11,6 +11,11 @@
 //! `recall_k = TP_k / G` (G = number of ground truths), and
 //! `AUC = Σ_k (recall_k − recall_(k−1)) · precision_k`.
 //!
+//! Every AUC is given twice: over all predictions (for a detector giving a
+//! ranked list of guesses per frame, the whole list) and over each frame's
+//! best alone (its rank-1 candidate, or its top score). The scene figures
+//! leave out the guesses ranked below a frame's best.
+//!
 //! Beside the AUC: where it is lost ([`headroom`]: the AUC of each frame's
 //! top prediction ranked by its true error and at random), how well a
 //! probability score is calibrated ([`calibration`]: reliability diagram
@@ -49,7 +54,13 @@ pub struct CurvePoint {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EpsScore {
     pub eps_px: f64,
+    /// The AUC of every prediction (for a ranked list: the whole list).
     pub auc: f64,
+    /// The AUC of each frame's best prediction alone: its rank-1
+    /// candidate, or its top-scoring prediction when it has no ranks
+    /// (absent in evaluations stored before it existed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub auc_best_per_frame: Option<f64>,
     pub true_positives: usize,
     pub false_positives: usize,
     /// Precision and recall after each prediction, in ranking order.
@@ -250,6 +261,24 @@ fn top_predictions(ranked: &[Prediction]) -> Vec<Prediction> {
         .collect()
 }
 
+/// Each frame's best prediction, in ranking order: its rank-1 candidate
+/// if it has one, otherwise its first in ranking order (a frame's top
+/// score stands for rank 1 when the detector gives no ranks).
+fn best_per_frame(ranked: &[Prediction]) -> Vec<Prediction> {
+    let with_rank_one: HashSet<usize> = ranked
+        .iter()
+        .filter(|p| p.candidate == Some(1))
+        .map(|p| p.frame)
+        .collect();
+    let mut seen = HashSet::new();
+    ranked
+        .iter()
+        .filter(|p| !with_rank_one.contains(&p.frame) || p.candidate == Some(1))
+        .filter(|p| seen.insert(p.frame))
+        .copied()
+        .collect()
+}
+
 /// Frames of `0..frames` without any prediction (predictions are on
 /// frames `0..frames`, checked before).
 fn count_frames_without_prediction(ranked: &[Prediction], frames: usize) -> usize {
@@ -355,7 +384,15 @@ pub fn score_read_as(
     let mut ranked: Vec<Prediction> = predictions.to_vec();
     ranked.sort_by(ranking);
     let ground_truths = truth.len();
-    let kept = scenes::kept_count(&ranked, reading.threshold);
+    let best = best_per_frame(&ranked);
+    // A guess ranked below a frame's best is not a second QD: the scene
+    // figures leave it out (unranked localisations, a scene's QDs, count).
+    let scene: Vec<Prediction> = ranked
+        .iter()
+        .filter(|p| p.candidate.is_none_or(|rank| rank == 1))
+        .copied()
+        .collect();
+    let kept = scenes::kept_count(&scene, reading.threshold);
 
     // Without ground truth nothing per ε is defined (recall divides by G).
     let radii = if ground_truths == 0 { &[][..] } else { eps_px };
@@ -363,6 +400,8 @@ pub fn score_read_as(
         .iter()
         .map(|&eps| {
             let mut per_eps = walk(&ranked, &truth_by_frame, ground_truths, eps, keep_curve);
+            per_eps.auc_best_per_frame =
+                Some(walk(&best, &truth_by_frame, ground_truths, eps, false).auc);
             per_eps.headroom = Some(headroom::headroom(
                 &ranked,
                 &truth_by_frame,
@@ -371,7 +410,7 @@ pub fn score_read_as(
                 per_eps.auc,
             ));
             per_eps.at_threshold = Some(scenes::at_threshold(
-                &ranked[..kept],
+                &scene[..kept],
                 &truth_by_frame,
                 ground_truths,
                 eps,
@@ -411,7 +450,7 @@ pub fn score_read_as(
         ground_truths,
         reading: Some(reading),
         empty_frames: Some(scenes::empty_frames(
-            &ranked[..kept],
+            &scene[..kept],
             &truth_by_frame,
             frames,
         )),
@@ -504,6 +543,7 @@ fn walk(
         true_positives,
         false_positives: ranked.len() - true_positives,
         curve,
+        auc_best_per_frame: None,
         headroom: None,
         at_threshold: None,
     }

@@ -349,6 +349,7 @@ mod tests {
             y: 10.0,
             score,
             sigma: None,
+            candidate: None,
         }
     }
 

@@ -15,6 +15,13 @@ pub struct Prediction {
     /// The detector's own estimate of this localisation's error, when it
     /// makes one (the CNN does; Crocker–Grier does not).
     pub sigma: Option<LocalisationSigma>,
+    /// The guess's rank (1 = the frame's best) when the detector gives a
+    /// ranked list of guesses for one QD (the likelihood detector with
+    /// `max_candidates` > 1); `None` when each localisation stands for its
+    /// own QD (a single guess per frame, or several QDs of a scene). The
+    /// scene figures count rank 1 and unranked localisations only
+    /// (`docs/metric.md`, "A ranked list of guesses").
+    pub candidate: Option<u32>,
 }
 
 /// A localisation's expected error: the standard deviations, in pixels, of
@@ -35,6 +42,7 @@ impl Prediction {
             y,
             score,
             sigma: None,
+            candidate: None,
         }
     }
 }

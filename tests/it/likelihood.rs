@@ -215,8 +215,43 @@ fn locate_with_the_likelihood_method_writes_one_row_per_frame() {
     for (frame, line) in lines[1..].iter().enumerate() {
         assert!(line.starts_with(&format!("{frame},")), "{line}");
     }
+    // A ranked list: up to 3 rows per frame, ranks 1, 2, ... in the last
+    // column, read back as ranked predictions.
+    let out = locate(&["--particles", "300", "--max-candidates", "3"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&locs).unwrap();
+    assert!(text.starts_with("frame,x,y,score,candidate\n"), "{text}");
+    let listed = scanloc::io::csv_tables::read_predictions(std::path::Path::new(&locs)).unwrap();
+    for frame in 0..3 {
+        let ranks: Vec<u32> = listed
+            .iter()
+            .filter(|p| p.frame == frame)
+            .map(|p| p.candidate.unwrap())
+            .collect();
+        assert!(!ranks.is_empty() && ranks.len() <= 3, "{text}");
+        assert_eq!(
+            ranks,
+            (1..=ranks.len() as u32).collect::<Vec<_>>(),
+            "{text}"
+        );
+    }
     for (bad, message) in [
         (vec!["--particles", "1"], "particles"),
+        (
+            vec!["--particles", "10", "--max-candidates", "0"],
+            "max_candidates",
+        ),
+        (
+            vec![
+                "--particles",
+                "10",
+                "--max-candidates",
+                "2",
+                "--candidate-radius-px",
+                "0",
+            ],
+            "candidate_radius_px",
+        ),
         (
             vec!["--particles", "10", "--diffusion", "-1"],
             "diffusion_um2_s",

@@ -1,6 +1,6 @@
 //! The Table-1 metric (docs/metric.md) on cases worked out by hand.
 
-use scanloc::metrics::score;
+use scanloc::metrics::{ScoreReading, score, score_read_as};
 use scanloc::types::{Prediction, TruthRow};
 
 fn truth(frame: usize, x: f64, y: f64) -> TruthRow {
@@ -260,7 +260,6 @@ fn headroom_is_undefined_when_oracle_and_random_agree() {
 
 #[test]
 fn reliability_and_calibration_error_on_a_hand_worked_case() {
-    use scanloc::metrics::{ScoreReading, score_read_as};
     // One QD per frame at the origin, except the empty frame 5.
     let truths: Vec<TruthRow> = (0..5).map(|frame| truth(frame, 0.0, 0.0)).collect();
     let predictions = [
@@ -705,4 +704,79 @@ fn score_compares_two_detectors_with_a_paired_bootstrap() {
     let table = stdout(&scanloc(&alone));
     assert!(table.contains("bootstrap of the AUC"), "{table}");
     assert!(!table.contains("paired comparison"), "{table}");
+}
+
+/// A ranked list of guesses per frame, scored by hand (docs/metric.md, "A
+/// ranked list of guesses"): one QD per frame at the origin, ε = 1 px,
+/// G = 4.
+///
+/// | frame | rank 1 (score, hit?) | rank 2 |
+/// |---|---|---|
+/// | 0 | 0.9 hit | — |
+/// | 1 | 0.6 miss | 0.3 hit |
+/// | 2 | 0.5 hit | 0.2 miss (its QD is taken) |
+/// | 3 | 0.4 miss | 0.1 miss |
+///
+/// The whole list in score order: TP at k = 1, 3, 5, so
+/// AUC = (1/1 + 2/3 + 3/5) / 4 = 34/60; the best per frame alone
+/// (0.9, 0.6, 0.5, 0.4): TP at k = 1, 3, AUC = (1 + 2/3) / 4 = 5/12. At a
+/// threshold of 0.25 the scene figures keep the four rank-1 guesses only
+/// (TP 2, FP 2, FN 2); unranked, the same localisations would count as
+/// five QDs' worth (the 0.3 guess a third TP).
+#[test]
+fn a_ranked_list_scores_both_aucs_and_only_its_best_guesses_in_the_scene_figures() {
+    let guess = |frame, x, y, score, rank| Prediction {
+        candidate: Some(rank),
+        ..prediction(frame, x, y, score)
+    };
+    let ranked = [
+        guess(0, 0.5, 0.0, 0.9, 1),
+        guess(1, 3.0, 0.0, 0.6, 1),
+        guess(1, 0.2, 0.0, 0.3, 2),
+        guess(2, 0.0, 0.5, 0.5, 1),
+        guess(2, 0.0, 4.0, 0.2, 2),
+        guess(3, 5.0, 5.0, 0.4, 1),
+        guess(3, 6.0, 6.0, 0.1, 2),
+    ];
+    let truths: Vec<TruthRow> = (0..4).map(|frame| truth(frame, 0.0, 0.0)).collect();
+    let reading = ScoreReading {
+        threshold: Some(0.25),
+        probability: true,
+    };
+    let score = score_read_as(&ranked, &truths, 4, &[1.0], false, reading).unwrap();
+    let at_one = &score.per_eps[0];
+    assert!(close(at_one.auc, 34.0 / 60.0), "{}", at_one.auc);
+    assert!(close(at_one.auc_best_per_frame.unwrap(), 5.0 / 12.0));
+    let scene = at_one.at_threshold.unwrap();
+    assert_eq!(
+        (
+            scene.localisations,
+            scene.true_positives,
+            scene.false_positives,
+            scene.false_negatives
+        ),
+        (4, 2, 2, 2)
+    );
+    // Unranked (a scene's separate QDs, or a file without the column):
+    // the same AUCs (the top score per frame is its best), but every
+    // localisation at or above the threshold counts in the scene figures.
+    let unranked: Vec<Prediction> = ranked
+        .iter()
+        .map(|p| Prediction {
+            candidate: None,
+            ..*p
+        })
+        .collect();
+    let score = score_read_as(&unranked, &truths, 4, &[1.0], false, reading).unwrap();
+    let at_one = &score.per_eps[0];
+    assert!(close(at_one.auc, 34.0 / 60.0));
+    assert!(close(at_one.auc_best_per_frame.unwrap(), 5.0 / 12.0));
+    let scene = at_one.at_threshold.unwrap();
+    assert_eq!((scene.localisations, scene.true_positives), (5, 3));
+    // A frame's rank 1 is its best even when a lower rank scores higher.
+    let mut swapped = ranked;
+    swapped[1].score = 0.2;
+    let score = score_read_as(&swapped, &truths, 4, &[1.0], false, reading).unwrap();
+    // Best per frame: 0.9 hit, 0.5 hit, 0.4 miss, 0.2 miss: (1 + 1) / 4.
+    assert!(close(score.per_eps[0].auc_best_per_frame.unwrap(), 0.5));
 }

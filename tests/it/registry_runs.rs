@@ -643,7 +643,9 @@ fn reproduce_compares_the_numbers_inside_an_altered_evaluation() {
 /// The content keys of the paper manifest's 38 steps, as the cold
 /// `make reproduce-paper` of commit a12a08c recorded them (the bound's since
 /// `scanloc-likelihood/2`, the CNN's since `scanloc-cnn/3` on the manifest's
-/// recipe of 2026-12-01: one network, 8 epochs on fresh frames only). A
+/// recipe of 2026-12-01: one network, 8 epochs on fresh frames only; every
+/// evaluation's since `scanloc-metric/4`, whose `score.json` holds each
+/// frame's best-guess AUC beside every AUC). A
 /// change that alters any of them makes every user's cached paper run
 /// recompute (tens of minutes), and a change to what an artefact holds that leaves its key
 /// alone would serve stale results: so a key may only change together with a
@@ -682,7 +684,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-0.75",
-            "4c76984dcf4fc0c9703088e27328dff86818d6c163ab69ab6dc8a5d0238074e4",
+            "c35cff93db61b169f9e0a145d2d7452e4fb09e54d649cd06f9266bfebc7e9853",
         ),
         (
             "predictions/trackpy@test-1.00",
@@ -690,7 +692,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.00",
-            "40d6ee871711320b2e79c219fc122b543f0be2394f3cc4b3863b050e3e7d4cf9",
+            "98fa26b71d9338b61dd24ece62c8ec4a1e39b78c1329dbb600614dab7574a4d3",
         ),
         (
             "predictions/trackpy@test-1.75",
@@ -698,7 +700,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.75",
-            "a097d86618da7fbd5428c2b96de3e1d171cd3f6237f7a5cf1d86531cc49f1dae",
+            "564634c44d3b3b6e8e664390014ecb82e551710378ff87a47ddf26ca55a262c8",
         ),
         (
             "model/cnn",
@@ -710,7 +712,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-0.75",
-            "05dec26f4ccc67eb190a40873d727b7e463a3a9b9ab4659ece6dbb185cd71d12",
+            "c2f9205bfcbd16c4e50a83b9641a413490297acb7539888c1b50f56c5001f87a",
         ),
         (
             "predictions/cnn@test-1.00",
@@ -718,7 +720,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.00",
-            "33139eaa4b3c177c66bbf6975fe973e46795a2b7de0268a6400437d79ef78f8a",
+            "f2daf8516a38b12c50d8a5b208dac83ee59c3d4f84d2db3b482423e94e245b55",
         ),
         (
             "predictions/cnn@test-1.75",
@@ -726,7 +728,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.75",
-            "bba4f119c9d5e1f841428865a28409e4fb682c58326cef0782ddc531b2291b08",
+            "41d384ae01bc92e21d25cbe8f51387b501b5355d921458c5a54f6c026b9d0033",
         ),
         (
             "dataset/test-0.75+first300",
@@ -738,7 +740,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-0.75+first300",
-            "4cd3524be61bbc12b63b639722b518f1218b0f316159628e1adebb2817fa97bf",
+            "8af3b312cc3a14045e4b75dd2f7bb404a5c172a4f62b6a3eb7e734714ec53cb4",
         ),
         (
             "dataset/test-1.00+first300",
@@ -750,7 +752,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.00+first300",
-            "a86c4da496741a677838569303cd105c46ae81f75b3661ce860b71c4dac448f4",
+            "5b4d67b6a3260cbea1f2bcf6396ab7670d3203830ea614488fbdac79e1592149",
         ),
         (
             "dataset/test-1.75+first300",
@@ -762,7 +764,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.75+first300",
-            "f822bf303ec2df725b48184e2bf6b3d66d28e4b83ef5a25b77187bde9efeb108",
+            "3119ed7db18056f353e7c531f29db049dd4fc3ac8cfe788937704933205e63ce",
         ),
         (
             "predictions/bound-marginal-d@test-0.75+first300",
@@ -770,7 +772,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-0.75+first300",
-            "5beb0c4424067011959c61365dcfedf88628a2df4cbed17af163b96c87871fcf",
+            "f3241f871f4b21de88a117949544b37fe6b6e58cb4a9c0dbc31d443c0c85695b",
         ),
         (
             "predictions/bound-marginal-d@test-1.00+first300",
@@ -778,7 +780,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.00+first300",
-            "6d7b4416d0a7508281bc74a81c36c57600626ff8e8b62b1dbe915d2c53b3708b",
+            "c133cadd69f19dd7428eaa62870cfd4800b01c48ed83eb425229ccb107626ec3",
         ),
         (
             "predictions/bound-marginal-d@test-1.75+first300",
@@ -786,7 +788,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.75+first300",
-            "7e7e67e0405f197c3c976b79da4a879a15542076766a4570d44d8def47881349",
+            "1f5a58388fd1a24c944dd67127e75d7585c830ff9022125998e43552e14dbaf9",
         ),
         (
             "predictions/cnn@test-0.75+first300",
@@ -794,7 +796,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "d1e654add965a370e75cb45f2b50b78df381df2f762a809a6cda0d8f7d16b140",
+            "c24e97165957bf30a1dc6763c03233bd73ddfb77685c067a93d971d42d17b024",
         ),
         (
             "predictions/cnn@test-1.00+first300",
@@ -802,7 +804,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "7a18c6a40af28063116b2f1d396a4fa6eafb66faf4f67a42049fa2bee993152f",
+            "8aecfe463700a6c2a5e7aa8a1be5e44c36e30212c62aa807598be735daa79feb",
         ),
         (
             "predictions/cnn@test-1.75+first300",
@@ -810,7 +812,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "15cc412e1b7756fd625ce0d5665d6e259ccfe2ea6a851f537546feb3c92d7a18",
+            "9b31d9b1a843150b7b5b4e08357eaf8acc9d6f0edfa0b0b0435fe2212bcc50b9",
         ),
     ];
     assert_eq!(planned, recorded.map(|(id, key)| (id.to_string(), key)));

@@ -321,6 +321,7 @@ pub(crate) fn locate_with(
                     y,
                     score,
                     sigma: Some(sigma),
+                    candidate: None,
                 });
             }
             progress.inc(1);

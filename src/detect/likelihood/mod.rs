@@ -20,7 +20,9 @@
 //!
 //! Output per frame: one prediction, the posterior mean of the trajectory
 //! centroid (the truth the metric scores against), with score = the
-//! posterior mass within `score_radius_px` of it.
+//! posterior mass within `score_radius_px` of it; or, with
+//! `max_candidates` > 1, a ranked list of guesses from the greedy disc cover
+//! of the centroid's posterior ([`crate::detect::candidates`]).
 //!
 //! Determinism: frame `i` draws only from ChaCha8 stream `i` of the
 //! detector's seed (as the simulator's frames do), particles are processed
@@ -33,6 +35,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::detect::candidates::{self, CentreSearch};
 use crate::error::{FieldError, input_error, require_positive};
 use crate::sim::gaussian::standard_normal_from_bits;
 use crate::sim::{DetectorNoise, Distribution, ScanModel, SimParams, frame_rng};
@@ -61,6 +64,7 @@ pub const MAX_PARTICLES: usize = 10_000_000;
 /// likelihood: {particles: 20000}                             # D and N_qd of the dataset
 /// likelihood: {diffusion_um2_s: {uniform: [0.75, 1.75]}}     # D unknown: a prior
 /// likelihood: {brightness: {uniform: [5, 10]}}                # N_qd unknown: a prior
+/// likelihood: {max_candidates: 3}                            # a ranked list of 3 guesses
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -79,6 +83,39 @@ pub struct LikelihoodParams {
     /// The score is the posterior mass within this distance (px) of the
     /// estimate.
     pub score_radius_px: f64,
+    /// Guesses per frame. 1 (the default): the posterior mean, scored by
+    /// `score_radius_px`, as always. More: a ranked list from the greedy
+    /// disc cover of the centroid's posterior ([`candidates`]), each guess
+    /// scored by the posterior mass it newly covers, ranked in
+    /// [`Prediction::candidate`]; the list stops early where a further disc
+    /// would cover less than [`candidates::MASS_FLOOR`]. Left out of the
+    /// serialised settings when 1, so the detector's content keys stand.
+    #[serde(default = "one_candidate", skip_serializing_if = "is_one_candidate")]
+    pub max_candidates: usize,
+    /// Radius (px) of the cover's discs (> 0): the ε the list is placed
+    /// for. Used only with `max_candidates` > 1; left out of the serialised
+    /// settings when 1.
+    #[serde(default = "unit_radius", skip_serializing_if = "is_unit_radius")]
+    pub candidate_radius_px: f64,
+}
+
+/// Most guesses per frame: beyond a handful a guess holds almost no mass.
+pub const MAX_CANDIDATES: usize = 100;
+
+fn one_candidate() -> usize {
+    1
+}
+
+fn is_one_candidate(count: &usize) -> bool {
+    *count == 1
+}
+
+fn unit_radius() -> f64 {
+    1.0
+}
+
+fn is_unit_radius(radius: &f64) -> bool {
+    *radius == 1.0
 }
 
 impl Default for LikelihoodParams {
@@ -88,6 +125,8 @@ impl Default for LikelihoodParams {
             diffusion_um2_s: None,
             brightness: None,
             score_radius_px: 1.0,
+            max_candidates: 1,
+            candidate_radius_px: 1.0,
         }
     }
 }
@@ -111,6 +150,16 @@ impl LikelihoodParams {
             brightness.validate("brightness", true)?;
         }
         require_positive("score_radius_px", self.score_radius_px)?;
+        if !(1..=MAX_CANDIDATES).contains(&self.max_candidates) {
+            return Err(FieldError::new(
+                "max_candidates",
+                format!(
+                    "must be between 1 and {MAX_CANDIDATES}, got {}",
+                    self.max_candidates
+                ),
+            ));
+        }
+        require_positive("candidate_radius_px", self.candidate_radius_px)?;
         Ok(())
     }
 
@@ -281,8 +330,14 @@ impl Filter<'_> {
         p.weight.resize(n, 1.0);
     }
 
-    /// The prediction for frame `index` with counts `counts` (row-major).
-    fn locate_frame(&self, index: usize, counts: &[u32], particles: &mut Particles) -> Prediction {
+    /// The predictions for frame `index` with counts `counts` (row-major):
+    /// one, or the ranked list.
+    fn locate_frame(
+        &self,
+        index: usize,
+        counts: &[u32],
+        particles: &mut Particles,
+    ) -> Vec<Prediction> {
         let mut rng = frame_rng(self.seed, index);
         self.initialise(particles, &mut rng);
         let microscope = &self.microscope;
@@ -370,8 +425,9 @@ impl Filter<'_> {
     }
 
     /// The posterior mean of the trajectory centroid and the posterior mass
-    /// within the score radius of it.
-    fn estimate(&self, frame: usize, p: &Particles) -> Prediction {
+    /// within the score radius of it; with `max_candidates` > 1 the greedy
+    /// disc cover of the centroids instead, ranked.
+    fn estimate(&self, frame: usize, p: &Particles) -> Vec<Prediction> {
         let samples = (self.microscope.height * self.scan.beam_x_um().len()) as f64;
         let centroids: Vec<(f64, f64)> = p
             .sum_x
@@ -384,6 +440,26 @@ impl Filter<'_> {
                 )
             })
             .collect();
+        if self.settings.max_candidates > 1 {
+            let weighted: Vec<(f64, f64, f64)> = centroids
+                .iter()
+                .zip(&p.weight)
+                .map(|(&(x, y), &w)| (x, y, w))
+                .collect();
+            let list = candidates::greedy_disc_cover(
+                &weighted,
+                self.settings.max_candidates,
+                self.settings.candidate_radius_px,
+                CentreSearch::CellsWithMeanShift,
+            );
+            return (1..)
+                .zip(list)
+                .map(|(rank, c)| Prediction {
+                    candidate: Some(rank),
+                    ..Prediction::new(frame, c.x, c.y, c.mass)
+                })
+                .collect();
+        }
         let total: f64 = p.weight.iter().sum();
         let (mut x, mut y) = (0.0, 0.0);
         for (&(cx, cy), w) in centroids.iter().zip(&p.weight) {
@@ -399,7 +475,7 @@ impl Filter<'_> {
             .filter(|((cx, cy), _)| (cx - x).powi(2) + (cy - y).powi(2) <= radius2)
             .map(|(_, w)| w)
             .sum();
-        Prediction::new(frame, x, y, within / total)
+        vec![Prediction::new(frame, x, y, within / total)]
     }
 }
 
@@ -440,7 +516,10 @@ fn weigh_without_background(p: &mut Particles, count: f64) {
 /// Localises the one QD of every frame of `frames`: one prediction per
 /// frame, in frame order, `(x, y)` the posterior mean of its trajectory
 /// centroid (TrackPy pixels), score the posterior mass within
-/// `settings.score_radius_px` of it.
+/// `settings.score_radius_px` of it; with `settings.max_candidates` > 1,
+/// per frame in frame order a ranked list of up to that many guesses
+/// (`candidate` 1, 2, ...), each scored by the posterior mass it newly
+/// covers.
 ///
 /// `microscope` is the microscope the frames were taken with (its frame
 /// size must be theirs); `settings` may replace its diffusion coefficient
@@ -460,7 +539,7 @@ pub fn locate_stack(
 }
 
 /// [`locate_stack`] for the frames `which` of `frames` only (indices below
-/// `frames.n`), one prediction each in the order given. Frame `i` still
+/// `frames.n`), their predictions in the order given. Frame `i` still
 /// draws from stream `i` of `seed`, so its prediction is the one
 /// `locate_stack` gives it: leaving frames out changes no other frame's.
 pub fn locate_frames(
@@ -498,14 +577,15 @@ pub fn locate_frames(
         settings,
         seed,
     };
-    let predictions: Vec<Prediction> = which
+    let per_frame: Vec<Vec<Prediction>> = which
         .par_iter()
         .map_init(Particles::default, |particles, &index| {
-            let prediction = filter.locate_frame(index, frames.frame(index), particles);
+            let predictions = filter.locate_frame(index, frames.frame(index), particles);
             progress.inc(1);
-            prediction
+            predictions
         })
         .collect();
+    let predictions: Vec<Prediction> = per_frame.into_iter().flatten().collect();
     refuse_non_finite(&predictions)?;
     Ok(predictions)
 }
@@ -801,6 +881,64 @@ mod tests {
     }
 
     #[test]
+    fn a_list_of_guesses_is_ranked_and_one_guess_keeps_its_settings_and_output() {
+        // At the defaults the new parameters are not serialised, so the
+        // detector's content keys stand; set, they are.
+        let json = serde_json::to_value(settings(500)).unwrap();
+        assert!(json.get("max_candidates").is_none(), "{json}");
+        assert!(json.get("candidate_radius_px").is_none(), "{json}");
+        let listing = LikelihoodParams {
+            max_candidates: 3,
+            candidate_radius_px: 0.75,
+            ..settings(500)
+        };
+        let json = serde_json::to_value(&listing).unwrap();
+        assert_eq!(
+            (
+                json["max_candidates"].as_u64(),
+                json["candidate_radius_px"].as_f64()
+            ),
+            (Some(3), Some(0.75))
+        );
+        let back: LikelihoodParams = serde_json::from_value(json).unwrap();
+        assert_eq!(back, listing);
+        // A fast QD (a spread posterior) and a static one (a tight one).
+        let hidden = crate::progress::hidden();
+        for diffusion in [4.0, 0.0] {
+            let microscope = small(14, diffusion, 20.0);
+            let dataset = crate::sim::simulate(&microscope, 5, 0..4, &hidden).unwrap();
+            let single =
+                locate_stack(&dataset.frames, &microscope, &settings(500), 3, &hidden).unwrap();
+            assert_eq!(single.len(), 4);
+            assert!(single.iter().all(|p| p.candidate.is_none()));
+            let list = locate_stack(&dataset.frames, &microscope, &listing, 3, &hidden).unwrap();
+            for frame in 0..4 {
+                let guesses: Vec<&Prediction> = list.iter().filter(|p| p.frame == frame).collect();
+                assert!((1..=3).contains(&guesses.len()), "{guesses:?}");
+                let ranks: Vec<u32> = guesses.iter().map(|p| p.candidate.unwrap()).collect();
+                assert_eq!(ranks, (1..=guesses.len() as u32).collect::<Vec<_>>());
+                // Disjoint discs' masses: at most the whole posterior.
+                let covered: f64 = guesses.iter().map(|p| p.score).sum();
+                assert!(covered <= 1.0 + 1e-9, "{guesses:?}");
+                assert!(guesses.iter().all(|p| p.score > 0.0));
+            }
+            // The list is deterministic and nested: 2 guesses are the first
+            // 2 of 3.
+            let two = LikelihoodParams {
+                max_candidates: 2,
+                ..listing.clone()
+            };
+            let first_two = locate_stack(&dataset.frames, &microscope, &two, 3, &hidden).unwrap();
+            let expected: Vec<Prediction> = list
+                .iter()
+                .filter(|p| p.candidate.unwrap() <= 2)
+                .copied()
+                .collect();
+            assert_eq!(first_two, expected);
+        }
+    }
+
+    #[test]
     fn a_fast_qd_scores_lower_than_a_static_one() {
         // The score is the posterior mass within 1 px of the estimate: a
         // static QD's centroid is pinned down by the frame, a fast one's
@@ -827,6 +965,27 @@ mod tests {
                     ..settings(10)
                 },
                 "score_radius_px",
+            ),
+            (
+                LikelihoodParams {
+                    max_candidates: 0,
+                    ..settings(10)
+                },
+                "max_candidates",
+            ),
+            (
+                LikelihoodParams {
+                    max_candidates: MAX_CANDIDATES + 1,
+                    ..settings(10)
+                },
+                "max_candidates",
+            ),
+            (
+                LikelihoodParams {
+                    candidate_radius_px: -1.0,
+                    ..settings(10)
+                },
+                "candidate_radius_px",
             ),
             (
                 LikelihoodParams {
