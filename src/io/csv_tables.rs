@@ -411,7 +411,7 @@ enum CsvPosition {
 /// crate holds a whole record in memory, so a file of one endless line
 /// would otherwise be read whole before any check. The error names the
 /// line at which the record passed the bound.
-struct BoundedRecords<R> {
+pub(crate) struct BoundedRecords<R> {
     inner: R,
     position: CsvPosition,
     record_bytes: usize,
