@@ -6,6 +6,7 @@ mod bench_cnn;
 mod calibrate;
 mod check;
 mod cv;
+mod diffusion;
 mod locate;
 mod registry;
 mod report;
@@ -13,6 +14,7 @@ mod reproduce;
 mod run;
 mod score;
 mod simulate;
+mod simulate_recording;
 mod sweep;
 mod train;
 
@@ -55,6 +57,8 @@ enum Command {
     Calibrate(calibrate::CalibrateArgs),
     Cv(cv::CvArgs),
     Sweep(sweep::SweepArgs),
+    SimulateRecording(simulate_recording::SimulateRecordingArgs),
+    Diffusion(diffusion::DiffusionArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -124,6 +128,8 @@ pub fn run(cli: Cli, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
         Command::Calibrate(args) => calibrate::run(args),
         Command::Cv(args) => cv::run(args),
         Command::Sweep(args) => sweep::run(args),
+        Command::SimulateRecording(args) => simulate_recording::run(args),
+        Command::Diffusion(args) => diffusion::run(args, stdout),
     }
 }
 

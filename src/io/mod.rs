@@ -12,6 +12,7 @@
 pub mod csv_tables;
 pub mod npy;
 pub mod tiff_stack;
+pub mod tracks;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

@@ -7,8 +7,10 @@
 
 pub mod frames;
 pub mod prediction;
+pub mod tracks;
 pub mod truth;
 
 pub use frames::{FrameStack, Frames, RealFrameStack, Recording};
 pub use prediction::{LocalisationSigma, Prediction};
-pub use truth::{Dataset, TruthRow};
+pub use tracks::{Track, TrackPoint};
+pub use truth::{Dataset, RecordingTruthRow, TruthRow};

@@ -22,6 +22,7 @@ mod cli_locate;
 mod cli_simulate;
 mod cnn;
 mod crocker_grier;
+mod diffusion;
 mod empty_frames;
 mod figures;
 mod hostile_cli_fuzz;
