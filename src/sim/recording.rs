@@ -392,10 +392,16 @@ impl<'a> Walk<'a> {
             let sums = &qd.sums;
             let x = sums.x / samples / a - 0.5;
             let y = sums.y / samples / a - 0.5;
-            if qd.wrapped || !(-0.5..w - 0.5).contains(&x) || !(-0.5..h - 0.5).contains(&y) {
+            let seen = |value: f64| value / sums.weight;
+            let (x_seen, y_seen) = (
+                seen(sums.weighted_x) / a - 0.5,
+                seen(sums.weighted_y) / a - 0.5,
+            );
+            let inside =
+                |x: f64, y: f64| (-0.5..w - 0.5).contains(&x) && (-0.5..h - 0.5).contains(&y);
+            if qd.wrapped || !(inside(x, y) || inside(x_seen, y_seen)) {
                 continue;
             }
-            let seen = |value: f64| value / sums.weight;
             truth.push(RecordingTruthRow {
                 frame,
                 qd: qd.id,
@@ -403,8 +409,8 @@ impl<'a> Walk<'a> {
                 y,
                 z_mean: sums.z / samples,
                 on_fraction: sums.on_samples / samples,
-                x_seen: seen(sums.weighted_x) / a - 0.5,
-                y_seen: seen(sums.weighted_y) / a - 0.5,
+                x_seen,
+                y_seen,
                 t_mid: mid_s,
                 t_beam: start_s
                     + y.clamp(0.0, h - 1.0) * line_s

@@ -56,9 +56,9 @@ pub struct Dataset {
 /// (`docs/tracking.md`), in TrackPy pixel coordinates, times in seconds from
 /// the first sample of frame 0.
 ///
-/// A row is written for every QD whose trajectory centroid lies in the
-/// field (`-0.5 ≤ x < W − 0.5`, `-0.5 ≤ y < H − 0.5`), whatever its depth
-/// or blinking state, so tracks made from the truth are what a perfect
+/// A row is written for every QD whose trajectory centroid or seen
+/// position lies in the field (`-0.5 ≤ x < W − 0.5`, `-0.5 ≤ y < H − 0.5`),
+/// whatever its depth or blinking state, so tracks made from the truth are what a perfect
 /// detector that also saw dark and out-of-focus QDs would give.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RecordingTruthRow {

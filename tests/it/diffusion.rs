@@ -92,6 +92,18 @@ fn truth_tracks(
         .collect()
 }
 
+/// Whether `row`'s position (the centroid, or with `seen` what the beam
+/// saw) is in the `height × width` field: a detector finds a QD where it
+/// sees it, so tracks of seen positions are selected on those.
+fn in_field(row: &RecordingTruthRow, seen: bool, height: usize, width: usize) -> bool {
+    let (x, y) = if seen {
+        (row.x_seen, row.y_seen)
+    } else {
+        (row.x, row.y)
+    };
+    (-0.5..width as f64 - 0.5).contains(&x) && (-0.5..height as f64 - 0.5).contains(&y)
+}
+
 fn series_of(tracks: &[Track], geometry: &ScanGeometry, exposure: Exposure) -> Vec<Series> {
     tracks
         .iter()
@@ -122,7 +134,7 @@ const FIELDS: [Field; 2] = [
         name: "small 24x25",
         height: 24,
         width: 25,
-        frames: 2500,
+        frames: 3500,
         qds: 8.0,
         seen: false,
         exposure: Exposure::WholeFrame,
@@ -131,8 +143,8 @@ const FIELDS: [Field; 2] = [
         name: "large 64x64",
         height: 64,
         width: 64,
-        frames: 500,
-        qds: 14.0,
+        frames: 1100,
+        qds: 20.0,
         seen: true,
         exposure: Exposure::Rows,
     },
@@ -142,9 +154,12 @@ const FIELDS: [Field; 2] = [
 fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
     // Each ensemble has ≳ 5,000 steps per axis: the CVE's and ML's standard
     // errors are ≲ 1.7 % (asserted), so ±5 % is ≳ 3 standard errors. The
+    // MSD fit's larger error is only reported. The
     // estimated localisation variance checks the blur derivation: with the
     // right R it is the added 35 nm noise (1.2e-3 µm²); a wrong R would
-    // shift it by 2DΔR·T (≈ 9e-3 µm² for R = 0 at D = 1).
+    // shift it by 2DΔR·T (≈ 9e-3 µm² for R = 0 at D = 1). Checked in the
+    // small field, where its standard error is ≈ 0.2e-3 µm²; in the large
+    // one (D·T ≈ 0.08 µm²) it is ≈ 1e-3 µm², and σ̂² is only reported.
     let true_variance = (NOISE_PX * 0.07f64).powi(2);
     for (k, field) in FIELDS.iter().enumerate() {
         for (j, d) in [0.75, 1.0, 1.75].into_iter().enumerate() {
@@ -152,7 +167,8 @@ fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
             let truth = simulate_recording(&params, 40 + j as u64, false)
                 .unwrap()
                 .truth;
-            let tracks = truth_tracks(&truth, field.seen, false, |_| true, 7 + k as u64);
+            let keep = |r: &RecordingTruthRow| in_field(r, field.seen, field.height, field.width);
+            let tracks = truth_tracks(&truth, field.seen, false, keep, 7 + k as u64);
             let series = series_of(&tracks, &geometry(&params), field.exposure);
             for method in Method::ALL {
                 let e = ensemble(&series, method);
@@ -173,6 +189,8 @@ fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
                 );
                 if method != Method::Msd {
                     assert!(e.standard_error / d < 0.017, "{method:?}: {e:?}");
+                }
+                if method != Method::Msd && field.exposure == Exposure::WholeFrame {
                     assert!(
                         (e.localisation_variance - true_variance).abs() < 0.6e-3,
                         "{} {d} {method:?}: σ̂² {} vs {true_variance}",
@@ -186,10 +204,12 @@ fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
 }
 
 /// Coverage of the per-track 95 % intervals of `method` over the tracks
-/// where its condition holds, and how many those are.
-fn coverage(series: &[Series], method: Method, d: f64) -> (f64, usize) {
+/// of at least `min_points` localisations where its condition holds, and
+/// how many those are.
+fn coverage(series: &[Series], method: Method, d: f64, min_points: usize) -> (f64, usize) {
     let estimates: Vec<Estimate> = series
         .iter()
+        .filter(|s| s.len() >= min_points)
         .filter_map(|s| method.estimate(&[s]))
         .filter(|e| e.interval_valid)
         .collect();
@@ -202,18 +222,37 @@ fn coverage(series: &[Series], method: Method, d: f64) -> (f64, usize) {
 
 #[test]
 fn per_track_ml_intervals_cover_the_truth_95_percent_of_the_time() {
-    // ≥ 700 tracks with ≥ 10 steps: the coverage's standard error is
-    // ≤ 0.8 %, so 95 ± 3 % is ≥ 3.5 standard errors wide. With the noise
-    // unknown (σ² profiled out) and given (sigma columns).
+    // ≥ 450 tracks with ≥ 10 steps: the coverage's standard error is
+    // ≤ 1.03 %, so 95 ± 3 % is ≥ 2.9 standard errors wide. With the noise
+    // unknown (σ² profiled out) and given (sigma columns). The CVE's and
+    // MSD fit's normal intervals on the same tracks are only reported:
+    // they are stated valid for ≥ 100 steps per axis, which tracks in
+    // these fields rarely reach.
     let d = 1.0;
     let params = recording(64, 64, d, 1500, 14.0);
     let truth = simulate_recording(&params, 3, false).unwrap().truth;
     for sigma in [false, true] {
-        let tracks = truth_tracks(&truth, true, sigma, |_| true, 11);
+        let tracks = truth_tracks(&truth, true, sigma, |r| in_field(r, true, 64, 64), 11);
         let series = series_of(&tracks, &geometry(&params), Exposure::Rows);
-        let (share, count) = coverage(&series, Method::Ml, d);
+        let (share, count) = coverage(&series, Method::Ml, d, 11);
         eprintln!("ML per-track coverage (sigma given: {sigma}): {share:.3} of {count}");
-        assert!(count >= 700, "{count} tracks");
+        if !sigma {
+            for method in [Method::Cve, Method::Msd] {
+                let all: Vec<Estimate> = series
+                    .iter()
+                    .filter(|s| s.len() >= 11)
+                    .filter_map(|s| method.estimate(&[s]))
+                    .collect();
+                let covered = all.iter().filter(|e| e.covers(d)).count();
+                eprintln!(
+                    "{} per-track coverage, tracks of ≥ 10 steps, condition ignored: {:.3} of {}",
+                    method.name(),
+                    covered as f64 / all.len() as f64,
+                    all.len()
+                );
+            }
+        }
+        assert!(count >= 450, "{count} tracks");
         assert!((share - 0.95).abs() <= 0.03, "coverage {share} of {count}");
     }
 }
@@ -235,7 +274,8 @@ fn blinking_gaps_leave_the_ensemble_unbiased() {
     // The stationary on share 2/3, within 0.03 (≈ 3 standard errors of
     // ~1,200 independent blinking periods).
     assert!((on_share - 2.0 / 3.0).abs() < 0.03, "{on_share}");
-    let tracks = truth_tracks(&truth, false, false, |r| r.on_fraction >= 0.5, 9);
+    let keep = |r: &RecordingTruthRow| r.on_fraction >= 0.5 && in_field(r, false, 24, 25);
+    let tracks = truth_tracks(&truth, false, false, keep, 9);
     let gaps = tracks
         .iter()
         .flat_map(|t| t.points.windows(2))
@@ -269,7 +309,8 @@ fn the_frame_index_alone_costs_a_third_of_d_when_the_noise_is_known() {
         let truth = simulate_recording(&params, 60 + k as u64, false)
             .unwrap()
             .truth;
-        let tracks = truth_tracks(&truth, field.seen, true, |_| true, 13);
+        let keep = |r: &RecordingTruthRow| in_field(r, field.seen, field.height, field.width);
+        let tracks = truth_tracks(&truth, field.seen, true, keep, 13);
         let geometry = geometry(&params);
         let scan = ensemble(&series_of(&tracks, &geometry, field.exposure), Method::Ml);
         let naive = ensemble(
