@@ -117,7 +117,7 @@ impl RecordingParams {
             self.microscope.width,
         )?;
         let expected = self.density_per_um3 * self.volume_um3();
-        if !(expected <= MAX_RECORDING_QDS as f64 / 2.0) {
+        if expected.is_nan() || expected > MAX_RECORDING_QDS as f64 / 2.0 {
             return Err(FieldError::new(
                 "qd_density",
                 format!(

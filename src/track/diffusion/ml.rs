@@ -64,7 +64,7 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64) -> f64 {
             let l = off / pivot;
             (diag - l * off, delta - l * carry)
         };
-        if !(p > 0.0) {
+        if p.is_nan() || p <= 0.0 {
             return f64::INFINITY;
         }
         // Conditioned on the localisation being in the field: its

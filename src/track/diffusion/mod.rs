@@ -231,12 +231,13 @@ mod tests {
 
     #[test]
     fn the_normal_cdf_and_the_fit_weight_match_hand_values() {
-        assert!((normal_cdf(0.0) - 0.5).abs() < 1e-9);
-        assert!((normal_cdf(1.959_963_985) - 0.975).abs() < 1e-7);
-        assert!((normal_cdf(-1.0) - 0.158_655_254).abs() < 1e-7);
+        // The fit's relative error on erfc is below 1.2e-7 (erfc ≤ 2).
+        assert!((normal_cdf(0.0) - 0.5).abs() < 1.5e-7);
+        assert!((normal_cdf(1.959_963_985) - 0.975).abs() < 1.5e-7);
+        assert!((normal_cdf(-1.0) - 0.158_655_254).abs() < 1.5e-7);
         // A step of a quarter of the field fits in 3/4 of the places.
         assert!((fit_weight(0.25, 1.0) - 4.0 / 3.0).abs() < 1e-12);
         assert_eq!(fit_weight(2.0, 1.0), 20.0);
-        assert_eq!(extent([0.3, -0.2, 0.1]), 0.5);
+        assert!((extent([0.3, -0.2, 0.1]) - 0.5).abs() < 1e-15);
     }
 }

@@ -84,7 +84,7 @@ fn fit(series: &[&Series], pairs: &[Vec<Vec<Pair>>], p: usize) -> Option<Fit> {
     let mean_t = points.iter().map(|p| p.1).sum::<f64>() / k;
     let mean_msd = points.iter().map(|p| p.2).sum::<f64>() / k;
     let sxx: f64 = points.iter().map(|p| (p.1 - mean_t).powi(2)).sum();
-    if !(sxx > 0.0) {
+    if sxx.is_nan() || sxx <= 0.0 {
         return None;
     }
     let slope: f64 = points

@@ -131,7 +131,7 @@ impl ScanGeometry {
             .map(|r| (-((r as f64 - y).powi(2)) / (2.0 * spread * spread)).exp())
             .collect();
         let total: f64 = weights.iter().sum();
-        if !(total > 0.0) {
+        if total.is_nan() || total <= 0.0 {
             return (centre * line, 0.0);
         }
         let mean_row = (first..=end)
