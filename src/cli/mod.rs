@@ -6,6 +6,7 @@ mod bench_cnn;
 mod calibrate;
 mod check;
 mod cv;
+mod diffusion;
 mod link;
 mod locate;
 mod microscope;
@@ -15,6 +16,7 @@ mod reproduce;
 mod run;
 mod score;
 mod simulate;
+mod simulate_recording;
 mod sweep;
 mod train;
 
@@ -60,6 +62,8 @@ enum Command {
     Cv(cv::CvArgs),
     Sweep(sweep::SweepArgs),
     Link(link::LinkArgs),
+    SimulateRecording(simulate_recording::SimulateRecordingArgs),
+    Diffusion(diffusion::DiffusionArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -141,6 +145,8 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Cv(args) => cv::run(args, stdout),
         Command::Sweep(args) => sweep::run(args, stdout),
         Command::Link(args) => link::run(args, stdout),
+        Command::SimulateRecording(args) => simulate_recording::run(args),
+        Command::Diffusion(args) => diffusion::run(args, stdout),
     }
 }
 

@@ -16,6 +16,7 @@ pub mod folders;
 pub mod localisation_table;
 pub mod npy;
 pub mod tiff_stack;
+pub mod tracks;
 
 pub use folders::{PendingFolder, safe_file_name};
 

@@ -26,6 +26,7 @@
 //! test set's luck ([`paired`]: a paired bootstrap over frames).
 
 pub mod calibration;
+pub mod diffusion;
 pub mod headroom;
 pub mod paired;
 pub mod scenes;

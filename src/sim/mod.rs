@@ -24,6 +24,7 @@
 pub mod gaussian;
 pub mod noise;
 pub mod params;
+pub mod recording;
 
 use std::ops::Range;
 
@@ -494,28 +495,7 @@ impl FrameMaker<'_> {
                 &frame_detector
             }
         };
-        // Two uniforms per pixel (background, signal), drawn in one fill.
-        noise_words.resize(2 * counts.len(), 0);
-        rng.fill(&mut noise_words[..]);
-        for ((count, &signal), words) in counts
-            .iter_mut()
-            .zip(expected.iter())
-            .zip(noise_words.chunks_exact(2))
-        {
-            if !signal.is_finite() {
-                return Err(input_error(format!(
-                    "frame {index}: expected photon count is not finite ({signal}); check brightness and sigma"
-                )));
-            }
-            let uniforms = [unit_interval(words[0]), unit_interval(words[1])];
-            let recorded = detector.record_from_uniforms(uniforms, &mut rng, signal);
-            *count = u32::try_from(recorded).map_err(|_| {
-                input_error(format!(
-                    "frame {index}: a count of {recorded} photons does not fit in uint32; lower brightness or background"
-                ))
-            })?;
-        }
-        Ok(())
+        record_counts(detector, &mut rng, expected, noise_words, counts, index)
     }
 }
 
@@ -541,6 +521,41 @@ pub fn dataset_bytes(params: &SimParams, frames: usize) -> u64 {
         .saturating_add(list_bytes)
 }
 
+/// Draws the recorded count of every pixel of frame `index` from its
+/// expected signal `expected` (the background is the detector's) into
+/// `counts`: two uniforms per pixel (background, signal) drawn in one fill
+/// into `noise_words`, then whatever further draws large means need. The
+/// one noise loop of the per-frame simulator and of recordings.
+fn record_counts(
+    detector: &Detector,
+    rng: &mut ChaCha8Rng,
+    expected: &[f64],
+    noise_words: &mut Vec<u64>,
+    counts: &mut [u32],
+    index: usize,
+) -> anyhow::Result<()> {
+    noise_words.resize(2 * counts.len(), 0);
+    rng.fill(&mut noise_words[..]);
+    for ((count, &signal), words) in counts
+        .iter_mut()
+        .zip(expected.iter())
+        .zip(noise_words.chunks_exact(2))
+    {
+        if !signal.is_finite() {
+            return Err(input_error(format!(
+                "frame {index}: expected photon count is not finite ({signal}); check brightness and sigma"
+            )));
+        }
+        let uniforms = [unit_interval(words[0]), unit_interval(words[1])];
+        let recorded = detector.record_from_uniforms(uniforms, rng, signal);
+        *count = u32::try_from(recorded).map_err(|_| {
+            input_error(format!(
+                "frame {index}: a count of {recorded} photons does not fit in uint32; lower brightness or background"
+            ))
+        })?;
+    }
+    Ok(())
+}
 /// Simulates frames `range` of the dataset with `params` and `seed`, in
 /// parallel. The result depends only on `(params, seed, range)`: frame `i`
 /// is the same whether made alone, in a chunk or in the whole dataset.

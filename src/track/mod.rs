@@ -1,4 +1,6 @@
-//! Tracking: from localisations to trajectories.
+//! Tracking: from localisations to trajectories, and what they tell: the
+//! diffusion coefficient of tracked particles ([`diffusion`],
+//! `docs/tracking.md`).
 //!
 //! The linkers take [`Detection`]s in any order and label each with a
 //! trajectory (`particle`, 0, 1, …). They look at frames in increasing
@@ -15,6 +17,7 @@
 //! This layer sits on [`types`](crate::types) and [`io`](crate::io) (it
 //! reads [`LocalisationTable`]s) and names nothing above them.
 
+pub mod diffusion;
 pub mod lap;
 pub mod trackpy;
 

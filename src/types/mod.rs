@@ -12,6 +12,7 @@ pub mod distribution;
 pub mod frames;
 pub mod prediction;
 pub mod seed;
+pub mod tracks;
 pub mod truth;
 
 pub use detector_kind::DetectorKind;
@@ -19,4 +20,5 @@ pub use distribution::{Distribution, RandomDistribution};
 pub use frames::{FrameStack, Frames, RealFrameStack, Recording};
 pub use prediction::{LocalisationSigma, Prediction};
 pub use seed::derive_seed;
-pub use truth::{Dataset, TruthRow};
+pub use tracks::{Track, TrackPoint};
+pub use truth::{Dataset, RecordingTruthRow, TruthRow};

@@ -51,3 +51,45 @@ pub struct Dataset {
     pub frames: FrameStack,
     pub truth: Vec<TruthRow>,
 }
+
+/// Ground truth of one QD in one frame of a continuous recording
+/// (`docs/tracking.md`), in TrackPy pixel coordinates, times in seconds from
+/// the first sample of frame 0.
+///
+/// A row is written for every QD whose trajectory centroid or seen
+/// position lies in the field (`-0.5 ≤ x < W − 0.5`, `-0.5 ≤ y < H − 0.5`),
+/// whatever its depth or blinking state, so tracks made from the truth are what a perfect
+/// detector that also saw dark and out-of-focus QDs would give.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RecordingTruthRow {
+    /// Frame index within the recording.
+    pub frame: usize,
+    /// Persistent QD id: the same QD keeps it from frame to frame (a QD
+    /// that crosses the simulated volume's boundary comes back as a new id).
+    pub qd: u64,
+    /// Trajectory centroid: mean x (column) over every PSF sample of the
+    /// frame, as [`TruthRow::x`].
+    pub x: f64,
+    /// Trajectory centroid: mean y (row) over every PSF sample.
+    pub y: f64,
+    /// Mean depth relative to focus over the frame, µm.
+    pub z_mean: f64,
+    /// Share of the frame's samples during which the QD was on (1 without
+    /// blinking).
+    pub on_fraction: f64,
+    /// The position the beam saw: the path's mean weighted by the lateral
+    /// PSF at each sample (the part of the path near the scanned rows).
+    pub x_seen: f64,
+    /// As `x_seen`, along y.
+    pub y_seen: f64,
+    /// The frame's mid-time: the mean time of its samples, s.
+    pub t_mid: f64,
+    /// When the beam passed the centroid: frame start + y · line time +
+    /// x · dwell (x, y clamped to the field), s.
+    pub t_beam: f64,
+    /// The lateral-PSF-weighted mean time of the frame's samples (when the
+    /// beam saw the QD, the time stamp of `x_seen, y_seen`), s.
+    pub t_seen: f64,
+    /// The recording's diffusion coefficient, µm²/s.
+    pub diffusion: f64,
+}

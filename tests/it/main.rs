@@ -23,6 +23,7 @@ mod cli_microscope;
 mod cli_simulate;
 mod cnn;
 mod crocker_grier;
+mod diffusion;
 mod empty_frames;
 mod figures;
 mod hostile_bounds;

@@ -1,0 +1,176 @@
+//! `scanloc diffusion`: D per track and for the ensemble from a tracks
+//! table (docs/tracking.md).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, ValueEnum};
+use scanloc::error::input_error;
+use scanloc::track::diffusion::{Estimate, Exposure, Method, ScanGeometry, Series};
+
+/// Which part of the scan a localisation averages (docs/tracking.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ExposureArg {
+    /// whole-frame for a field at most 10 σxy tall, else rows.
+    Auto,
+    /// The trajectory centroid over the whole frame (the simulator's truth).
+    WholeFrame,
+    /// What the beam saw: the rows within the PSF of the particle.
+    Rows,
+    /// The frame index alone, no blur (for comparison).
+    FrameIndex,
+    /// The frame index with a camera's uniform exposure, R = 1/6 (for comparison).
+    UniformFrame,
+}
+
+/// Estimate diffusion coefficients from trajectories: per track and for
+/// the ensemble, by the covariance-based estimator (cve), an MSD fit with
+/// the optimal number of points (msd) and maximum likelihood (ml), each
+/// with its standard error, 95 % interval and localisation variance.
+///
+/// Time stamps and motion blur come from the scan (the flags below, in the
+/// units of the manifest's microscope section), or the table's `time`
+/// column (s) where present. Output: CSV on stdout, one row per track and
+/// method, then the ensemble rows (particle `ensemble`).
+#[derive(Debug, Args)]
+pub struct DiffusionArgs {
+    /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s).
+    #[arg(long)]
+    tracks: PathBuf,
+    /// Frame height in pixels (rows).
+    #[arg(long, default_value_t = 24)]
+    height: usize,
+    /// Frame width in pixels (columns).
+    #[arg(long, default_value_t = 25)]
+    width: usize,
+    /// Pixel size in µm.
+    #[arg(long, default_value_t = 0.07)]
+    pixel_size_um: f64,
+    /// Pixel dwell time in µs.
+    #[arg(long, default_value_t = 2.0)]
+    dwell_us: f64,
+    /// Line retrace time in ms.
+    #[arg(long, default_value_t = 1.1)]
+    retrace_ms: f64,
+    /// Dead time between frames, ms.
+    #[arg(long, default_value_t = 0.0)]
+    dead_time_ms: f64,
+    /// Lateral PSF standard deviation in µm.
+    #[arg(long, default_value_t = 0.21)]
+    sigma_xy_um: f64,
+    /// Which part of the scan a localisation averages.
+    #[arg(long, value_enum, default_value_t = ExposureArg::Auto)]
+    exposure: ExposureArg,
+    /// Tracks with fewer localisations get no row of their own (they still
+    /// count in the ensemble).
+    #[arg(long, default_value_t = 3)]
+    min_points: usize,
+}
+
+impl DiffusionArgs {
+    fn geometry(&self) -> anyhow::Result<ScanGeometry> {
+        let geometry = ScanGeometry {
+            height: self.height,
+            width: self.width,
+            pixel_size_um: self.pixel_size_um,
+            dwell_us: self.dwell_us,
+            retrace_ms: self.retrace_ms,
+            dead_time_ms: self.dead_time_ms,
+            sigma_xy_um: self.sigma_xy_um,
+        };
+        let checks = [
+            ("--pixel-size-um", self.pixel_size_um, false),
+            ("--dwell-us", self.dwell_us, false),
+            ("--retrace-ms", self.retrace_ms, true),
+            ("--dead-time-ms", self.dead_time_ms, true),
+            ("--sigma-xy-um", self.sigma_xy_um, false),
+        ];
+        for (name, value, zero_ok) in checks {
+            if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) {
+                return Err(input_error(format!(
+                    "{name}: must be {}, got {value}",
+                    if zero_ok { "≥ 0" } else { "> 0" }
+                )));
+            }
+        }
+        let max_side = scanloc::limits::MAX_FRAME_SIDE;
+        if !(1..=max_side).contains(&self.height) || !(1..=max_side).contains(&self.width) {
+            return Err(input_error(format!(
+                "--height, --width: must be 1 to {max_side}, got {} × {}",
+                self.height, self.width
+            )));
+        }
+        Ok(geometry)
+    }
+}
+
+fn row(
+    out: &mut dyn Write,
+    label: &str,
+    points: usize,
+    method: Method,
+    e: &Estimate,
+) -> std::io::Result<()> {
+    writeln!(
+        out,
+        "{label},{points},{},{},{},{},{},{},{}",
+        method.name(),
+        e.d,
+        e.standard_error,
+        e.low,
+        e.high,
+        e.localisation_variance,
+        e.interval_valid
+    )
+}
+
+pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let geometry = args.geometry()?;
+    let exposure = match args.exposure {
+        ExposureArg::Auto => geometry.auto_exposure(),
+        ExposureArg::WholeFrame => Exposure::WholeFrame,
+        ExposureArg::Rows => Exposure::Rows,
+        ExposureArg::FrameIndex => Exposure::FrameIndex,
+        ExposureArg::UniformFrame => Exposure::UniformFrame,
+    };
+    let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    let series: Vec<Series> = tracks
+        .iter()
+        .map(|track| Series::new(track, &geometry, exposure))
+        .collect();
+    if series.iter().all(|s| s.len() < 2) {
+        return Err(input_error(format!(
+            "{}: no track has two localisations",
+            args.tracks.display()
+        )));
+    }
+    writeln!(
+        stdout,
+        "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
+    )?;
+    for (track, s) in tracks.iter().zip(&series) {
+        if s.len() < args.min_points.max(2) {
+            continue;
+        }
+        for method in Method::ALL {
+            if let Some(estimate) = method.estimate(&[s]) {
+                row(
+                    stdout,
+                    &track.particle.to_string(),
+                    s.len(),
+                    method,
+                    &estimate,
+                )?;
+            }
+        }
+    }
+    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
+    let points: usize = all.iter().map(|s| s.len()).sum();
+    for method in Method::ALL {
+        if let Some(estimate) = method.estimate(&all) {
+            row(stdout, "ensemble", points, method, &estimate)?;
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,136 @@
+//! `scanloc simulate-recording`: a continuous recording of QDs diffusing
+//! through the field, and its ground truth (docs/tracking.md).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::Args;
+use scanloc::error::input_error;
+use scanloc::io::{self, PendingFile};
+use scanloc::sim::SimParams;
+use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording};
+
+/// Simulate a continuous recording: frames scanned back to back on one
+/// clock while QDs diffuse in 3D through a periodic volume larger than the
+/// field (so they enter and leave the field and the focal volume), with
+/// optional blinking (docs/tracking.md).
+///
+/// The microscope flags are those of `scanloc simulate` (paper defaults);
+/// D, N_qd and N_bkg are fixed numbers here.
+#[derive(Debug, Args)]
+#[command(allow_negative_numbers = true)]
+pub struct SimulateRecordingArgs {
+    /// Number of frames.
+    #[arg(long, default_value_t = 200)]
+    frames: usize,
+    /// Seed of the recording.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Diffusion coefficient D in µm²/s.
+    #[arg(long, default_value_t = 1.0)]
+    diffusion: f64,
+    /// N_qd, photons of an in-focus QD (PSF normalisation).
+    #[arg(long, default_value_t = 7.0)]
+    brightness: f64,
+    /// N_bkg, expected background photons per pixel.
+    #[arg(long, default_value_t = 8.4)]
+    background: f64,
+    /// Frame height in pixels (rows).
+    #[arg(long, default_value_t = 24)]
+    height: usize,
+    /// Frame width in pixels (columns).
+    #[arg(long, default_value_t = 25)]
+    width: usize,
+    /// Pixel size in µm.
+    #[arg(long, default_value_t = 0.07)]
+    pixel_size_um: f64,
+    /// Pixel dwell time in µs.
+    #[arg(long, default_value_t = 2.0)]
+    dwell_us: f64,
+    /// Line retrace time in ms.
+    #[arg(long, default_value_t = 1.1)]
+    retrace_ms: f64,
+    /// Dead time between the flyback after a frame and the next frame, ms.
+    #[arg(long, default_value_t = 0.0)]
+    dead_time_ms: f64,
+    /// Lateral PSF standard deviation in µm.
+    #[arg(long, default_value_t = 0.21)]
+    sigma_xy_um: f64,
+    /// Axial PSF standard deviation in µm.
+    #[arg(long, default_value_t = 1.36)]
+    sigma_z_um: f64,
+    /// PSF samples per pixel dwell (1 = the paper).
+    #[arg(long, default_value_t = 1)]
+    substeps: u32,
+    /// QDs per µm³ of the simulated volume.
+    #[arg(long, default_value_t = 0.05)]
+    qd_density: f64,
+    /// How far the volume reaches beyond the field on every side, µm (the
+    /// default is beyond the PSF cut-off, so QDs wrap around unseen).
+    #[arg(long, default_value_t = 1.5)]
+    margin_um: f64,
+    /// The volume spans depths ±this around the focal plane, µm.
+    #[arg(long, default_value_t = 4.0)]
+    half_depth_um: f64,
+    /// Mean on time of blinking QDs, ms (with --blink-off-ms).
+    #[arg(long, requires = "blink_off_ms")]
+    blink_on_ms: Option<f64>,
+    /// Mean off time of blinking QDs, ms (with --blink-on-ms).
+    #[arg(long, requires = "blink_on_ms")]
+    blink_off_ms: Option<f64>,
+    /// Output frames: FILE.npy or FILE.tif.
+    #[arg(long)]
+    out: PathBuf,
+    /// Output truth CSV: frame,qd,x,y,z_mean,on_fraction,x_seen,y_seen,t_mid,t_beam,t_seen,diffusion.
+    #[arg(long)]
+    truth: Option<PathBuf>,
+}
+
+pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
+    let params = RecordingParams {
+        microscope: SimParams {
+            height: args.height,
+            width: args.width,
+            pixel_size_um: args.pixel_size_um,
+            dwell_us: args.dwell_us,
+            retrace_ms: args.retrace_ms,
+            sigma_xy_um: args.sigma_xy_um,
+            sigma_z_um: args.sigma_z_um,
+            substeps: args.substeps,
+            brightness: args.brightness.into(),
+            background: args.background.into(),
+            diffusion_um2_s: args.diffusion.into(),
+            ..SimParams::default()
+        },
+        frames: args.frames,
+        density_per_um3: args.qd_density,
+        lateral_margin_um: args.margin_um,
+        half_depth_um: args.half_depth_um,
+        blinking: match (args.blink_on_ms, args.blink_off_ms) {
+            (Some(on_ms), Some(off_ms)) => Some(Blinking { on_ms, off_ms }),
+            _ => None,
+        },
+        dead_time_ms: args.dead_time_ms,
+    };
+    params
+        .validate()
+        .map_err(|e| input_error(format!("invalid recording parameter: {e}")))?;
+    io::FrameFormat::from_path(&args.out)?;
+    let mut outputs = vec![("--out", args.out.as_path())];
+    outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));
+    io::refuse_shared_paths(&[], &outputs)?;
+    let mut frames_out = PendingFile::create(&args.out)?;
+    let mut truth_out = args.truth.as_deref().map(PendingFile::create).transpose()?;
+
+    let recording = simulate_recording(&params, args.seed, true)?;
+
+    io::fill_frames(&mut frames_out, &recording.frames)?;
+    if let Some(pending) = truth_out.as_mut() {
+        io::tracks::fill_recording_truth(pending, &recording.truth)?;
+    }
+    frames_out.commit()?;
+    if let Some(pending) = truth_out {
+        pending.commit()?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
