@@ -177,7 +177,11 @@ pub fn run(
             args.test_frames,
             derive_seed(args.seed, "dataset", "test"),
         )?;
-        write!(stdout, "{}", scanloc::run::test_sets::format_auc_table(&table))?;
+        write!(
+            stdout,
+            "{}",
+            scanloc::run::test_sets::format_auc_table(&table)
+        )?;
     }
     Ok(ExitCode::SUCCESS)
 }
