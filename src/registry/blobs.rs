@@ -71,18 +71,26 @@ impl BlobStore {
         if self.check(&sha256)? == BlobState::Intact {
             return Ok(sha256);
         }
-        let path = self.path(&sha256);
-        let folder = path.parent().expect("blob paths have a folder");
-        fs::create_dir_all(folder).with_context(|| format!("creating {}", folder.display()))?;
         let mut temporary = tempfile::Builder::new()
             .prefix(&format!("{sha256}."))
             .tempfile_in(self.tmp_dir())
             .context("creating a temporary blob")?;
         temporary.write_all(bytes).context("writing a blob")?;
         temporary.as_file().sync_all().context("syncing a blob")?;
-        let mut permissions = temporary.as_file().metadata()?.permissions();
+        self.install(temporary.into_temp_path(), &sha256)?;
+        Ok(sha256)
+    }
+
+    /// Moves the complete, synced file `temporary` (on the store's file
+    /// system; its bytes hash to `sha256`) into place as blob `sha256`:
+    /// made read-only, renamed (atomic), the folder synced.
+    pub fn install(&self, temporary: tempfile::TempPath, sha256: &str) -> anyhow::Result<()> {
+        let path = self.path(sha256);
+        let folder = path.parent().expect("blob paths have a folder");
+        fs::create_dir_all(folder).with_context(|| format!("creating {}", folder.display()))?;
+        let mut permissions = fs::metadata(&temporary)?.permissions();
         permissions.set_readonly(true);
-        fs::set_permissions(temporary.path(), permissions)?;
+        fs::set_permissions(&temporary, permissions)?;
         temporary
             .persist(&path)
             .map_err(|e| e.error)
@@ -91,7 +99,7 @@ impl BlobStore {
         if let Ok(dir) = File::open(folder) {
             let _ = dir.sync_all();
         }
-        Ok(sha256)
+        Ok(())
     }
 
     /// Re-hashes the blob `sha256` without keeping its bytes.

@@ -30,6 +30,8 @@ mod hostile_fuzz_guard;
 mod hostile_manifest;
 mod hostile_real_frames;
 mod hostile_registry;
+mod hostile_shard_fuzz;
+mod hostile_shards;
 mod layers;
 mod likelihood;
 mod manifest_errors;
