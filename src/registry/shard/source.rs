@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use rusqlite::types::Value;
+use rusqlite::types::{Value, ValueRef};
 use rusqlite::{Connection, OpenFlags};
 
 use super::rules::{self, DURABLE, Durable, TRANSIENT};
@@ -246,10 +246,21 @@ impl Source {
         let mut rows = statement.query([]).map_err(sql_err)?;
         let mut out = Vec::new();
         while let Some(row) = rows.next().map_err(sql_err)? {
-            let values = (0..columns.len())
-                .map(|i| row.get::<_, Value>(i))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(sql_err)?;
+            let mut values = Vec::with_capacity(columns.len());
+            for (i, column) in columns.iter().enumerate() {
+                values.push(match row.get_ref(i).map_err(sql_err)? {
+                    // rusqlite's own conversion panics on text that is not
+                    // UTF-8.
+                    ValueRef::Text(bytes) => match std::str::from_utf8(bytes) {
+                        Ok(text) => Value::Text(text.to_string()),
+                        Err(e) => {
+                            let problem = format!("{column}: text that is not UTF-8 ({e})");
+                            return Err(self.damaged(Some(table), &problem));
+                        }
+                    },
+                    other => Value::from(other),
+                });
+            }
             out.push(values);
         }
         Ok(out)
