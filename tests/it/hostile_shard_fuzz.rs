@@ -77,7 +77,7 @@ enum Damage {
     GarbleDatabase(u16, Vec<u8>),
     /// A write-ahead log of these bytes beside the database.
     Wal(Vec<u8>),
-    /// The database replaced by a symbolic link to the good shard's.
+    /// The database replaced by a symbolic link to a good shard's.
     DatabaseSymlink,
 }
 
@@ -270,9 +270,12 @@ fn apply(shard: &Path, elsewhere: &Path, damage: &Damage) {
             let _ = std::fs::write(shard.join("registry.sqlite-wal"), bytes);
         }
         Damage::DatabaseSymlink => {
+            // To a copy of a good database outside the shard (later damage
+            // goes through the link, never into the template).
+            let target = elsewhere.join("registry.sqlite");
+            std::fs::copy(template().shards[1].join("registry.sqlite"), &target).unwrap();
             let _ = std::fs::remove_file(&database);
-            std::os::unix::fs::symlink(template().shards[1].join("registry.sqlite"), &database)
-                .unwrap();
+            std::os::unix::fs::symlink(&target, &database).unwrap();
         }
     }
 }
