@@ -231,7 +231,14 @@ fn apply(shard: &Path, elsewhere: &Path, damage: &Damage) {
                 return;
             }
             let path = &files[n % files.len()];
-            let bytes = std::fs::read(path).unwrap_or_default();
+            // Never opened unless a regular file: an earlier damage may
+            // have left a FIFO here, which would block the reader.
+            let regular = std::fs::symlink_metadata(path).is_ok_and(|m| m.is_file());
+            let bytes = if regular {
+                std::fs::read(path).unwrap_or_default()
+            } else {
+                Vec::new()
+            };
             let _ = std::fs::remove_file(path);
             match damage {
                 BlobDamage::SymlinkToDevZero => {
