@@ -80,7 +80,8 @@ bench-registry: build
 
 # Fuzzing: the manifest loader on arbitrary, YAML-like and mutated text,
 # the .npy/.tif readers on damaged and random files, and the command line
-# on random simulate/locate/score arguments and CSV/TIFF/.npy bytes (called
+# on random simulate/locate/score arguments and CSV/TIFF/.npy bytes, and
+# `registry import` on damaged and crafted shards (called
 # in-process, under a per-case allocation limit and time limit; case files
 # in /dev/shm), FUZZ_CASES cases per property (proptest; `make test` runs a
 # few dozen to a few thousand). Run at a low priority: it is long.

@@ -72,31 +72,24 @@ impl BlobStore {
         if self.check(&sha256)? == BlobState::Intact {
             return Ok(sha256);
         }
-        let path = self.path(&sha256);
-        let folder = path.parent().expect("blob paths have a folder");
-        fs::create_dir_all(folder).with_context(|| format!("creating {}", folder.display()))?;
-        let mut builder = tempfile::Builder::new();
-        let prefix = format!("{sha256}.");
-        builder.prefix(&prefix);
-        #[cfg(unix)]
-        {
-            // Read-only, and readable by whom the umask allows: created
-            // 0444, the kernel takes the umask off (the open file stays
-            // writable for this write).
-            use std::os::unix::fs::PermissionsExt;
-            builder.permissions(fs::Permissions::from_mode(0o444));
-        }
-        let mut temporary = builder
-            .tempfile_in(self.tmp_dir())
-            .context("creating a temporary blob")?;
+        let mut temporary =
+            temporary_blob(&self.tmp_dir(), &sha256).context("creating a temporary blob")?;
         temporary.write_all(bytes).context("writing a blob")?;
         temporary.as_file().sync_all().context("syncing a blob")?;
-        #[cfg(not(unix))]
-        {
-            let mut permissions = temporary.as_file().metadata()?.permissions();
-            permissions.set_readonly(true);
-            fs::set_permissions(temporary.path(), permissions)?;
-        }
+        self.install(temporary.into_temp_path(), &sha256)?;
+        Ok(sha256)
+    }
+
+    /// Moves the complete, synced file `temporary` (on the store's file
+    /// system; its bytes hash to `sha256`) into place as blob `sha256`:
+    /// made read-only, renamed (atomic), the folder synced.
+    pub fn install(&self, temporary: tempfile::TempPath, sha256: &str) -> anyhow::Result<()> {
+        let path = self.path(sha256);
+        let folder = path.parent().expect("blob paths have a folder");
+        fs::create_dir_all(folder).with_context(|| format!("creating {}", folder.display()))?;
+        let mut permissions = fs::metadata(&temporary)?.permissions();
+        permissions.set_readonly(true);
+        fs::set_permissions(&temporary, permissions)?;
         temporary
             .persist(&path)
             .map_err(|e| e.error)
@@ -105,7 +98,7 @@ impl BlobStore {
         if let Ok(dir) = File::open(folder) {
             let _ = dir.sync_all();
         }
-        Ok(sha256)
+        Ok(())
     }
 
     /// Re-hashes the blob `sha256` without keeping its bytes.
@@ -250,4 +243,20 @@ fn list_folder(folder: &Path) -> anyhow::Result<Vec<StoreEntry>> {
         });
     }
     Ok(entries)
+}
+
+/// A new temporary file in `dir` for the bytes of blob `sha256`, to be
+/// [`install`](BlobStore::install)ed. On Unix it is created 0444, so the
+/// kernel takes the umask off: the blob is read-only and readable by whom
+/// the umask allows (the open file stays writable for this write).
+pub fn temporary_blob(dir: &Path, sha256: &str) -> std::io::Result<tempfile::NamedTempFile> {
+    let mut builder = tempfile::Builder::new();
+    let prefix = format!("{sha256}.");
+    builder.prefix(&prefix);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(fs::Permissions::from_mode(0o444));
+    }
+    builder.tempfile_in(dir)
 }

@@ -9,6 +9,14 @@
 //! waiting for. The file is only a hint: one left behind by a killed
 //! process names a process that is gone, and then the lock is reported as
 //! held by another program (the `sqlite3` shell, an older scanloc).
+//!
+//! A second lock, [`BlobLock`], keeps `registry gc` and imports apart: an
+//! import writes blob files before the rows that record them, and `gc`
+//! deletes blob files no row records. Imports (and exports, and a sweep
+//! task seeding its shard) hold it shared for their whole copy, `gc`
+//! holds it exclusively; it is an advisory lock on the file
+//! `registry.sqlite-blob-lock`, released by the kernel when its process
+//! ends, however it ends.
 
 use std::ops::Deref;
 use std::path::{Path, PathBuf};
@@ -21,6 +29,9 @@ use super::{host_name, is_busy, process_alive};
 
 /// The file naming the current writer, beside the database.
 pub const HOLDER_FILE: &str = "registry.sqlite-writer";
+
+/// The file [`BlobLock`] locks, beside the database.
+pub const BLOB_LOCK_FILE: &str = "registry.sqlite-blob-lock";
 
 /// How often a waiting writer tries for the lock again.
 const POLL: Duration = Duration::from_millis(100);
@@ -179,6 +190,67 @@ impl Drop for WriteTransaction<'_> {
     }
 }
 
+/// Who holds a [`BlobLock`]: copies into the registry share it, `gc`
+/// holds it alone.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BlobLockUse {
+    /// An import, export or seeding copy: writes blobs before recording them.
+    Copy,
+    /// `registry gc`: deletes blobs no row records.
+    Gc,
+}
+
+/// The lock that keeps `registry gc` from deleting the blobs a copy into
+/// the registry is writing (see the module docs); released when dropped.
+#[derive(Debug)]
+pub struct BlobLock {
+    _file: std::fs::File,
+}
+
+impl BlobLock {
+    /// Takes the lock of registry folder `dir` for `purpose`, waiting at
+    /// most `timeout` and saying once on standard error what it waits for.
+    pub fn take(dir: &Path, purpose: BlobLockUse, timeout: Duration) -> anyhow::Result<Self> {
+        let path = dir.join(BLOB_LOCK_FILE);
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| anyhow::anyhow!("{}: cannot open the lock file: {e}", path.display()))?;
+        let (waiting_for, try_lock): (&str, fn(&std::fs::File) -> _) = match purpose {
+            BlobLockUse::Copy => ("`registry gc`", std::fs::File::try_lock_shared),
+            BlobLockUse::Gc => (
+                "a copy into the registry (an import)",
+                std::fs::File::try_lock,
+            ),
+        };
+        let started = Instant::now();
+        let mut said = false;
+        loop {
+            match try_lock(&file) {
+                Ok(()) => return Ok(Self { _file: file }),
+                Err(std::fs::TryLockError::WouldBlock) if started.elapsed() < timeout => {
+                    if !said {
+                        eprintln!("{}: waiting for {waiting_for} to finish", dir.display());
+                        said = true;
+                    }
+                    std::thread::sleep(POLL);
+                }
+                Err(std::fs::TryLockError::WouldBlock) => anyhow::bail!(
+                    "{}: gave up after {} s waiting for {waiting_for} to finish",
+                    dir.display(),
+                    timeout.as_secs()
+                ),
+                Err(std::fs::TryLockError::Error(e)) => {
+                    anyhow::bail!("{}: cannot lock: {e}", path.display())
+                }
+            }
+        }
+    }
+}
+
 /// Writes `text` to `path` through a temporary file and a rename, so a
 /// reader never sees half of it.
 fn write_replacing(path: &Path, text: &str) -> std::io::Result<()> {
@@ -206,6 +278,21 @@ mod tests {
             waiting_message(Some(&holder)),
             "waiting for the registry's write lock held by run 20261129-abc (pid 42 on node7)"
         );
+    }
+
+    #[test]
+    fn gc_waits_for_copies_and_copies_share() {
+        let dir = tempfile::tempdir().unwrap();
+        let short = Duration::from_millis(300);
+        let first = BlobLock::take(dir.path(), BlobLockUse::Copy, short).unwrap();
+        let second = BlobLock::take(dir.path(), BlobLockUse::Copy, short).unwrap();
+        let error = BlobLock::take(dir.path(), BlobLockUse::Gc, short).unwrap_err();
+        assert!(error.to_string().contains("gave up"), "{error}");
+        drop((first, second));
+        let gc = BlobLock::take(dir.path(), BlobLockUse::Gc, short).unwrap();
+        assert!(BlobLock::take(dir.path(), BlobLockUse::Copy, short).is_err());
+        drop(gc);
+        BlobLock::take(dir.path(), BlobLockUse::Copy, short).unwrap();
     }
 
     #[test]

@@ -34,6 +34,8 @@ mod hostile_manifest;
 mod hostile_outputs;
 mod hostile_real_frames;
 mod hostile_registry;
+mod hostile_shard_fuzz;
+mod hostile_shards;
 mod layers;
 mod likelihood;
 mod link;

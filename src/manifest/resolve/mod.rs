@@ -95,15 +95,7 @@ fn item(path: &[Segment], index: usize) -> Vec<Segment> {
 /// Checks the name of a dataset or detector declared at `path`: names
 /// become parts of artefact names and file names, so they are kept plain.
 fn check_name(path: &[Segment], name: &str) -> Result<(), FieldError> {
-    let valid = !name.is_empty()
-        && name.len() <= MAX_NAME_LEN
-        && name
-            .chars()
-            .next()
-            .is_some_and(|c| c.is_ascii_alphanumeric())
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+    let valid = super::is_plain_name(name, MAX_NAME_LEN);
     if valid {
         Ok(())
     } else {
