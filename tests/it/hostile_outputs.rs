@@ -432,6 +432,7 @@ fn read_commands(registry: &Path, out: &Path, env: &[(&str, &str)]) {
     let model_out = out.join("model");
     let locs = out.join("locs.csv");
     let scratch = out.join("scratch");
+    let shard = out.join("shard");
     let commands: Vec<Vec<&str>> = vec![
         vec!["registry", "runs"],
         vec!["registry", "datasets"],
@@ -443,6 +444,7 @@ fn read_commands(registry: &Path, out: &Path, env: &[(&str, &str)]) {
         vec!["registry", "verify"],
         vec!["registry", "gc", "--dry-run"],
         vec!["registry", "sql", "SELECT count(*) FROM runs"],
+        vec!["registry", "export", run, "--out", text(&shard)],
         vec!["registry", "model", &model, "--out", text(&model_out)],
         vec!["report", run, "--out", text(&report)],
         vec![
@@ -479,6 +481,7 @@ fn read_commands(registry: &Path, out: &Path, env: &[(&str, &str)]) {
     assert!(report.join("report.md").is_file());
     assert!(model_out.join("model.bpk").is_file());
     assert!(locs.is_file());
+    assert!(shard.join("registry.sqlite").is_file());
 }
 
 /// The commands that write, refused plainly on `registry`.
