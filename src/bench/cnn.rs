@@ -182,12 +182,6 @@ pub fn compare_with_torch(
     reference: Option<&TorchReference>,
 ) -> anyhow::Result<Vec<Comparison>> {
     let params = SimParams::default();
-    let dilations = arch
-        .dilations
-        .iter()
-        .map(|d| d.to_string())
-        .collect::<Vec<_>>()
-        .join(",");
     let mut skipped: Option<String> = reference.is_none().then(|| "not requested".to_string());
     let mut out = Vec::with_capacity(threads.len());
     for &thread_count in threads {
@@ -208,79 +202,111 @@ pub fn compare_with_torch(
             let Some(reference) = reference.filter(|_| skipped.is_none()) else {
                 continue;
             };
-            let numbers = [
-                thread_count,
+            let run = TorchRun {
+                threads: thread_count,
+                batch_size,
                 train_samples,
                 locate_frames,
-                batch_size,
-                crate::detect::cnn::inference::INFERENCE_BATCH,
-                arch.channels,
-                arch.input_channels(),
-                crate::detect::cnn::model::OUTPUT_CHANNELS,
-                params.height,
-                params.width,
-            ]
-            .map(|n| n.to_string());
-            let flags = [
-                "--threads",
-                "--samples",
-                "--locate-frames",
-                "--batch-size",
-                "--inference-batch",
-                "--channels",
-                "--input-channels",
-                "--output-channels",
-                "--height",
-                "--width",
-            ];
-            let mut args: Vec<&str> = Vec::new();
-            for (flag, value) in flags.iter().zip(&numbers) {
-                args.extend([*flag, value.as_str()]);
-            }
-            args.extend(["--dilations", &dilations]);
-            let thread_text = thread_count.to_string();
-            let mut env = TORCH_MALLOC_ENV.to_vec();
-            env.push(("OMP_NUM_THREADS", &thread_text));
-            match crate::bench::reference::run_python_figures(
-                &reference.python,
-                &reference.script,
-                &args,
-                &env,
-                [
-                    "train_samples_per_second",
-                    "frames_per_second",
-                    "train_samples_per_cpu_second",
-                    "frames_per_cpu_second",
-                ],
-            ) {
-                Ok([train, frames, train_cpu, frames_cpu]) => theirs.push(Rates {
-                    train_samples_per_second: train,
-                    frames_per_second: frames,
-                    train_samples_per_cpu_second: train_cpu,
-                    frames_per_cpu_second: frames_cpu,
-                }),
+            };
+            match torch_rates(reference, arch, &params, &run) {
+                Ok(rates) => theirs.push(rates),
                 Err(reason) => skipped = Some(reason),
             }
         }
-        let medians = |rates: &[Rates]| {
-            let of = |figure: fn(&Rates) -> f64| {
-                median(&mut rates.iter().map(figure).collect::<Vec<_>>())
-            };
-            Rates {
-                train_samples_per_second: of(|r| r.train_samples_per_second),
-                frames_per_second: of(|r| r.frames_per_second),
-                train_samples_per_cpu_second: of(|r| r.train_samples_per_cpu_second),
-                frames_per_cpu_second: of(|r| r.frames_per_cpu_second),
-            }
-        };
         let torch_ran = skipped.is_none() && !theirs.is_empty();
         out.push(Comparison {
             threads: thread_count,
             repeats: repeats.max(1),
-            scanloc: medians(&ours),
-            torch: torch_ran.then(|| medians(&theirs)),
+            scanloc: median_rates(&ours),
+            torch: torch_ran.then(|| median_rates(&theirs)),
             torch_skipped: skipped.clone(),
         });
     }
     Ok(out)
+}
+
+/// The sizes of one PyTorch reference run.
+struct TorchRun {
+    threads: usize,
+    batch_size: usize,
+    train_samples: usize,
+    locate_frames: usize,
+}
+
+/// PyTorch's rates for the same network and sizes, from the reference
+/// script; `Err` with the reason it could not run.
+fn torch_rates(
+    reference: &TorchReference,
+    arch: &CnnArchitecture,
+    params: &SimParams,
+    run: &TorchRun,
+) -> Result<Rates, String> {
+    let dilations = arch
+        .dilations
+        .iter()
+        .map(|d| d.to_string())
+        .collect::<Vec<_>>()
+        .join(",");
+    let numbers = [
+        run.threads,
+        run.train_samples,
+        run.locate_frames,
+        run.batch_size,
+        crate::detect::cnn::inference::INFERENCE_BATCH,
+        arch.channels,
+        arch.input_channels(),
+        crate::detect::cnn::model::OUTPUT_CHANNELS,
+        params.height,
+        params.width,
+    ]
+    .map(|n| n.to_string());
+    let flags = [
+        "--threads",
+        "--samples",
+        "--locate-frames",
+        "--batch-size",
+        "--inference-batch",
+        "--channels",
+        "--input-channels",
+        "--output-channels",
+        "--height",
+        "--width",
+    ];
+    let mut args: Vec<&str> = Vec::new();
+    for (flag, value) in flags.iter().zip(&numbers) {
+        args.extend([*flag, value.as_str()]);
+    }
+    args.extend(["--dilations", &dilations]);
+    let thread_text = run.threads.to_string();
+    let mut env = TORCH_MALLOC_ENV.to_vec();
+    env.push(("OMP_NUM_THREADS", &thread_text));
+    let [train, frames, train_cpu, frames_cpu] = crate::bench::reference::run_python_figures(
+        &reference.python,
+        &reference.script,
+        &args,
+        &env,
+        [
+            "train_samples_per_second",
+            "frames_per_second",
+            "train_samples_per_cpu_second",
+            "frames_per_cpu_second",
+        ],
+    )?;
+    Ok(Rates {
+        train_samples_per_second: train,
+        frames_per_second: frames,
+        train_samples_per_cpu_second: train_cpu,
+        frames_per_cpu_second: frames_cpu,
+    })
+}
+
+/// The median of each rate over repeated runs.
+fn median_rates(rates: &[Rates]) -> Rates {
+    let of = |figure: fn(&Rates) -> f64| median(&mut rates.iter().map(figure).collect::<Vec<_>>());
+    Rates {
+        train_samples_per_second: of(|r| r.train_samples_per_second),
+        frames_per_second: of(|r| r.frames_per_second),
+        train_samples_per_cpu_second: of(|r| r.train_samples_per_cpu_second),
+        frames_per_cpu_second: of(|r| r.frames_per_cpu_second),
+    }
 }

@@ -415,7 +415,68 @@ fn locate_with<P: Pixel>(
     buffers: &mut Buffers,
 ) -> Vec<Feature> {
     // Steps 1–2: the integer image the peaks are found in.
-    let scale = if params.preprocess {
+    let scale = integer_image(raw, height, width, params, integer_max, buffers);
+    let image = &buffers.scaled;
+    let peaks = &mut buffers.peaks;
+
+    // Step 3: local maxima away from the edges.
+    let separation = params.separation();
+    let radius = params.radius();
+    let margin = (radius as f64)
+        .max((separation / 2.0).floor() - 1.0)
+        .max((params.smoothing_size() / 2) as f64);
+    filters::local_maxima(
+        image,
+        height,
+        width,
+        separation,
+        params.percentile,
+        margin,
+        &mut buffers.filters,
+        peaks,
+    );
+
+    // Step 4–5: refine and characterise.
+    let features: Vec<Feature> = peaks
+        .iter()
+        .map(|&(row, column)| {
+            refine(
+                raw,
+                image,
+                height,
+                width,
+                mask,
+                row,
+                column,
+                params.max_iterations,
+            )
+        })
+        .collect();
+
+    // Step 6: filter, then the static error, which needs the frame's
+    // background noise.
+    let mut features = filter_features(features, params, scale);
+    let (black_level, noise) =
+        filters::measure_noise(image, raw, height, width, mask, &mut buffers.filters);
+    let pixels_in_mask = mask.points.len() as f64;
+    for feature in &mut features {
+        let mass = feature.raw_mass - pixels_in_mask * black_level;
+        feature.ep = noise / mass * params.noise_size * mask.root_sum_x2;
+    }
+    features
+}
+
+/// Steps 1–2: the band-passed (or raw) image as integers in
+/// `buffers.scaled`; returns the factor it was scaled by.
+fn integer_image<P: Pixel>(
+    raw: &[P],
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    integer_max: u64,
+    buffers: &mut Buffers,
+) -> f64 {
+    if params.preprocess {
         let threshold = params.threshold.unwrap_or_else(default_threshold::<P>);
         let band = filters::bandpass(
             raw,
@@ -438,46 +499,18 @@ fn locate_with<P: Pixel>(
             integer_max,
             &mut buffers.scaled,
         )
-    };
-    let image = &buffers.scaled;
-    let peaks = &mut buffers.peaks;
+    }
+}
 
-    // Step 3: local maxima away from the edges.
+/// Step 6: drops the dimmer of close pairs (TrackPy's `where_close`, on
+/// unscaled masses), then rescales masses and signals by `scale` and keeps
+/// the features `minmass`, `maxsize` and `topn` allow, in their order.
+fn filter_features(
+    mut features: Vec<Feature>,
+    params: &CrockerGrierParams,
+    scale: f64,
+) -> Vec<Feature> {
     let separation = params.separation();
-    let radius = params.radius();
-    let margin = (radius as f64)
-        .max((separation / 2.0).floor() - 1.0)
-        .max((params.smoothing_size() / 2) as f64);
-    filters::local_maxima(
-        image,
-        height,
-        width,
-        separation,
-        params.percentile,
-        margin,
-        &mut buffers.filters,
-        peaks,
-    );
-
-    // Step 4–5: refine and characterise.
-    let mut features: Vec<Feature> = peaks
-        .iter()
-        .map(|&(row, column)| {
-            refine(
-                raw,
-                image,
-                height,
-                width,
-                mask,
-                row,
-                column,
-                params.max_iterations,
-            )
-        })
-        .collect();
-
-    // Step 6: drop the dimmer of close pairs (TrackPy's `where_close`,
-    // on unscaled masses), then rescale and filter.
     if separation > 0.0 {
         let dropped = close_pairs_to_drop(&features, separation);
         let mut index = 0;
@@ -507,15 +540,6 @@ fn locate_with<P: Pixel>(
         let mut keep: Vec<usize> = order[..topn].to_vec();
         keep.sort_unstable();
         features = keep.into_iter().map(|i| features[i]).collect();
-    }
-
-    // The static error needs the frame's background noise.
-    let (black_level, noise) =
-        filters::measure_noise(image, raw, height, width, mask, &mut buffers.filters);
-    let pixels_in_mask = mask.points.len() as f64;
-    for feature in &mut features {
-        let mass = feature.raw_mass - pixels_in_mask * black_level;
-        feature.ep = noise / mass * params.noise_size * mask.root_sum_x2;
     }
     features
 }
