@@ -51,24 +51,20 @@ pub fn process_cpu_seconds() -> f64 {
     seconds(usage.ru_utime) + seconds(usage.ru_stime)
 }
 
-/// Measures training and inference throughput of `arch` on paper-sized
-/// frames (brightness 7, margin 4, D uniform [0.75, 1.75]): trains one epoch
+/// Measures training and inference throughput of `arch` on frames of
+/// microscope `params` (`scanloc bench train`: the paper's with brightness
+/// 7, margin 4, D uniform [0.75, 1.75], unless told otherwise): trains one epoch
 /// on `train_samples` fresh frames, then locates `locate_frames` frames.
 /// The training seed is `derive_seed(seed, "detector", "throughput")`, the
 /// located frames' `derive_seed(seed, "dataset", "throughput-locate")`.
 pub fn throughput(
     arch: &CnnArchitecture,
+    params: &SimParams,
     batch_size: usize,
     train_samples: usize,
     locate_frames: usize,
     seed: u64,
 ) -> anyhow::Result<Throughput> {
-    let params = SimParams {
-        brightness: 7.0.into(),
-        margin_px: 4.0,
-        diffusion_um2_s: Distribution::Random(sim::RandomDistribution::Uniform([0.75, 1.75])),
-        ..SimParams::default()
-    };
     let settings = TrainingSettings {
         epochs: 1,
         batch_size,
@@ -84,7 +80,7 @@ pub fn throughput(
         arch,
         &settings,
         &empty,
-        Some(&params),
+        Some(params),
         derive_seed(seed, "detector", "throughput"),
         &metrics::paper_aucs,
         &ProgressBar::hidden(),
@@ -92,7 +88,7 @@ pub fn throughput(
     let train_seconds = started.elapsed().as_secs_f64();
     let train_cpu_seconds = process_cpu_seconds() - cpu_started;
     let test = sim::simulate(
-        &params,
+        params,
         derive_seed(seed, "dataset", "throughput-locate"),
         0..locate_frames,
         &ProgressBar::hidden(),
@@ -173,6 +169,7 @@ fn median(values: &mut [f64]) -> f64 {
 #[allow(clippy::too_many_arguments)]
 pub fn compare_with_torch(
     arch: &CnnArchitecture,
+    params: &SimParams,
     batch_size: usize,
     train_samples: usize,
     locate_frames: usize,
@@ -181,7 +178,6 @@ pub fn compare_with_torch(
     repeats: usize,
     reference: Option<&TorchReference>,
 ) -> anyhow::Result<Vec<Comparison>> {
-    let params = SimParams::default();
     let mut skipped: Option<String> = reference.is_none().then(|| "not requested".to_string());
     let mut out = Vec::with_capacity(threads.len());
     for &thread_count in threads {
@@ -190,8 +186,9 @@ pub fn compare_with_torch(
             .build()?;
         let (mut ours, mut theirs) = (Vec::new(), Vec::new());
         for _ in 0..repeats.max(1) {
-            let result =
-                pool.install(|| throughput(arch, batch_size, train_samples, locate_frames, seed))?;
+            let result = pool.install(|| {
+                throughput(arch, params, batch_size, train_samples, locate_frames, seed)
+            })?;
             ours.push(Rates {
                 train_samples_per_second: result.train_samples_per_second,
                 frames_per_second: result.locate_frames_per_second,
@@ -208,7 +205,7 @@ pub fn compare_with_torch(
                 train_samples,
                 locate_frames,
             };
-            match torch_rates(reference, arch, &params, &run) {
+            match torch_rates(reference, arch, params, &run) {
                 Ok(rates) => theirs.push(rates),
                 Err(reason) => skipped = Some(reason),
             }

@@ -21,8 +21,15 @@ use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 /// its buffers) trains and runs the same network on synthetic batches of
 /// the same size. The two alternate `--repeats` times at each `--threads`
 /// count; medians and scanloc/torch ratios are printed. Without torch,
-/// scanloc's figures are printed alone.
+/// scanloc's figures are printed alone. The frames are the microscope's
+/// the flags describe: by default the paper's with brightness 7, a margin
+/// of 4 px and D uniform in [0.75, 1.75] µm²/s.
 #[derive(Debug, Args)]
+#[command(
+    mut_arg("brightness", |arg| arg.default_value("7")),
+    mut_arg("margin_px", |arg| arg.default_value("4")),
+    mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
+)]
 pub struct BenchTrainArgs {
     /// Training samples to time.
     #[arg(long, default_value_t = 2000)]
@@ -41,6 +48,9 @@ pub struct BenchTrainArgs {
     dilations: Option<Vec<usize>>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// The microscope of the training and located frames.
+    #[command(flatten)]
+    microscope: super::MicroscopeArgs,
     /// Thread counts to measure at, comma-separated (scanloc's rayon pool,
     /// torch's intra-op threads).
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
@@ -103,8 +113,20 @@ pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result
         python: args.python.clone(),
         script: args.reference.clone(),
     });
+    let params = args.microscope.params()?;
+    params
+        .validate()
+        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
+    // The located frames are held at once, like a simulated dataset's.
+    scanloc::limits::check_dataset_size(
+        "--locate-frames",
+        args.locate_frames,
+        params.height,
+        params.width,
+    )?;
     let comparisons = bench::cnn::compare_with_torch(
         &arch,
+        &params,
         args.batch_size,
         args.samples,
         args.locate_frames,

@@ -10,6 +10,7 @@
 pub mod detector_kind;
 pub mod distribution;
 pub mod frames;
+pub mod names;
 pub mod prediction;
 pub mod seed;
 pub mod tracks;

@@ -105,7 +105,14 @@ fn train_and_the_likelihood_localiser_take_every_microscope_flag_simulate_does()
     // Every field of a manifest's `microscope` section, and the file.
     assert_eq!(microscope.len(), 17, "{microscope:?}");
     assert!(microscope.contains(&"--microscope".to_string()));
-    for command in [&["train"][..], &["locate"], &["bench", "simulate"]] {
+    for command in [
+        &["train"][..],
+        &["locate"],
+        &["bench", "simulate"],
+        &["bench", "locate"],
+        &["bench", "train"],
+        &["bench", "cnn-locate"],
+    ] {
         let flags = long_flags(command);
         for flag in &microscope {
             assert!(flags.contains(flag), "{command:?} lacks {flag}: {flags:?}");

@@ -42,7 +42,7 @@ use rusqlite::{Connection, OptionalExtension};
 use serde::Serialize;
 
 use super::write_lock::{BlobLock, BlobLockUse};
-use super::{BlobRef, BlobStore, DATABASE_FILE, Registry};
+use super::{BlobRef, BlobRole, BlobStore, DATABASE_FILE, Registry};
 use crate::error::{CheckFailed, input_error};
 use rules::KeyedBy;
 use source::{Source, TableRows};
@@ -177,9 +177,10 @@ impl Index {
             }
         }
         for row in src.rows("artefact_blobs", &["artefact_key", "role", "sha256"])? {
-            if let (Some(key), Some(role), Some(sha256)) =
-                (text(&row[0]), text(&row[1]), text(&row[2]))
-            {
+            // A role that is not a blob role is refused with its row
+            // (rules.rs); the index only needs the ones that are.
+            let role = text(&row[1]).and_then(|role| role.parse::<BlobRole>().ok());
+            if let (Some(key), Some(role), Some(sha256)) = (text(&row[0]), role, text(&row[2])) {
                 index
                     .blobs_of
                     .entry(key)

@@ -6,9 +6,9 @@
 
 use rusqlite::types::Value;
 
-use crate::manifest::{MAX_NAME_LEN, is_plain_name};
-use crate::registry::ArtefactKind;
 use crate::registry::hashing::sha256_hex;
+use crate::registry::{ArtefactKind, BlobRole};
+use crate::types::names::{MAX_NAME_LEN, is_plain_name};
 
 /// How a table's rows are selected for a copy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -154,7 +154,8 @@ fn problem(rule: Rule, nullable: bool, value: &Value) -> Option<String> {
         Rule::Any => return None,
         Rule::Size => return size_problem(value),
         Rule::Key => text.is_some_and(is_key),
-        Rule::RunId | Rule::Role => text.is_some_and(|t| is_plain_name(t, MAX_RECORDED_NAME_LEN)),
+        Rule::RunId => text.is_some_and(|t| is_plain_name(t, MAX_RECORDED_NAME_LEN)),
+        Rule::Role => text.is_some_and(|t| t.parse::<BlobRole>().is_ok()),
         Rule::Label => text.is_some_and(is_label),
         Rule::Step => text.is_some_and(is_step),
     };
@@ -163,6 +164,9 @@ fn problem(rule: Rule, nullable: bool, value: &Value) -> Option<String> {
             Rule::Key => "64 lower-case hex digits",
             Rule::Label => "plain names (letters, digits, '.', '_', '-') joined by '@' or '+'",
             Rule::Step => "KIND/NAME with KIND an artefact kind",
+            Rule::Role => {
+                "a blob role (frames.npy, model.bin, predictions.csv, score.json, truth.csv)"
+            }
             _ => "a plain name (letters, digits, '.', '_', '-', starting with a letter or digit)",
         };
         format!("{} is not {wanted}", shown(value))
