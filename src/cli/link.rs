@@ -1,4 +1,4 @@
-//! `scanloc link`: localisations to trajectories (docs/tracking-linking.md).
+//! `scanloc link`: localisations to trajectories (docs/tracking.md#linking).
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -9,7 +9,7 @@ use scanloc::error::input_error;
 use scanloc::io::{PendingFile, localisation_table};
 use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
 
-/// Link localisations into trajectories (docs/tracking-linking.md).
+/// Link localisations into trajectories (docs/tracking.md#linking).
 ///
 /// Reads a localisation table (CSV with a header: frame, x, y in TrackPy
 /// pixel coordinates; sigma_x, sigma_y used by --linker lap when present;
