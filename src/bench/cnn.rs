@@ -13,7 +13,7 @@ use serde::Serialize;
 
 use crate::detect::cnn::{self, CnnArchitecture, TrainingSettings};
 use crate::metrics;
-use crate::sim::{self, Distribution, SimParams};
+use crate::sim::{self, SimParams};
 use crate::types::Dataset;
 use crate::types::derive_seed;
 
