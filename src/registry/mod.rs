@@ -759,7 +759,7 @@ fn supersede_blobs_if_changed(
         .collect::<Result<_, _>>()?;
     drop(statement);
     let mut ours = artefact.blobs.clone();
-    ours.sort_by(|a, b| a.role.cmp(&b.role));
+    ours.sort_by_key(|r| r.role);
     if stored == ours {
         return Ok(());
     }

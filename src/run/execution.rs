@@ -254,7 +254,7 @@ impl Execution {
         stored: &[BlobRef],
     ) -> Recomputed {
         let mut ours = blobs.to_vec();
-        ours.sort_by(|a, b| a.role.cmp(&b.role));
+        ours.sort_by_key(|r| r.role);
         if ours == stored {
             return Recomputed::Identical;
         }

@@ -189,7 +189,7 @@ impl Index {
             }
         }
         for refs in index.blobs_of.values_mut() {
-            refs.sort_by(|a, b| a.role.cmp(&b.role));
+            refs.sort_by_key(|r| r.role);
         }
         for row in src.rows("run_steps", &["run_id", "artefact_key"])? {
             if let (Some(run), Some(key)) = (text(&row[0]), text(&row[1])) {
