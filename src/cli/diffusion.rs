@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
 use scanloc::error::input_error;
-use scanloc::track::diffusion::{Estimate, Exposure, Method, ScanGeometry, Series};
+use scanloc::track::diffusion::{Estimate, Exposure, Method, Series};
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -38,27 +38,9 @@ pub struct DiffusionArgs {
     /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s).
     #[arg(long)]
     tracks: PathBuf,
-    /// Frame height in pixels (rows).
-    #[arg(long, default_value_t = 24)]
-    height: usize,
-    /// Frame width in pixels (columns).
-    #[arg(long, default_value_t = 25)]
-    width: usize,
-    /// Pixel size in µm.
-    #[arg(long, default_value_t = 0.07)]
-    pixel_size_um: f64,
-    /// Pixel dwell time in µs.
-    #[arg(long, default_value_t = 2.0)]
-    dwell_us: f64,
-    /// Line retrace time in ms.
-    #[arg(long, default_value_t = 1.1)]
-    retrace_ms: f64,
-    /// Dead time between frames, ms.
-    #[arg(long, default_value_t = 0.0)]
-    dead_time_ms: f64,
-    /// Lateral PSF standard deviation in µm.
-    #[arg(long, default_value_t = 0.21)]
-    sigma_xy_um: f64,
+    /// The scan the localisations come from.
+    #[command(flatten)]
+    scan: super::ScanGeometryArgs,
     /// Which part of the scan a localisation averages.
     #[arg(long, value_enum, default_value_t = ExposureArg::Auto)]
     exposure: ExposureArg,
@@ -66,43 +48,6 @@ pub struct DiffusionArgs {
     /// count in the ensemble).
     #[arg(long, default_value_t = 3)]
     min_points: usize,
-}
-
-impl DiffusionArgs {
-    fn geometry(&self) -> anyhow::Result<ScanGeometry> {
-        let geometry = ScanGeometry {
-            height: self.height,
-            width: self.width,
-            pixel_size_um: self.pixel_size_um,
-            dwell_us: self.dwell_us,
-            retrace_ms: self.retrace_ms,
-            dead_time_ms: self.dead_time_ms,
-            sigma_xy_um: self.sigma_xy_um,
-        };
-        let checks = [
-            ("--pixel-size-um", self.pixel_size_um, false),
-            ("--dwell-us", self.dwell_us, false),
-            ("--retrace-ms", self.retrace_ms, true),
-            ("--dead-time-ms", self.dead_time_ms, true),
-            ("--sigma-xy-um", self.sigma_xy_um, false),
-        ];
-        for (name, value, zero_ok) in checks {
-            if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) {
-                return Err(input_error(format!(
-                    "{name}: must be {}, got {value}",
-                    if zero_ok { "≥ 0" } else { "> 0" }
-                )));
-            }
-        }
-        let max_side = scanloc::limits::MAX_FRAME_SIDE;
-        if !(1..=max_side).contains(&self.height) || !(1..=max_side).contains(&self.width) {
-            return Err(input_error(format!(
-                "--height, --width: must be 1 to {max_side}, got {} × {}",
-                self.height, self.width
-            )));
-        }
-        Ok(geometry)
-    }
 }
 
 fn row(
@@ -126,7 +71,7 @@ fn row(
 }
 
 pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let geometry = args.geometry()?;
+    let geometry = args.scan.geometry()?;
     let exposure = match args.exposure {
         ExposureArg::Auto => geometry.auto_exposure(),
         ExposureArg::WholeFrame => Exposure::WholeFrame,

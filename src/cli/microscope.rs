@@ -22,6 +22,7 @@ use clap::parser::ValueSource;
 use clap::{ArgMatches, Args, Command, FromArgMatches};
 use scanloc::error::input_error;
 use scanloc::sim::{DetectorNoise, Distribution, EmitterCount, SimParams};
+use scanloc::track::diffusion::ScanGeometry;
 
 /// Every microscope field as a flag. Per-frame parameters are a number or
 /// `uniform:LOW,HIGH` (drawn once per frame, docs/simulator.md); for the
@@ -328,5 +329,71 @@ mod tests {
         assert!(differing.iter().all(|&d| d), "{differing:?}");
         assert_eq!(params.height, 30);
         assert_eq!(params.psf_cutoff_sigma, None);
+    }
+}
+
+/// The scan geometry of a recording, the flags `simulate-recording` and
+/// `diffusion` share (the names and units of a manifest's `microscope`
+/// section, plus the dead time between frames): what decides when the beam
+/// sees each pixel and how long a localisation's exposure lasts.
+#[derive(Debug, Clone, Args)]
+pub struct ScanGeometryArgs {
+    /// Frame height in pixels (rows).
+    #[arg(long, default_value_t = 24)]
+    pub height: usize,
+    /// Frame width in pixels (columns).
+    #[arg(long, default_value_t = 25)]
+    pub width: usize,
+    /// Pixel size in µm.
+    #[arg(long, default_value_t = 0.07)]
+    pub pixel_size_um: f64,
+    /// Pixel dwell time in µs.
+    #[arg(long, default_value_t = 2.0)]
+    pub dwell_us: f64,
+    /// Line retrace time in ms.
+    #[arg(long, default_value_t = 1.1)]
+    pub retrace_ms: f64,
+    /// Dead time between the flyback after a frame and the next frame, ms.
+    #[arg(long, default_value_t = 0.0)]
+    pub dead_time_ms: f64,
+    /// Lateral PSF standard deviation in µm.
+    #[arg(long, default_value_t = 0.21)]
+    pub sigma_xy_um: f64,
+}
+
+impl ScanGeometryArgs {
+    /// The geometry, each flag checked (exit 2 naming the flag).
+    pub fn geometry(&self) -> anyhow::Result<ScanGeometry> {
+        let checks = [
+            ("--pixel-size-um", self.pixel_size_um, false),
+            ("--dwell-us", self.dwell_us, false),
+            ("--retrace-ms", self.retrace_ms, true),
+            ("--dead-time-ms", self.dead_time_ms, true),
+            ("--sigma-xy-um", self.sigma_xy_um, false),
+        ];
+        for (name, value, zero_ok) in checks {
+            if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) {
+                return Err(input_error(format!(
+                    "{name}: must be {}, got {value}",
+                    if zero_ok { "≥ 0" } else { "> 0" }
+                )));
+            }
+        }
+        let max_side = scanloc::limits::MAX_FRAME_SIDE;
+        if !(1..=max_side).contains(&self.height) || !(1..=max_side).contains(&self.width) {
+            return Err(input_error(format!(
+                "--height, --width: must be 1 to {max_side}, got {} × {}",
+                self.height, self.width
+            )));
+        }
+        Ok(ScanGeometry {
+            height: self.height,
+            width: self.width,
+            pixel_size_um: self.pixel_size_um,
+            dwell_us: self.dwell_us,
+            retrace_ms: self.retrace_ms,
+            dead_time_ms: self.dead_time_ms,
+            sigma_xy_um: self.sigma_xy_um,
+        })
     }
 }

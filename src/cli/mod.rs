@@ -29,7 +29,7 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand};
 use scanloc::env_vars;
 
-pub use microscope::MicroscopeArgs;
+pub use microscope::{MicroscopeArgs, ScanGeometryArgs};
 
 /// scanloc: simulate two-photon raster-scan frames of diffusing quantum dots,
 /// localise the dots, and score localisations, reproducibly.

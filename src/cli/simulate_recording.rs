@@ -35,27 +35,9 @@ pub struct SimulateRecordingArgs {
     /// N_bkg, expected background photons per pixel.
     #[arg(long, default_value_t = 8.4)]
     background: f64,
-    /// Frame height in pixels (rows).
-    #[arg(long, default_value_t = 24)]
-    height: usize,
-    /// Frame width in pixels (columns).
-    #[arg(long, default_value_t = 25)]
-    width: usize,
-    /// Pixel size in µm.
-    #[arg(long, default_value_t = 0.07)]
-    pixel_size_um: f64,
-    /// Pixel dwell time in µs.
-    #[arg(long, default_value_t = 2.0)]
-    dwell_us: f64,
-    /// Line retrace time in ms.
-    #[arg(long, default_value_t = 1.1)]
-    retrace_ms: f64,
-    /// Dead time between the flyback after a frame and the next frame, ms.
-    #[arg(long, default_value_t = 0.0)]
-    dead_time_ms: f64,
-    /// Lateral PSF standard deviation in µm.
-    #[arg(long, default_value_t = 0.21)]
-    sigma_xy_um: f64,
+    /// The scan: frame size, pixel size, timing and lateral PSF.
+    #[command(flatten)]
+    scan: super::ScanGeometryArgs,
     /// Axial PSF standard deviation in µm.
     #[arg(long, default_value_t = 1.36)]
     sigma_z_um: f64,
@@ -89,12 +71,12 @@ pub struct SimulateRecordingArgs {
 pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let params = RecordingParams {
         microscope: SimParams {
-            height: args.height,
-            width: args.width,
-            pixel_size_um: args.pixel_size_um,
-            dwell_us: args.dwell_us,
-            retrace_ms: args.retrace_ms,
-            sigma_xy_um: args.sigma_xy_um,
+            height: args.scan.height,
+            width: args.scan.width,
+            pixel_size_um: args.scan.pixel_size_um,
+            dwell_us: args.scan.dwell_us,
+            retrace_ms: args.scan.retrace_ms,
+            sigma_xy_um: args.scan.sigma_xy_um,
             sigma_z_um: args.sigma_z_um,
             substeps: args.substeps,
             brightness: args.brightness.into(),
@@ -110,7 +92,7 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
             (Some(on_ms), Some(off_ms)) => Some(Blinking { on_ms, off_ms }),
             _ => None,
         },
-        dead_time_ms: args.dead_time_ms,
+        dead_time_ms: args.scan.dead_time_ms,
     };
     params
         .validate()
