@@ -68,6 +68,7 @@ bench: build
 	$(BIN) bench simulate
 	$(BIN) bench locate
 	$(BIN) bench train
+	$(BIN) bench link
 	$(BIN) bench tradeoffs --out reports/bench
 
 # A fully cached run of the paper manifest (blob verification included):
