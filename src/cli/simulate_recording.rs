@@ -97,6 +97,13 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     params
         .validate()
         .map_err(|e| input_error(format!("invalid recording parameter: {e}")))?;
+    // The memory the recording takes, before any of it is allocated (as
+    // `simulate` checks its dataset's).
+    scanloc::limits::check_memory(
+        "--frames",
+        params.dataset_bytes(),
+        scanloc::limits::available_memory_bytes(),
+    )?;
     io::FrameFormat::from_path(&args.out)?;
     let mut outputs = vec![("--out", args.out.as_path())];
     outputs.extend(args.truth.as_deref().map(|truth| ("--truth", truth)));

@@ -141,6 +141,25 @@ impl RecordingParams {
         ]
     }
 
+    /// The bytes [`simulate_recording`] holds at its peak (saturating):
+    /// the counts (4 bytes a pixel) and the ground truth, counted as if
+    /// every QD of the volume were in the field in every frame (an upper
+    /// estimate: only those in the field get a row). A command checks it
+    /// with [`check_memory`](crate::limits::check_memory) before simulating,
+    /// as `simulate` does with [`dataset_bytes`](super::dataset_bytes).
+    pub fn dataset_bytes(&self) -> u64 {
+        let frames = self.frames as u64;
+        let pixel_bytes = frames
+            .saturating_mul(self.microscope.height as u64)
+            .saturating_mul(self.microscope.width as u64)
+            .saturating_mul(std::mem::size_of::<u32>() as u64);
+        let qds = (self.density_per_um3 * self.volume_um3()).ceil().max(0.0) as u64;
+        let truth_bytes = frames
+            .saturating_mul(qds.min(MAX_RECORDING_QDS))
+            .saturating_mul(std::mem::size_of::<RecordingTruthRow>() as u64);
+        pixel_bytes.saturating_add(truth_bytes)
+    }
+
     /// The volume of the box, µm³.
     pub fn volume_um3(&self) -> f64 {
         self.bounds_um().iter().map(|(l, h)| h - l).product()

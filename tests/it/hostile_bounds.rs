@@ -160,6 +160,31 @@ fn sql_results_past_their_byte_bounds_stop_with_one_line() {
 }
 
 #[test]
+fn simulate_recording_refuses_outputs_beyond_memory_before_writing_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("big.npy");
+    let truth = dir.path().join("big.csv");
+    // Inside the pixel limit, beyond memory: the frames with a dense
+    // volume's truth, and the truth alone over fewer frames.
+    for frames in ["3000000", "200000"] {
+        let args = [
+            "simulate-recording",
+            "--frames",
+            frames,
+            "--qd-density",
+            "10",
+            "--out",
+            out.to_str().unwrap(),
+            "--truth",
+            truth.to_str().unwrap(),
+        ];
+        assert_refused(&scanloc(&args), &["--frames", "GiB of memory"]);
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert!(left.is_empty(), "--frames {frames} left {left:?}");
+    }
+}
+
+#[test]
 fn simulate_refuses_outputs_beyond_memory_before_writing_anything() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("big.tif");
