@@ -67,6 +67,12 @@ pub struct LocateArgs {
     /// The CNN and where it is stored.
     #[command(flatten, next_help_heading = "With --method cnn")]
     cnn: CnnArgs,
+    /// Ranked lists of guesses.
+    #[command(
+        flatten,
+        next_help_heading = "With --method likelihood or a categorical CNN"
+    )]
+    candidates: CandidateArgs,
     /// The particle filter and the microscope it models.
     #[command(
         flatten,
@@ -155,6 +161,21 @@ struct CnnArgs {
     registry: super::RegistryDir,
 }
 
+/// How many guesses per frame, for the methods that give a ranked list.
+#[derive(Debug, Args)]
+struct CandidateArgs {
+    /// Guesses per frame; above 1 a ranked list (column candidate, 1 = the
+    /// frame's best) from the greedy disc cover of the posterior, each
+    /// scored by the mass it newly covers. Likelihood: default 1. CNN: a
+    /// model with the categorical head only, default the model's own
+    /// `architecture.max_candidates`.
+    #[arg(long)]
+    max_candidates: Option<usize>,
+    /// Radius (px) of the cover's discs [likelihood: 1; CNN: the model's].
+    #[arg(long)]
+    candidate_radius_px: Option<f64>,
+}
+
 /// The particle filter's settings and the microscope it models.
 #[derive(Debug, Args)]
 struct LikelihoodArgs {
@@ -165,14 +186,6 @@ struct LikelihoodArgs {
     /// estimate.
     #[arg(long, default_value_t = 1.0)]
     score_radius_px: f64,
-    /// Guesses per frame; above 1 a ranked list (column candidate, 1 = the
-    /// frame's best) from the greedy disc cover of the posterior, each
-    /// scored by the mass it newly covers.
-    #[arg(long, default_value_t = 1)]
-    max_candidates: usize,
-    /// With --max-candidates above 1: radius (px) of the cover's discs.
-    #[arg(long, default_value_t = 1.0)]
-    candidate_radius_px: f64,
     /// Seed of the particle filter (frame i draws from stream i of it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -277,8 +290,9 @@ fn locate_cnn(
     model_folder: Option<&Path>,
     stdout: &mut dyn Write,
 ) -> anyhow::Result<()> {
-    let (model, origin) = load_cnn(&args.cnn, model_folder)?;
+    let (mut model, origin) = load_cnn(&args.cnn, model_folder)?;
     let model_sha256 = scanloc::registry::hashing::sha256_hex(&model.to_bytes()?);
+    decode_as_asked(&mut model, &args.candidates)?;
     let frames = io::read_frames_of_channel(&args.input, args.channel)?;
     let bar = scanloc::progress::bar(frames.n as u64, "locating");
     let predictions = model.locate(&frames, &bar)?;
@@ -294,13 +308,30 @@ fn locate_cnn(
     Ok(())
 }
 
+/// The model's decoding with `--max-candidates` / `--candidate-radius-px`
+/// where given (a list needs the categorical head), checked.
+fn decode_as_asked(model: &mut TrainedCnn, asked: &CandidateArgs) -> anyhow::Result<()> {
+    let architecture = &mut model.architecture;
+    if let Some(count) = asked.max_candidates {
+        architecture.max_candidates = count;
+    }
+    if let Some(radius) = asked.candidate_radius_px {
+        architecture.candidate_radius_px = radius;
+    }
+    architecture.validate().map_err(|e| {
+        input_error(format!(
+            "--max-candidates/--candidate-radius-px with this model: {e}"
+        ))
+    })
+}
+
 fn locate_likelihood(args: &LocateArgs) -> anyhow::Result<()> {
     let filter = &args.likelihood;
     let settings = LikelihoodParams {
         particles: filter.particles,
         score_radius_px: filter.score_radius_px,
-        max_candidates: filter.max_candidates,
-        candidate_radius_px: filter.candidate_radius_px,
+        max_candidates: args.candidates.max_candidates.unwrap_or(1),
+        candidate_radius_px: args.candidates.candidate_radius_px.unwrap_or(1.0),
         ..LikelihoodParams::default()
     };
     settings

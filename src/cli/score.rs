@@ -415,6 +415,29 @@ fn write_threshold_rows(out: &mut dyn Write, score: &Score) -> anyhow::Result<()
     Ok(())
 }
 
+/// A reliability diagram's bins, one line each, under a header line.
+fn write_bins(
+    out: &mut dyn Write,
+    reliability: &scanloc::metrics::calibration::Reliability,
+) -> anyhow::Result<()> {
+    writeln!(
+        out,
+        "{:>12} {:>8} {:>10} {:>9}",
+        "score_bin", "count", "mean_score", "observed"
+    )?;
+    for bin in &reliability.bins {
+        writeln!(
+            out,
+            "{:>12} {:>8} {:>10} {:>9}",
+            format!("[{:.1}, {:.1})", bin.lower, bin.upper),
+            bin.count,
+            maybe(bin.mean_score),
+            maybe(bin.observed_frequency)
+        )?;
+    }
+    Ok(())
+}
+
 /// The reliability diagram of probability scores and the calibration of
 /// the localisations' own σ, where the localisations have them.
 fn write_calibration(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
@@ -426,21 +449,19 @@ fn write_calibration(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
             reliability.localisations,
             maybe(reliability.expected_calibration_error)
         )?;
+        write_bins(out, reliability)?;
+    }
+    for by_rank in &score.reliability_by_rank {
+        let reliability = &by_rank.reliability;
         writeln!(
             out,
-            "{:>12} {:>8} {:>10} {:>9}",
-            "score_bin", "count", "mean_score", "observed"
+            "reliability of rank {} (observed frequency of a QD within {} px that no higher guess is within), {} guesses; expected calibration error {}",
+            by_rank.rank,
+            reliability.radius_px,
+            reliability.localisations,
+            maybe(reliability.expected_calibration_error)
         )?;
-        for bin in &reliability.bins {
-            writeln!(
-                out,
-                "{:>12} {:>8} {:>10} {:>9}",
-                format!("[{:.1}, {:.1})", bin.lower, bin.upper),
-                bin.count,
-                maybe(bin.mean_score),
-                maybe(bin.observed_frequency)
-            )?;
-        }
+        write_bins(out, reliability)?;
     }
     if let Some(u) = &score.uncertainty {
         writeln!(

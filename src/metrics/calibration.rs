@@ -3,6 +3,8 @@
 //! observed frequency of localisations within 1 px of a QD, and its
 //! expected calibration error (ECE).
 
+use std::collections::HashMap;
+
 use serde::{Deserialize, Serialize};
 
 use super::{TruthByFrame, nearest_squared_distance, nearest_truth};
@@ -66,6 +68,69 @@ pub(super) fn reliability(
         ));
     }
     Ok(reliability_of(&outcomes))
+}
+
+/// Most candidate ranks given a reliability diagram of their own: the
+/// lists measured hold a handful of guesses, and the ranks beyond hold
+/// too few guesses per set for a diagram to say anything.
+pub const MAX_RELIABILITY_RANKS: u32 = 8;
+
+/// The reliability diagram of the guesses of one rank of ranked lists.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RankReliability {
+    /// The candidate rank (1 = each frame's best guess).
+    pub rank: u32,
+    pub reliability: Reliability,
+}
+
+/// For ranked lists (`Prediction::candidate`), one reliability diagram per
+/// rank present (up to [`MAX_RELIABILITY_RANKS`]), of the guesses' scores
+/// against the event a guess's posterior mass is the probability of: it
+/// lies within [`RELIABILITY_RADIUS_PX`] of a ground truth of its frame
+/// that no higher-ranked guess of the frame lies within that radius of
+/// (the mass a disc *newly* covers; the metric too matches a QD once).
+/// Empty when no prediction has a rank. Scores are checked by
+/// [`reliability`] first.
+pub(super) fn reliability_by_rank(
+    ranked: &[Prediction],
+    truth_by_frame: &TruthByFrame,
+) -> Vec<RankReliability> {
+    let radius2 = RELIABILITY_RADIUS_PX * RELIABILITY_RADIUS_PX;
+    let mut by_frame: HashMap<usize, Vec<&Prediction>> = HashMap::new();
+    for p in ranked.iter().filter(|p| p.candidate.is_some()) {
+        by_frame.entry(p.frame).or_default().push(p);
+    }
+    let mut outcomes: Vec<Vec<(f64, bool)>> = Vec::new();
+    for p in ranked {
+        let Some(rank) = p
+            .candidate
+            .filter(|&r| (1..=MAX_RELIABILITY_RANKS).contains(&r))
+        else {
+            continue;
+        };
+        let near =
+            |q: &Prediction, (x, y): (f64, f64)| (q.x - x).powi(2) + (q.y - y).powi(2) <= radius2;
+        let higher = &by_frame[&p.frame];
+        let hit = truth_by_frame.of(p.frame).iter().any(|&t| {
+            near(p, t)
+                && !higher
+                    .iter()
+                    .any(|q| q.candidate.is_some_and(|r| r < rank) && near(q, t))
+        });
+        let slot = rank as usize - 1;
+        if outcomes.len() <= slot {
+            outcomes.resize(slot + 1, Vec::new());
+        }
+        outcomes[slot].push((p.score, hit));
+    }
+    (1..)
+        .zip(outcomes)
+        .filter(|(_, o)| !o.is_empty())
+        .map(|(rank, o)| RankReliability {
+            rank,
+            reliability: reliability_of(&o),
+        })
+        .collect()
 }
 
 /// The reliability diagram of `(probability, event happened)` pairs, the

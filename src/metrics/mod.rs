@@ -106,6 +106,10 @@ pub struct Score {
     /// existed).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub reliability: Option<calibration::Reliability>,
+    /// For ranked lists with a probability score: one reliability diagram
+    /// per candidate rank (empty otherwise, and left out).
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub reliability_by_rank: Vec<calibration::RankReliability>,
     /// How well the localisations' σ describes their error (absent when no
     /// top prediction carries a σ, and in evaluations stored before it
     /// existed).
@@ -432,10 +436,13 @@ pub fn score_read_as(
         counted += 1;
     }
     let frames_without_prediction = count_frames_without_prediction(&ranked, frames);
-    let reliability = if reading.probability {
-        Some(calibration::reliability(&ranked, &truth_by_frame)?)
+    let (reliability, reliability_by_rank) = if reading.probability {
+        (
+            Some(calibration::reliability(&ranked, &truth_by_frame)?),
+            calibration::reliability_by_rank(&ranked, &truth_by_frame),
+        )
     } else {
-        None
+        (None, Vec::new())
     };
     Ok(Score {
         per_eps,
@@ -456,6 +463,7 @@ pub fn score_read_as(
             frames,
         )),
         reliability,
+        reliability_by_rank,
         uncertainty: calibration::uncertainty_calibration(&ranked, &truth_by_frame),
     })
 }

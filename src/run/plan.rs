@@ -31,7 +31,7 @@ pub const SUBSET_VERSION: &str = "scanloc-subset/1";
 
 /// Version of the scoring step (the metric of `docs/metric.md` and its
 /// `score.json`).
-pub const METRIC_VERSION: &str = "scanloc-metric/4";
+pub const METRIC_VERSION: &str = "scanloc-metric/5";
 
 /// What a step does.
 #[derive(Debug, Clone)]

@@ -791,6 +791,7 @@ mod tests {
                 reading: None,
                 empty_frames: None,
                 reliability: None,
+                reliability_by_rank: Vec::new(),
                 uncertainty: None,
             },
         }
