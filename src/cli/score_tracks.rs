@@ -54,6 +54,12 @@ pub struct ScoreTracksArgs {
     /// (with blinking).
     #[arg(long)]
     min_on_fraction: Option<f64>,
+    /// Split a QD's truth track where it is missing (out of the field, or
+    /// left out by --max-depth-um or --min-on-fraction) for more than this
+    /// many frames: a linker cannot be asked to bridge a QD's absence of
+    /// any length [default: no split].
+    #[arg(long)]
+    split_gaps_over: Option<usize>,
     #[command(flatten)]
     format: super::JsonFlag,
 }
@@ -86,6 +92,7 @@ pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<Exit
         },
         max_depth_um: args.max_depth_um,
         min_on_fraction: args.min_on_fraction,
+        split_gaps_over: args.split_gaps_over,
     };
     let rows = tracks::read_recording_truth(&args.truth)?;
     let truth = tracking::truth_tracks(&rows, &selection);

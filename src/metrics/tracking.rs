@@ -74,11 +74,15 @@ pub struct TruthSelection {
     pub max_depth_um: Option<f64>,
     /// Only rows with `on_fraction ≥` this.
     pub min_on_fraction: Option<f64>,
+    /// Split a QD's track where it is missing from the selected rows for
+    /// more than this many frames (no split when `None`).
+    pub split_gaps_over: Option<usize>,
 }
 
 /// The truth tracks of a recording's truth rows: one per QD id, its
 /// selected rows in frame order (a QD that leaves the selection and comes
-/// back keeps one track, with a gap).
+/// back keeps one track, with a gap, unless the gap is longer than
+/// `split_gaps_over` frames: then a new track starts, with the same label).
 pub fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> Vec<Track> {
     let mut by_qd: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
     let kept = rows.iter().filter(|row| {
@@ -102,16 +106,26 @@ pub fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> V
             time_s: Some(row.t_mid),
         });
     }
-    by_qd
-        .into_iter()
-        .map(|(qd, mut points)| {
-            points.sort_by_key(|p| p.frame);
-            Track {
-                particle: i64::try_from(qd).unwrap_or(i64::MAX),
-                points,
+    let mut tracks = Vec::new();
+    for (qd, mut points) in by_qd {
+        points.sort_by_key(|p| p.frame);
+        let particle = i64::try_from(qd).unwrap_or(i64::MAX);
+        let mut start = 0;
+        for end in 1..=points.len() {
+            let split = end == points.len()
+                || selection
+                    .split_gaps_over
+                    .is_some_and(|most| points[end].frame - points[end - 1].frame - 1 > most);
+            if split {
+                tracks.push(Track {
+                    particle,
+                    points: points[start..end].to_vec(),
+                });
+                start = end;
             }
-        })
-        .collect()
+        }
+    }
+    tracks
 }
 
 /// The tracking measures of a set of estimated tracks against the truth.
@@ -828,6 +842,7 @@ mod tests {
                 position: TruthPosition::Seen,
                 max_depth_um: Some(1.0),
                 min_on_fraction: Some(0.5),
+                split_gaps_over: None,
             },
         );
         let points =
@@ -835,5 +850,27 @@ mod tests {
         assert_eq!(points(&selected[0]), [(0, 0.5)]);
         // One track with a gap where the QD was out of focus.
         assert_eq!(points(&selected[1]), [(0, 0.5), (2, 2.5)]);
+        // Split where a gap is longer than allowed (1 frame missing > 0):
+        // both QDs miss frame 1.
+        let split = truth_tracks(
+            &rows,
+            &TruthSelection {
+                max_depth_um: Some(1.0),
+                split_gaps_over: Some(0),
+                ..TruthSelection::default()
+            },
+        );
+        let lengths: Vec<(i64, usize)> =
+            split.iter().map(|t| (t.particle, t.points.len())).collect();
+        assert_eq!(lengths, [(2, 1), (2, 1), (4, 1), (4, 1)]);
+        let kept = truth_tracks(
+            &rows,
+            &TruthSelection {
+                max_depth_um: Some(1.0),
+                split_gaps_over: Some(1),
+                ..TruthSelection::default()
+            },
+        );
+        assert_eq!(kept.len(), 2);
     }
 }
