@@ -15,6 +15,7 @@ mod report;
 mod reproduce;
 mod run;
 mod score;
+mod score_tracks;
 mod simulate;
 mod simulate_recording;
 mod sweep;
@@ -64,6 +65,7 @@ enum Command {
     Link(link::LinkArgs),
     SimulateRecording(simulate_recording::SimulateRecordingArgs),
     Diffusion(diffusion::DiffusionArgs),
+    ScoreTracks(score_tracks::ScoreTracksArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -147,6 +149,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Link(args) => link::run(args, stdout),
         Command::SimulateRecording(args) => simulate_recording::run(args),
         Command::Diffusion(args) => diffusion::run(args, stdout),
+        Command::ScoreTracks(args) => score_tracks::run(args, stdout),
     }
 }
 

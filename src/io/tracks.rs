@@ -8,7 +8,12 @@
 //!   a frame that is not a whole number ≥ 0, a negative `sigma`, and a
 //!   particle found twice in one frame.
 //! - Recording truth: `frame,qd,x,y,z_mean,on_fraction,x_seen,y_seen,t_mid,t_beam,t_seen,diffusion`
-//!   ([`RecordingTruthRow`]).
+//!   ([`RecordingTruthRow`]), as `scanloc simulate-recording --truth`
+//!   writes it. Read back with every column required (in any order, other
+//!   columns ignored); refused, with one line naming the file, row and
+//!   column: a missing column, a value that is not a finite number, a
+//!   frame or QD id that is not a whole number ≥ 0, and a QD found twice in
+//!   one frame.
 
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
@@ -56,6 +61,85 @@ pub fn write_recording_truth_to<W: Write>(
     }
     csv.flush()?;
     Ok(())
+}
+
+/// Reads a recording truth table (see the module's documentation); rows in
+/// file order.
+pub fn read_recording_truth(path: &Path) -> anyhow::Result<Vec<RecordingTruthRow>> {
+    read_recording_truth_from(open_input(path)?, &path.display().to_string())
+}
+
+/// [`read_recording_truth`] from any reader; `source` names it in errors.
+pub fn read_recording_truth_from<R: Read>(
+    reader: R,
+    source: &str,
+) -> anyhow::Result<Vec<RecordingTruthRow>> {
+    let (mut reader, header) =
+        super::csv_tables::open_table(reader, source, &RECORDING_TRUTH_COLUMNS)?;
+    let at = RECORDING_TRUTH_COLUMNS
+        .map(|name| header.iter().position(|h| h.trim() == name).unwrap_or(0));
+    let mut rows = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for (index, record) in reader.records().enumerate() {
+        let row = index + 1;
+        let record =
+            record.map_err(|e| input_error(format!("{source}: row {row}: not a CSV row: {e}")))?;
+        let parsed = parse_truth_row(&record, &at)
+            .map_err(|e| input_error(format!("{source}: row {row}: {e}")))?;
+        if !seen.insert((parsed.frame, parsed.qd)) {
+            crate::bail_input!(
+                "{source}: row {row}: column qd: QD {} appears twice in frame {}",
+                parsed.qd,
+                parsed.frame
+            );
+        }
+        rows.push(parsed);
+    }
+    Ok(rows)
+}
+
+/// One recording truth row (`at`: the column of each of
+/// [`RECORDING_TRUTH_COLUMNS`]), or what is wrong with it.
+fn parse_truth_row(
+    record: &csv::StringRecord,
+    at: &[usize; 12],
+) -> Result<RecordingTruthRow, String> {
+    let cell = |column: usize| record.get(at[column]).unwrap_or("").trim();
+    let number = |column: usize| -> Result<f64, String> {
+        let text = cell(column);
+        match text.parse::<f64>() {
+            Ok(value) if value.is_finite() => Ok(value),
+            _ => Err(format!(
+                "column {}: expected a finite number, got {text:?}",
+                RECORDING_TRUTH_COLUMNS[column]
+            )),
+        }
+    };
+    let frame =
+        super::csv_tables::parse_frame_number(cell(0)).map_err(|e| format!("column frame: {e}"))?;
+    let qd = match cell(1).parse::<u64>() {
+        Ok(value) if value <= i64::MAX as u64 => value,
+        _ => {
+            return Err(format!(
+                "column qd: expected a whole number from 0 to 2^63 − 1, got {:?}",
+                cell(1)
+            ));
+        }
+    };
+    Ok(RecordingTruthRow {
+        frame,
+        qd,
+        x: number(2)?,
+        y: number(3)?,
+        z_mean: number(4)?,
+        on_fraction: number(5)?,
+        x_seen: number(6)?,
+        y_seen: number(7)?,
+        t_mid: number(8)?,
+        t_beam: number(9)?,
+        t_seen: number(10)?,
+        diffusion: number(11)?,
+    })
 }
 
 /// Reads a tracks table (see the module's documentation).
@@ -191,4 +275,76 @@ fn parse_row(record: &csv::StringRecord, columns: &Columns) -> Result<(i64, Trac
             time_s,
         },
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(frame: usize, qd: u64) -> RecordingTruthRow {
+        RecordingTruthRow {
+            frame,
+            qd,
+            x: 1.25,
+            y: -0.5,
+            z_mean: 0.3,
+            on_fraction: 1.0,
+            x_seen: 1.5,
+            y_seen: -0.25,
+            t_mid: 0.01,
+            t_beam: 0.02,
+            t_seen: 0.015,
+            diffusion: 1.0,
+        }
+    }
+
+    #[test]
+    fn recording_truth_reads_back_what_is_written() {
+        let rows = vec![row(0, 3), row(1, 3), row(1, 7)];
+        let mut bytes = Vec::new();
+        write_recording_truth_to(&mut bytes, &rows).unwrap();
+        let read = read_recording_truth_from(bytes.as_slice(), "truth.csv").unwrap();
+        assert_eq!(read, rows);
+    }
+
+    #[test]
+    fn bad_recording_truth_is_one_line_naming_file_row_and_column() {
+        let mut bytes = Vec::new();
+        write_recording_truth_to(&mut bytes, &[row(0, 3), row(0, 3)]).unwrap();
+        let good = String::from_utf8(bytes).unwrap();
+        let replace_second_row = |from: &str, to: &str| {
+            let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+            lines[2] = lines[2].replacen(from, to, 1);
+            lines.join("\n")
+        };
+        let cases = [
+            (
+                good.clone(),
+                "truth.csv: row 2: column qd: QD 3 appears twice in frame 0",
+            ),
+            (
+                replace_second_row("0,3,", "0,-3,"),
+                "truth.csv: row 2: column qd: expected a whole number",
+            ),
+            (
+                replace_second_row("0,3,1.25", "0,4,NaN"),
+                "truth.csv: row 2: column x: expected a finite number",
+            ),
+            (
+                replace_second_row("0,3,", "-1,4,"),
+                "truth.csv: row 2: column frame: expected a whole number ≥ 0",
+            ),
+            (
+                good.replacen("z_mean", "depth", 1),
+                "truth.csv: missing column(s) z_mean",
+            ),
+        ];
+        for (text, expected) in cases {
+            let error = read_recording_truth_from(text.as_bytes(), "truth.csv").unwrap_err();
+            let message = format!("{error:#}");
+            assert!(message.starts_with(expected), "{message}");
+            assert!(!message.contains('\n'), "{message}");
+            assert_eq!(crate::error::exit_code(&error), 2, "{message}");
+        }
+    }
 }

@@ -30,6 +30,7 @@ pub mod diffusion;
 pub mod headroom;
 pub mod paired;
 pub mod scenes;
+pub mod tracking;
 
 use std::cmp::Ordering;
 use std::collections::{HashMap, HashSet};

@@ -46,6 +46,7 @@ mod registry_crash;
 mod registry_models;
 mod registry_runs;
 mod report;
+mod score_tracks;
 mod simulator;
 mod stress;
 mod sweep_cluster;
