@@ -182,6 +182,15 @@ impl DetectorSpec {
         }
     }
 
+    /// Whether this detector gives a ranked list of guesses per frame
+    /// ([`crate::types::Prediction::candidate`]): its run table rows are
+    /// then each given twice, the whole lists' AUC and the best guess's
+    /// per frame alone. A detector that comes to rank its guesses must
+    /// say so here.
+    pub fn ranks_candidates(&self) -> bool {
+        matches!(self, DetectorSpec::Likelihood(params) if params.max_candidates > 1)
+    }
+
     /// Whether locating with this detector draws random numbers (from the
     /// detector's seed), which then belongs in its predictions' key.
     pub fn locates_at_random(&self) -> bool {
