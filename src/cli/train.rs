@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use clap::Args;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainingSettings};
+use clap::{Args, ValueEnum};
+use scanloc::detect::cnn::{self, CnnArchitecture, CnnHead, CnnScore, TrainingSettings};
 use scanloc::error::input_error;
 use scanloc::metrics;
 use scanloc::sim::{self, EmitterCount, SimParams};
@@ -59,6 +59,22 @@ pub struct TrainArgs {
     /// Half-size of the peak window at inference, pixels.
     #[arg(long)]
     peak_radius_px: Option<usize>,
+    /// What a peak's score is (the peaks head).
+    #[arg(long, value_enum)]
+    score: Option<ScoreArg>,
+    /// How the score map is trained and read: `peaks`, a sigmoid per pixel
+    /// whose local maxima are the localisations, or `categorical`, a softmax
+    /// over the frame's pixels (frames of one QD) decoded into a ranked list
+    /// of up to --max-candidates guesses (needs --offset-radius-px 0).
+    #[arg(long, value_enum, default_value_t = HeadArg::Peaks)]
+    head: HeadArg,
+    /// With --head categorical: guesses per frame (a ranked list, column
+    /// candidate of `scanloc locate`), each scored by its posterior mass.
+    #[arg(long)]
+    max_candidates: Option<usize>,
+    /// With --head categorical: radius (px) of the discs the guesses cover.
+    #[arg(long)]
+    candidate_radius_px: Option<f64>,
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
@@ -194,6 +210,12 @@ fn network_and_settings(args: &TrainArgs) -> anyhow::Result<(CnnArchitecture, Tr
         channels: args.channels.unwrap_or(defaults.channels),
         dilations: args.dilations.clone().unwrap_or(defaults.dilations),
         peak_radius_px: args.peak_radius_px.unwrap_or(defaults.peak_radius_px),
+        score: args.score.map_or(defaults.score, ScoreArg::kind),
+        head: args.head.kind(),
+        max_candidates: args.max_candidates.unwrap_or(defaults.max_candidates),
+        candidate_radius_px: args
+            .candidate_radius_px
+            .unwrap_or(defaults.candidate_radius_px),
         ..defaults
     };
     let defaults = TrainingSettings::default();
@@ -317,4 +339,45 @@ fn write_summary(
         out.display()
     )?;
     Ok(())
+}
+
+/// `--head`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum HeadArg {
+    /// A sigmoid per pixel; its local maxima are the localisations.
+    Peaks,
+    /// A softmax over the frame's pixels, decoded into ranked guesses.
+    Categorical,
+}
+
+impl HeadArg {
+    fn kind(self) -> CnnHead {
+        match self {
+            HeadArg::Peaks => CnnHead::Peaks,
+            HeadArg::Categorical => CnnHead::Categorical,
+        }
+    }
+}
+
+/// `--score`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ScoreArg {
+    /// The centre score map (sigmoid).
+    Heatmap,
+    /// The within-1-px head's probability.
+    #[value(name = "within-1px")]
+    Within1px,
+    /// The centre score times the σ maps' probability of lying within 1 px.
+    #[value(name = "gaussian-within-1px")]
+    GaussianWithin1px,
+}
+
+impl ScoreArg {
+    fn kind(self) -> CnnScore {
+        match self {
+            ScoreArg::Heatmap => CnnScore::Heatmap,
+            ScoreArg::Within1px => CnnScore::Within1px,
+            ScoreArg::GaussianWithin1px => CnnScore::GaussianWithin1px,
+        }
+    }
 }

@@ -6,7 +6,7 @@
 
 use scanloc::detect::cnn::model::OUTPUT_CHANNELS;
 use scanloc::detect::cnn::{
-    self, CnnArchitecture, CnnScore, TrainedCnn, TrainingSettings, ValidationSet,
+    self, CnnArchitecture, CnnHead, CnnScore, TrainedCnn, TrainingSettings, ValidationSet,
 };
 use scanloc::error::InputError;
 use scanloc::metrics;
@@ -1197,4 +1197,114 @@ fn teaching_the_fresh_frames_too_changes_what_is_learnt_and_the_network_still_lo
     let test = dataset(40.0, 200, 14);
     let median = median_top_distance_px(&all_taught, &test);
     assert!(median < 1.5, "median distance {median:.2} px");
+}
+
+fn categorical_architecture(max_candidates: usize) -> CnnArchitecture {
+    CnnArchitecture {
+        head: CnnHead::Categorical,
+        max_candidates,
+        ..tiny_architecture()
+    }
+}
+
+fn categorical_settings(epochs: usize) -> TrainingSettings {
+    TrainingSettings {
+        offset_radius_px: 0,
+        score_floor: 0.0,
+        ..tiny_settings(epochs)
+    }
+}
+
+#[test]
+fn the_categorical_head_learns_and_gives_ranked_guesses_whose_masses_are_a_distribution() {
+    // Bright QDs (N_qd 40) as in the peaks test above, 4 epochs.
+    let data = dataset(40.0, 400, 11);
+    let model = cnn::train(
+        &categorical_architecture(3),
+        &categorical_settings(4),
+        &data,
+        None,
+        5,
+        &metrics::paper_aucs,
+        &hidden(),
+    )
+    .unwrap();
+    let losses: Vec<f64> = model.record.epochs.iter().map(|e| e.loss).collect();
+    assert!(losses[3] < 0.7 * losses[0], "loss did not fall: {losses:?}");
+
+    let test = dataset(40.0, 200, 12);
+    let predictions = model.locate(&test.frames, &hidden()).unwrap();
+    // Every frame has a list: ranks 1, 2, … in order, at most 3, masses
+    // falling with the rank and summing to at most 1 (a distribution).
+    let mut by_frame = vec![Vec::new(); test.frames.n];
+    for p in &predictions {
+        by_frame[p.frame].push(*p);
+    }
+    for (frame, list) in by_frame.iter().enumerate() {
+        assert!((1..=3).contains(&list.len()), "frame {frame}: {list:?}");
+        let ranks: Vec<u32> = list.iter().map(|p| p.candidate.unwrap()).collect();
+        assert_eq!(ranks, (1..=list.len() as u32).collect::<Vec<_>>());
+        assert!(list.windows(2).all(|w| w[0].score >= w[1].score - 1e-12));
+        let total: f64 = list.iter().map(|p| p.score).sum();
+        assert!(total <= 1.0 + 1e-9 && list.iter().all(|p| p.score > 0.0));
+        assert!(list.iter().all(|p| p.sigma.is_some()));
+    }
+    // The best guess localises (chance is a median ~3.5–5 px, see above).
+    let median = median_top_distance_px(&model, &test);
+    assert!(median < 1.5, "median distance {median:.2} px");
+    // The list scores at least as well as its best guesses alone at
+    // ε = 1 px: the lower guesses rank below and only add true positives
+    // (a small tolerance for the pooled ranking's interleaving).
+    let score = metrics::score(&predictions, &test.truth, test.frames.n, &[1.0], false).unwrap();
+    let eps1 = &score.per_eps[0];
+    let best = eps1.auc_best_per_frame.unwrap();
+    eprintln!(
+        "categorical head: list AUC {:.3}, best guess {best:.3}",
+        eps1.auc
+    );
+    assert!(eps1.auc >= best - 0.01, "list {} vs best {best}", eps1.auc);
+}
+
+#[test]
+fn the_categorical_head_refuses_what_it_cannot_learn_naming_the_field() {
+    let data = dataset(40.0, 40, 61);
+    let train = |arch: &CnnArchitecture, settings: &TrainingSettings, data: &Dataset| {
+        cnn::train(
+            arch,
+            settings,
+            data,
+            None,
+            1,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap_err()
+    };
+    let error = train(&categorical_architecture(2), &tiny_settings(1), &data);
+    assert!(is_input_error(&error), "{error:#}");
+    assert!(
+        format!("{error:#}").contains("offset_radius_px"),
+        "{error:#}"
+    );
+    // Frames of two QDs: one softmax cannot hold two centroids.
+    let two = sim::simulate(
+        &SimParams {
+            emitters: sim::EmitterCount::Fixed(2),
+            ..params(40.0)
+        },
+        62,
+        0..40,
+        &hidden(),
+    )
+    .unwrap();
+    let error = train(&categorical_architecture(2), &categorical_settings(1), &two);
+    assert!(is_input_error(&error), "{error:#}");
+    assert!(format!("{error:#}").contains("exactly one QD"), "{error:#}");
+    // A list needs the categorical head.
+    let peaks_with_a_list = CnnArchitecture {
+        max_candidates: 2,
+        ..tiny_architecture()
+    };
+    let error = peaks_with_a_list.validate().unwrap_err();
+    assert!(error.to_string().contains("max_candidates"), "{error}");
 }

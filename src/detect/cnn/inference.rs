@@ -1,4 +1,5 @@
-//! Batched inference and peak finding.
+//! Batched inference and decoding: peak finding (the peaks head) or the
+//! greedy disc cover of the softmax posterior (the categorical head).
 
 use indicatif::ProgressBar;
 
@@ -7,7 +8,8 @@ use super::model::{
     LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, Net, OFFSET_X_CHANNEL,
     OFFSET_Y_CHANNEL, OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
 };
-use super::{CnnArchitecture, CnnScore, TrainedCnn, TrainingSettings, inference_device};
+use super::{CnnArchitecture, CnnHead, CnnScore, TrainedCnn, TrainingSettings, inference_device};
+use crate::detect::candidates::{self, Candidate, CentreSearch};
 use crate::types::{FrameStack, LocalisationSigma, Prediction};
 
 /// Most frames per forward pass (small frames; the paper's 24 × 25 pixel
@@ -274,6 +276,39 @@ pub(crate) fn locate_with(
             let log_sigma_x = &maps[LOG_SIGMA_X_CHANNEL * len..(LOG_SIGMA_X_CHANNEL + 1) * len];
             let log_sigma_y = &maps[LOG_SIGMA_Y_CHANNEL * len..(LOG_SIGMA_Y_CHANNEL + 1) * len];
             let within = &maps[WITHIN_1PX_CHANNEL * len..(WITHIN_1PX_CHANNEL + 1) * len];
+            let sigma_at = |p: usize| match sigma_source {
+                SigmaSource::Maps => LocalisationSigma {
+                    x: (log_sigma_x[p] as f64).exp(),
+                    y: (log_sigma_y[p] as f64).exp(),
+                },
+                SigmaSource::Within1px => {
+                    let spread =
+                        |channel: usize| member_variance(&outputs, frame_start + channel * len + p);
+                    sigma_from_within(
+                        within[p] as f64,
+                        spread(OFFSET_X_CHANNEL),
+                        spread(OFFSET_Y_CHANNEL),
+                    )
+                }
+            };
+            if arch.head == CnnHead::Categorical {
+                let guesses = categorical_guesses(logits, (dx, dy), width, arch)
+                    .into_iter()
+                    .filter(|guess| guess.mass >= score_floor);
+                for (rank, guess) in (1..).zip(guesses) {
+                    let p = nearest_pixel(guess.x, guess.y, height, width);
+                    predictions.push(Prediction {
+                        frame,
+                        x: guess.x,
+                        y: guess.y,
+                        score: guess.mass,
+                        sigma: Some(sigma_at(p)),
+                        candidate: Some(rank),
+                    });
+                }
+                progress.inc(1);
+                continue;
+            }
             for (row, col) in local_maxima(logits, height, width, arch.peak_radius_px) {
                 let p = row * width + col;
                 let logit = logits[p] as f64;
@@ -302,19 +337,7 @@ pub(crate) fn locate_with(
                     CnnScore::Within1px => sigmoid(within[p] as f64),
                     CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(maps_sigma),
                 };
-                let sigma = match sigma_source {
-                    SigmaSource::Maps => maps_sigma,
-                    SigmaSource::Within1px => {
-                        let spread = |channel: usize| {
-                            member_variance(&outputs, frame_start + channel * len + p)
-                        };
-                        sigma_from_within(
-                            within[p] as f64,
-                            spread(OFFSET_X_CHANNEL),
-                            spread(OFFSET_Y_CHANNEL),
-                        )
-                    }
-                };
+                let sigma = sigma_at(p);
                 predictions.push(Prediction {
                     frame,
                     x,
@@ -394,6 +417,74 @@ pub(crate) fn sigma_from_within(
     }
 }
 
+/// The categorical head's ranked guesses in one frame: its softmax over
+/// the pixels (`logits`), each pixel's probability placed at the pixel's
+/// centre plus its offsets (`dx`, `dy`), covered greedily by discs of
+/// `arch.candidate_radius_px` ([`candidates::greedy_disc_cover`]), up to
+/// `arch.max_candidates` of them, each with the mass it newly covers, in
+/// falling order of mass (the cover's centre search is a heuristic, so a
+/// later disc may hold a little more than an earlier one; the rank is the
+/// score's order, so rank 1 is the frame's best guess).
+pub fn categorical_guesses(
+    logits: &[f32],
+    (dx, dy): (&[f32], &[f32]),
+    width: usize,
+    arch: &CnnArchitecture,
+) -> Vec<Candidate> {
+    let points: Vec<(f64, f64, f64)> = softmax(logits)
+        .into_iter()
+        .enumerate()
+        .map(|(p, mass)| {
+            let (row, col) = (p / width, p % width);
+            (col as f64 + dx[p] as f64, row as f64 + dy[p] as f64, mass)
+        })
+        .collect();
+    let mut guesses = candidates::greedy_disc_cover(
+        &points,
+        arch.max_candidates,
+        arch.candidate_radius_px,
+        CentreSearch::CellsWithMeanShift,
+    );
+    // Stable: equal masses keep the cover's order.
+    guesses.sort_by(|a, b| b.mass.total_cmp(&a.mass));
+    guesses
+}
+
+/// The row-major index of the pixel whose centre is nearest `(x, y)`
+/// (pixel centres at integers), clamped into the `height × width` frame.
+pub(crate) fn nearest_pixel(x: f64, y: f64, height: usize, width: usize) -> usize {
+    let clamp = |v: f64, size: usize| {
+        if v.is_nan() {
+            0
+        } else {
+            v.round().clamp(0.0, (size - 1) as f64) as usize
+        }
+    };
+    clamp(y, height) * width + clamp(x, width)
+}
+
+/// `ln Σ exp(logit)` over a frame's logits, in f64, summed in raster order.
+pub(crate) fn frame_log_normaliser(logits: &[f32]) -> f64 {
+    let largest = logits
+        .iter()
+        .fold(f64::NEG_INFINITY, |m, &l| m.max(l as f64));
+    let mut total = 0.0;
+    for &l in logits {
+        total += (l as f64 - largest).exp();
+    }
+    largest + total.ln()
+}
+
+/// The softmax of a frame's logits, in f64, its normaliser summed in
+/// raster order (the categorical head's posterior over the pixels).
+pub(crate) fn softmax(logits: &[f32]) -> Vec<f64> {
+    let log_total = frame_log_normaliser(logits);
+    logits
+        .iter()
+        .map(|&l| (l as f64 - log_total).exp())
+        .collect()
+}
+
 fn sigmoid(logit: f64) -> f64 {
     1.0 / (1.0 + (-logit).exp())
 }
@@ -465,11 +556,15 @@ pub fn local_maxima(
 
 #[cfg(test)]
 mod tests {
-    use super::{combine_members, gaussian_within_1px, local_maxima, sigma_from_within};
+    use super::{
+        categorical_guesses, combine_members, gaussian_within_1px, local_maxima, sigma_from_within,
+    };
+    use crate::detect::candidates::Candidate;
     use crate::detect::cnn::model::{
         LOG_SIGMA_X_CHANNEL, LOG_SIGMA_Y_CHANNEL, OFFSET_X_CHANNEL, OFFSET_Y_CHANNEL,
         OUTPUT_CHANNELS, SCORE_CHANNEL, WITHIN_1PX_CHANNEL,
     };
+    use crate::detect::cnn::{CnnArchitecture, CnnHead};
 
     /// One frame of one pixel: the six maps' values in channel order.
     fn pixel(score: f32, dx: f32, dy: f32, sigma_x: f32, sigma_y: f32, within: f32) -> Vec<f32> {
@@ -563,5 +658,63 @@ mod tests {
         // Certain of a miss or of a hit: bounded to [e⁻⁵, e³] px, finite.
         assert_eq!(sigma_from_within(-1e4, 0.0, 0.0).x, 3.0f64.exp());
         assert_eq!(sigma_from_within(1e6, 0.0, 0.0).x, (-5.0f64).exp());
+    }
+
+    fn categorical(max_candidates: usize) -> CnnArchitecture {
+        CnnArchitecture {
+            head: CnnHead::Categorical,
+            max_candidates,
+            ..CnnArchitecture::default()
+        }
+    }
+
+    #[test]
+    fn two_separated_modes_give_two_guesses_with_their_masses() {
+        // A 10 × 12 frame whose softmax puts 0.6 on pixel (row 3, col 3)
+        // and 0.4 on (3, 8), e⁻³⁰ on the rest; the second mode's offsets
+        // move it by (+0.25, −0.5).
+        let (height, width) = (10, 12);
+        let mut logits = vec![-30.0f32; height * width];
+        logits[3 * width + 3] = 0.6f32.ln();
+        logits[3 * width + 8] = 0.4f32.ln();
+        let mut dx = vec![0.0f32; height * width];
+        let mut dy = vec![0.0f32; height * width];
+        dx[3 * width + 8] = 0.25;
+        dy[3 * width + 8] = -0.5;
+        let guesses = categorical_guesses(&logits, (&dx, &dy), width, &categorical(4));
+        assert_eq!(guesses.len(), 2, "{guesses:?}");
+        // Each guess covers its mode (any centre within the radius of it
+        // covers the same mass) and holds its mass.
+        let covers = |g: &Candidate, x: f64, y: f64| (g.x - x).hypot(g.y - y) <= 1.0;
+        assert!(covers(&guesses[0], 3.0, 3.0), "{guesses:?}");
+        assert!((guesses[0].mass - 0.6).abs() < 1e-6, "{guesses:?}");
+        assert!(covers(&guesses[1], 8.25, 2.5), "{guesses:?}");
+        assert!((guesses[1].mass - 0.4).abs() < 1e-6, "{guesses:?}");
+        // One guess asked for: the larger mode alone.
+        let one = categorical_guesses(&logits, (&dx, &dy), width, &categorical(1));
+        assert_eq!(one.len(), 1);
+        assert!((one[0].mass - 0.6).abs() < 1e-6);
+    }
+
+    #[test]
+    fn one_tight_mode_gives_one_guess_holding_almost_all_the_mass() {
+        // Logit 10 at (5, 5), 0 elsewhere: that pixel holds e¹⁰ / (e¹⁰ + 119)
+        // ≈ 0.9946; a further disc of radius 1 holds at most 5 of the other
+        // pixels, ≈ 2.3e-4 of the mass, below the cover's floor (1e-3).
+        let (height, width) = (10, 12);
+        let mut logits = vec![0.0f32; height * width];
+        logits[5 * width + 5] = 10.0;
+        let zeros = vec![0.0f32; height * width];
+        let guesses = categorical_guesses(&logits, (&zeros, &zeros), width, &categorical(4));
+        let expected = 10f64.exp() / (10f64.exp() + 119.0);
+        assert!(!guesses.is_empty());
+        assert!(
+            (guesses[0].x - 5.0).hypot(guesses[0].y - 5.0) <= 1.0,
+            "{guesses:?}"
+        );
+        assert!(guesses[0].mass >= expected - 1e-9, "{guesses:?}");
+        assert!(guesses[0].mass < expected + 5.0 / (10f64.exp() + 119.0) + 1e-9);
+        let rest: f64 = guesses[1..].iter().map(|g| g.mass).sum();
+        assert!(rest < 1e-3, "{guesses:?}");
     }
 }

@@ -64,8 +64,71 @@ pub struct CnnArchitecture {
     /// r > 0 = the mean of pixel + offset over the (2r + 1)² window around
     /// the peak, weighted by the score map (sigmoid).
     pub refine_radius_px: usize,
-    /// What a prediction's score is (the metric ranks by it).
+    /// What a prediction's score is (the metric ranks by it; with the
+    /// categorical head every guess is scored by its posterior mass
+    /// instead).
     pub score: CnnScore,
+    /// How the score map is trained and read: per-pixel peaks (the
+    /// default) or one categorical distribution over the frame's pixels
+    /// decoded into a ranked list of guesses (docs/cnn.md, "Candidates").
+    /// Left out of the serialised architecture when `peaks`, so models
+    /// trained before it existed keep their bytes and content keys.
+    #[serde(default, skip_serializing_if = "CnnHead::is_peaks")]
+    pub head: CnnHead,
+    /// With the categorical head: guesses per frame (1..=
+    /// [`MAX_CANDIDATES`]), from the greedy disc cover of the posterior
+    /// the head gives ([`crate::detect::candidates`]), each scored by the
+    /// mass it newly covers and ranked in [`crate::types::Prediction::candidate`].
+    /// Left out of the serialised architecture when 1.
+    #[serde(default = "one_candidate", skip_serializing_if = "is_one_candidate")]
+    pub max_candidates: usize,
+    /// With the categorical head: radius (px, > 0) of the cover's discs,
+    /// the ε the list is placed for. Left out when 1.
+    #[serde(default = "unit_radius", skip_serializing_if = "is_unit_radius")]
+    pub candidate_radius_px: f64,
+}
+
+/// How the CNN's score map is trained and decoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CnnHead {
+    /// A sigmoid per pixel (focal loss against a Gaussian around each
+    /// centroid); every local maximum above the score floor is a
+    /// localisation. Any number of QDs per frame.
+    #[default]
+    Peaks,
+    /// A softmax over the frame's pixels: the probability that the
+    /// centroid is nearest each pixel (cross-entropy against the pixel
+    /// nearest the centroid), each pixel's mass placed at pixel + offset.
+    /// That posterior is decoded by the greedy disc cover into up to
+    /// `max_candidates` ranked guesses, each scored by its mass. Frames of
+    /// exactly one QD (the paper's datasets); training refuses others.
+    Categorical,
+}
+
+impl CnnHead {
+    fn is_peaks(&self) -> bool {
+        *self == CnnHead::Peaks
+    }
+}
+
+/// Most guesses per frame the categorical head may give.
+pub const MAX_CANDIDATES: usize = 100;
+
+fn one_candidate() -> usize {
+    1
+}
+
+fn is_one_candidate(count: &usize) -> bool {
+    *count == 1
+}
+
+fn unit_radius() -> f64 {
+    1.0
+}
+
+fn is_unit_radius(radius: &f64) -> bool {
+    *radius == 1.0
 }
 
 /// The score a CNN prediction is ranked by, read at its peak pixel; each is
@@ -99,6 +162,9 @@ impl Default for CnnArchitecture {
             peak_radius_px: 2,
             refine_radius_px: 0,
             score: CnnScore::Heatmap,
+            head: CnnHead::Peaks,
+            max_candidates: 1,
+            candidate_radius_px: 1.0,
         }
     }
 }
@@ -148,6 +214,32 @@ impl CnnArchitecture {
             return Err(FieldError::new(
                 "architecture.refine_radius_px",
                 format!("must be in 0..=16, got {}", self.refine_radius_px),
+            ));
+        }
+        if !(1..=MAX_CANDIDATES).contains(&self.max_candidates) {
+            return Err(FieldError::new(
+                "architecture.max_candidates",
+                format!(
+                    "must be in 1..={MAX_CANDIDATES}, got {}",
+                    self.max_candidates
+                ),
+            ));
+        }
+        if self.head == CnnHead::Peaks && self.max_candidates != 1 {
+            return Err(FieldError::new(
+                "architecture.max_candidates",
+                "needs `head: categorical` (the peaks head gives one localisation per peak)",
+            ));
+        }
+        if !(self.candidate_radius_px.is_finite() && self.candidate_radius_px > 0.0)
+            || self.candidate_radius_px > 64.0
+        {
+            return Err(FieldError::new(
+                "architecture.candidate_radius_px",
+                format!(
+                    "must be a number in (0, 64], got {}",
+                    self.candidate_radius_px
+                ),
             ));
         }
         Ok(())

@@ -15,14 +15,16 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
-use super::inference::{NonFiniteOutput, inference_batch, locate_with};
+use super::inference::{
+    NonFiniteOutput, frame_log_normaliser, inference_batch, locate_with, nearest_pixel, softmax,
+};
 use super::kernels::fixed_order_sum;
 use super::model::{
     LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, NetworkStep, OFFSET_X_CHANNEL, SCORE_CHANNEL,
     WITHIN_1PX_CHANNEL,
 };
-use super::{CnnArchitecture, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
-use crate::sim::{self, SimParams};
+use super::{CnnArchitecture, CnnHead, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
+use crate::sim::{self, EmitterCount, SimParams};
 use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
 
 /// The score a validation pass judges an epoch by: from a model's
@@ -222,18 +224,14 @@ fn batch_loss(
 
     let (output, network_step) = net.forward_training(&input, [n, height, width], device);
     let logit = output.clone().narrow(1, SCORE_CHANNEL, 1);
+    let score_count = positives.max(1) as f64;
+    let (score_loss, score_value) = match arch.head {
+        CnnHead::Peaks => focal_loss(logit, positive, negative_weight, score_count)?,
+        CnnHead::Categorical => categorical_loss(logit, &emitters, [n, height, width], device)?,
+    };
     let offset = output.clone().narrow(1, OFFSET_X_CHANNEL, 2);
     let log_sigma = output.clone().narrow(1, LOG_SIGMA_X_CHANNEL, 2);
     let within_logit = output.narrow(1, WITHIN_1PX_CHANNEL, 1);
-    // Focal loss (CenterNet, α = 2, β = 4), from log-sigmoids for stability.
-    let probability = sigmoid(logit.clone());
-    let log_p = log_sigmoid(logit.clone());
-    let log_not_p = log_sigmoid(logit.neg());
-    let positive_term = probability.clone().neg().add_scalar(1.0).powi_scalar(2) * log_p * positive;
-    let negative_term = probability.powi_scalar(2) * log_not_p * negative_weight;
-    let score_map = positive_term + negative_term;
-    let score_count = positives.max(1) as f64;
-    let score_loss = score_map.clone().sum().neg().div_scalar(score_count);
     // The uncertainty heads learn the error the offsets make, not the
     // other way round: through detached offsets, the offsets keep the L1
     // loss's gradient alone.
@@ -271,7 +269,7 @@ fn batch_loss(
         + within_loss.mul_scalar(settings.within_loss_weight);
     let mut values = LossValues {
         total: 0.0,
-        score: -map_sum(&score_map)? / score_count,
+        score: score_value,
         offset: map_sum(&offset_map)? / offset_count,
         sigma: map_sum(&sigma_map)? / sigma_count,
         within: -map_sum(&within_map)? / score_count,
@@ -285,6 +283,85 @@ fn batch_loss(
         values,
         network_step,
     })
+}
+
+/// The focal loss of the peaks head (CenterNet, α = 2, β = 4), from
+/// log-sigmoids for stability, per positive pixel: the tensor to
+/// differentiate and its value summed in a fixed order.
+fn focal_loss(
+    logit: Tensor<4>,
+    positive: Tensor<4>,
+    negative_weight: Tensor<4>,
+    positives: f64,
+) -> anyhow::Result<(Tensor<1>, f64)> {
+    let probability = sigmoid(logit.clone());
+    let log_p = log_sigmoid(logit.clone());
+    let log_not_p = log_sigmoid(logit.neg());
+    let positive_term = probability.clone().neg().add_scalar(1.0).powi_scalar(2) * log_p * positive;
+    let negative_term = probability.powi_scalar(2) * log_not_p * negative_weight;
+    let score_map = positive_term + negative_term;
+    let value = -map_sum(&score_map)? / positives;
+    Ok((score_map.sum().neg().div_scalar(positives), value))
+}
+
+/// The categorical head's loss: per frame, the cross-entropy of the
+/// softmax over its pixels against the pixel nearest its one centroid
+/// (`emitters`, clamped into the frame), averaged over the frames.
+///
+/// The softmax is computed here in f64 with sums in raster order, not by
+/// the backend (whose reductions sum in an order that depends on the CPU's
+/// vector width): the tensor returned is `Σ logit · (softmax − onehot) / n`
+/// with the bracket detached, whose gradient with respect to the logits is
+/// exactly the cross-entropy's, so training stays bit-identical on every
+/// CPU. The value returned is the cross-entropy itself.
+fn categorical_loss(
+    logit: Tensor<4>,
+    emitters: &[&[(f64, f64)]],
+    [n, height, width]: [usize; 3],
+    device: &Device,
+) -> anyhow::Result<(Tensor<1>, f64)> {
+    let logits = logit
+        .clone()
+        .into_data()
+        .try_to_vec::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading the score logits: {e:?}"))?;
+    let mut targets = Vec::with_capacity(n);
+    for frame_emitters in emitters {
+        let &[(x, y)] = *frame_emitters else {
+            crate::bail_input!(
+                "training frames: the categorical head trains on frames of exactly one QD; a batch frame holds {}",
+                frame_emitters.len()
+            );
+        };
+        targets.push(nearest_pixel(x, y, height, width));
+    }
+    let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
+    let gradient = Tensor::<4>::from_data(TensorData::new(gradient, [n, 1, height, width]), device);
+    Ok(((logit * gradient).sum(), value))
+}
+
+/// The mean over frames of the cross-entropy of each frame's softmax
+/// (`logits` row-major, one frame after another, `targets.len()` frames)
+/// against its target pixel, and its gradient with respect to the logits,
+/// `(softmax − onehot) / frames`; in f64, summed in raster order.
+fn cross_entropy_and_gradient(logits: &[f32], targets: &[usize]) -> (f64, Vec<f32>) {
+    let frames = targets.len();
+    let len = logits.len() / frames.max(1);
+    let mut gradient = vec![0.0f32; logits.len()];
+    let mut total = 0.0;
+    for (b, &target) in targets.iter().enumerate() {
+        let frame = &logits[b * len..(b + 1) * len];
+        total += frame_log_normaliser(frame) - frame[target] as f64;
+        for (p, (g, q)) in gradient[b * len..(b + 1) * len]
+            .iter_mut()
+            .zip(softmax(frame))
+            .enumerate()
+        {
+            let onehot = if p == target { 1.0 } else { 0.0 };
+            *g = ((q - onehot) / frames as f64) as f32;
+        }
+    }
+    (total / frames.max(1) as f64, gradient)
 }
 
 /// The validation score of `net` on `validation`, one value per matching
@@ -810,7 +887,42 @@ fn check_trainable(
             training.frames.width
         );
     }
+    if job.arch.head == CnnHead::Categorical {
+        check_categorical(job, training_indices)?;
+    }
     Ok(samples_per_epoch)
+}
+
+/// The categorical head's conditions: one QD in every training frame (its
+/// softmax is one distribution of one centroid) and offsets supervised at
+/// the centroid's pixel only (each pixel's offset is then the centroid
+/// given that it is nearest that pixel, which is how the decoding reads
+/// it; a wider window would pull every offset towards the posterior mean
+/// and merge the modes the list is made of).
+fn check_categorical(job: Job<'_>, training_indices: &[usize]) -> anyhow::Result<()> {
+    if job.settings.offset_radius_px != 0 {
+        crate::bail_input!(
+            "training.offset_radius_px: the categorical head needs 0 (offsets supervised at the centroid's pixel only), got {}",
+            job.settings.offset_radius_px
+        );
+    }
+    if let Some(params) = job.fresh_params
+        && job.settings.fresh_frames_per_epoch > 0
+        && params.emitters != EmitterCount::Fixed(1)
+    {
+        crate::bail_input!(
+            "emitters: the categorical head trains on frames of exactly one QD; the fresh frames' count is {:?}",
+            params.emitters
+        );
+    }
+    let truth = truth_by_frame(&job.training.truth, job.training.frames.n)?;
+    if let Some(&i) = training_indices.iter().find(|&&i| truth[i].len() != 1) {
+        crate::bail_input!(
+            "training frames: the categorical head trains on frames of exactly one QD; frame {i} holds {}",
+            truth[i].len()
+        );
+    }
+    Ok(())
 }
 
 /// Sets the bar over every member's steps (each member has as many) and
@@ -1028,7 +1140,51 @@ fn learning_rate(settings: &TrainingSettings, step: usize, total: usize) -> f64 
 
 #[cfg(test)]
 mod tests {
-    use super::member_seed;
+    use super::{cross_entropy_and_gradient, member_seed};
+
+    #[test]
+    fn the_categorical_gradient_is_the_cross_entropys() {
+        // Two 3×4 frames of arbitrary logits: the returned gradient against
+        // central finite differences of the returned value (f32 logits, so
+        // a step of 1e-2 and a tolerance of 1e-4).
+        let logits: Vec<f32> = (0..24).map(|i| ((i * 7 % 11) as f32 - 5.0) * 0.4).collect();
+        let targets = [5, 10];
+        let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
+        let by_hand: f64 = targets
+            .iter()
+            .enumerate()
+            .map(|(b, &t)| {
+                let frame = &logits[b * 12..(b + 1) * 12];
+                let total: f64 = frame.iter().map(|&l| (l as f64).exp()).sum();
+                total.ln() - frame[t] as f64
+            })
+            .sum::<f64>()
+            / 2.0;
+        assert!((value - by_hand).abs() < 1e-9, "{value} vs {by_hand}");
+        for i in 0..logits.len() {
+            let step = 1e-2f32;
+            let mut up = logits.clone();
+            up[i] += step;
+            let mut down = logits.clone();
+            down[i] -= step;
+            let numeric = (cross_entropy_and_gradient(&up, &targets).0
+                - cross_entropy_and_gradient(&down, &targets).0)
+                / (2.0 * step as f64);
+            assert!(
+                (numeric - gradient[i] as f64).abs() < 1e-4,
+                "logit {i}: {numeric} vs {}",
+                gradient[i]
+            );
+        }
+        // Each frame's gradient sums to 0 (softmax sums to 1).
+        for b in 0..2 {
+            let sum: f64 = gradient[b * 12..(b + 1) * 12]
+                .iter()
+                .map(|&g| g as f64)
+                .sum();
+            assert!(sum.abs() < 1e-6, "{sum}");
+        }
+    }
 
     #[test]
     fn the_first_member_keeps_the_seed_and_the_others_get_their_own() {
