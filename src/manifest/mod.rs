@@ -182,6 +182,23 @@ impl DetectorSpec {
         }
     }
 
+    /// Whether this detector gives a ranked list of guesses per frame
+    /// ([`crate::types::Prediction::candidate`]): its run table rows are
+    /// then each given twice, the whole lists' AUC and the best guess's
+    /// per frame alone: the likelihood detector, and the CNN with the
+    /// categorical head, each with `max_candidates` > 1. A detector that
+    /// comes to rank its guesses must say so here.
+    pub fn ranks_candidates(&self) -> bool {
+        match self {
+            DetectorSpec::Likelihood(params) => params.max_candidates > 1,
+            DetectorSpec::Cnn(spec) => {
+                spec.architecture.head == crate::detect::cnn::CnnHead::Categorical
+                    && spec.architecture.max_candidates > 1
+            }
+            DetectorSpec::CrockerGrier(_) => false,
+        }
+    }
+
     /// Whether locating with this detector draws random numbers (from the
     /// detector's seed), which then belongs in its predictions' key.
     pub fn locates_at_random(&self) -> bool {
@@ -468,6 +485,40 @@ pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimPara
 mod tests {
     use super::*;
     use crate::types::derive_seed;
+
+    #[test]
+    fn only_detectors_of_several_ranked_guesses_rank_candidates() {
+        use crate::detect::cnn::{CnnArchitecture, CnnHead};
+        use crate::detect::likelihood::LikelihoodParams;
+        let likelihood = |max_candidates| {
+            DetectorSpec::Likelihood(LikelihoodParams {
+                max_candidates,
+                ..LikelihoodParams::default()
+            })
+        };
+        let cnn = |head, max_candidates| {
+            DetectorSpec::Cnn(CnnSpec {
+                training_set: "train".into(),
+                architecture: CnnArchitecture {
+                    head,
+                    max_candidates,
+                    ..CnnArchitecture::default()
+                },
+                training: Default::default(),
+            })
+        };
+        let ranked = [
+            (likelihood(1), false),
+            (likelihood(2), true),
+            (cnn(CnnHead::Peaks, 1), false),
+            (cnn(CnnHead::Categorical, 1), false),
+            (cnn(CnnHead::Categorical, 3), true),
+            (DetectorSpec::CrockerGrier(Default::default()), false),
+        ];
+        for (spec, expected) in ranked {
+            assert_eq!(spec.ranks_candidates(), expected, "{spec:?}");
+        }
+    }
 
     #[test]
     fn datasets_inherit_the_microscope_and_override_it() {

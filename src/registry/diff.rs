@@ -113,14 +113,16 @@ pub fn diff_runs(a: &RunRecord, b: &RunRecord) -> Vec<Difference> {
             .map(|s| (s.step.to_string(), json!(s.artefact_key)))
             .collect()
     };
+    // A cell of ranked lists also has its best guess per frame.
     let auc = |r: &RunRecord| -> BTreeMap<String, Value> {
         r.auc
             .iter()
-            .map(|row| {
-                (
-                    format!("{}@{} eps={}", row.detector, row.dataset, row.eps_px),
-                    json!(row.auc),
-                )
+            .flat_map(|row| {
+                let cell = format!("{}@{} eps={}", row.detector, row.dataset, row.eps_px);
+                let best = row
+                    .auc_best_per_frame
+                    .map(|best| (format!("{cell} best guess"), json!(best)));
+                [(cell, json!(row.auc))].into_iter().chain(best)
             })
             .collect()
     };

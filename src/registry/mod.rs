@@ -1,7 +1,8 @@
 //! The registry: a SQLite database (`registry.sqlite`) mapping content keys
 //! of artefacts to the hashes of their stored bytes, plus the record of
 //! every run; blobs live beside it (see [`blobs`]). The schema is in
-//! `schema.sql` and `schema_v2.sql` (a cross-validation run's plan) and
+//! `schema.sql`, `schema_v2.sql` (a cross-validation run's plan) and
+//! `schema_v3.sql` (the best-guess-per-frame AUC of ranked lists), and
 //! documented in `docs/registry.md`. Writing is here; reading back is in
 //! [`record`] (runs, typed), [`sql`] (listings, artefacts, read-only SQL),
 //! [`models`] (trained models by run and detector, or by key),
@@ -51,11 +52,12 @@ pub use table::Table;
 use crate::error::input_error;
 use write_lock::{Holder, WriteTransaction};
 
-/// The schema version this code writes; see `schema.sql` (version 1) and
-/// `schema_v2.sql` (the migration to version 2).
-pub const SCHEMA_VERSION: i64 = 2;
+/// The schema version this code writes; see `schema.sql` (version 1),
+/// `schema_v2.sql` and `schema_v3.sql` (the migrations to versions 2 and 3).
+pub const SCHEMA_VERSION: i64 = 3;
 const SCHEMA_V1: &str = include_str!("schema.sql");
 const SCHEMA_V2: &str = include_str!("schema_v2.sql");
+const SCHEMA_V3: &str = include_str!("schema_v3.sql");
 
 /// The database file name inside a registry folder.
 pub const DATABASE_FILE: &str = "registry.sqlite";
@@ -144,9 +146,22 @@ pub enum ArtefactDetails {
         predictions_key: String,
         rmse_top_px: Option<f64>,
         fraction_without_prediction: f64,
-        /// (ε px, AUC, true positives, false positives)
-        auc: Vec<(f64, f64, usize, usize)>,
+        /// One row of the `auc` table per ε.
+        auc: Vec<EvaluationAuc>,
     },
+}
+
+/// One ε of an evaluation as the `auc` table holds it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvaluationAuc {
+    pub eps_px: f64,
+    /// The AUC of every prediction (for ranked lists: the whole lists).
+    pub auc: f64,
+    /// The AUC of each frame's best prediction alone (`None` in an
+    /// evaluation stored before it existed).
+    pub auc_best_per_frame: Option<f64>,
+    pub true_positives: usize,
+    pub false_positives: usize,
 }
 
 /// A per-frame simulator parameter as a registry column holds it: a REAL
@@ -424,6 +439,10 @@ impl Registry {
             backfill_cross_validation_plans(&tx)
                 .context("recording the plans of earlier cross-validation runs")?;
         }
+        if version < 3 {
+            tx.execute_batch(SCHEMA_V3)
+                .context("migrating the registry schema to version 3")?;
+        }
         tx.execute_batch(&format!("PRAGMA user_version = {SCHEMA_VERSION}"))?;
         tx.commit()?;
         Ok(())
@@ -648,8 +667,8 @@ impl Registry {
         )?;
         for row in auc {
             tx.execute(
-                "INSERT INTO run_auc (run_id, detector, dataset, diffusion, eps_px, auc, evaluation_key)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                "INSERT INTO run_auc (run_id, detector, dataset, diffusion, eps_px, auc, auc_best_per_frame, evaluation_key)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
                 params![
                     run_id,
                     row.detector,
@@ -657,6 +676,7 @@ impl Registry {
                     row.diffusion,
                     row.eps_px,
                     row.auc,
+                    row.auc_best_per_frame,
                     row.evaluation_key
                 ],
             )?;
@@ -884,11 +904,18 @@ fn insert_details(
                     fraction_without_prediction
                 ],
             )?;
-            for (eps, value, tp, fp) in auc {
+            for row in auc {
                 tx.execute(
-                    "INSERT INTO auc (evaluation_key, eps_px, auc, true_positives, false_positives)
-                     VALUES (?1, ?2, ?3, ?4, ?5)",
-                    params![key, eps, value, *tp as i64, *fp as i64],
+                    "INSERT INTO auc (evaluation_key, eps_px, auc, auc_best_per_frame, true_positives, false_positives)
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+                    params![
+                        key,
+                        row.eps_px,
+                        row.auc,
+                        row.auc_best_per_frame,
+                        row.true_positives as i64,
+                        row.false_positives as i64
+                    ],
                 )?;
             }
         }
@@ -1356,6 +1383,106 @@ mod tests {
             .query_row("PRAGMA user_version", [], |row| row.get(0))
             .unwrap();
         assert_eq!(version, SCHEMA_VERSION);
+    }
+
+    #[test]
+    fn a_version_2_registry_opens_and_its_auc_rows_read_without_a_best_guess() {
+        let dir = tempfile::tempdir().unwrap();
+        let conn = Connection::open(dir.path().join(DATABASE_FILE)).unwrap();
+        conn.execute_batch(SCHEMA_V1).unwrap();
+        conn.execute_batch(SCHEMA_V2).unwrap();
+        conn.execute_batch("PRAGMA user_version = 2").unwrap();
+        conn.execute(
+            "INSERT INTO runs (id, kind, manifest_name, manifest_path, manifest_text,
+                 manifest_sha256, resolved, seeds, crate_version, git_commit, git_dirty, rustc,
+                 host, pid, threads, forced, started_at, ended_at, status)
+             VALUES ('old', 'run', 'm', 'm.yaml', 'name: m', '00', '{}', '{}', '0.1.0', 'c',
+                 'false', 'rustc', 'h', 1, 2, 0, '2026-01-01T00:00:00.000Z',
+                 '2026-01-01T00:00:01.000Z', 'done')",
+            [],
+        )
+        .unwrap();
+        conn.execute(
+            "INSERT INTO run_auc (run_id, detector, dataset, diffusion, eps_px, auc, evaluation_key)
+             VALUES ('old', 'trackpy', 'test', 0.75, 1.0, 0.5, 'e')",
+            [],
+        )
+        .unwrap();
+        conn.execute_batch(
+            "INSERT INTO artefacts (key, kind, name, spec, code_version, created_at, compute_seconds)
+                 VALUES ('e', 'evaluation', 'trackpy@test', '{}', 't', '2026-01-01T00:00:00.000Z', 0);
+             INSERT INTO evaluations (key, detector, dataset, dataset_key, predictions_key,
+                 rmse_top_px, fraction_without_prediction)
+                 VALUES ('e', 'trackpy', 'test', 'd', 'p', NULL, 0);
+             INSERT INTO auc (evaluation_key, eps_px, auc, true_positives, false_positives)
+                 VALUES ('e', 1.0, 0.5, 3, 1);",
+        )
+        .unwrap();
+        drop(conn);
+
+        let mut registry = Registry::open(dir.path()).unwrap();
+        let version: i64 = registry
+            .connection()
+            .query_row("PRAGMA user_version", [], |row| row.get(0))
+            .unwrap();
+        assert_eq!(version, 3);
+        assert_eq!(
+            registry.run_record("old").unwrap().auc,
+            [AucRow {
+                detector: "trackpy".into(),
+                dataset: "test".into(),
+                diffusion: Some(0.75),
+                eps_px: 1.0,
+                auc: 0.5,
+                auc_best_per_frame: None,
+                evaluation_key: "e".into(),
+            }]
+        );
+        let stored: (f64, Option<f64>) = registry
+            .connection()
+            .query_row(
+                "SELECT auc, auc_best_per_frame FROM auc WHERE evaluation_key = 'e'",
+                [],
+                |row| Ok((row.get(0)?, row.get(1)?)),
+            )
+            .unwrap();
+        assert_eq!(stored, (0.5, None));
+
+        // A run recorded after the migration keeps its best-guess AUC.
+        registry
+            .begin_run(&RunStart {
+                id: "new".into(),
+                kind: RunKind::Run,
+                parent_run: None,
+                manifest_name: "m".into(),
+                manifest_path: "m.yaml".into(),
+                manifest_text: "name: m\n".into(),
+                manifest_sha256: "00".into(),
+                resolved_json: "{}".into(),
+                seeds_json: "{}".into(),
+                forced: false,
+                cross_validation: None,
+            })
+            .unwrap();
+        let row = AucRow {
+            detector: "likelihood".into(),
+            dataset: "test".into(),
+            diffusion: None,
+            eps_px: 1.0,
+            auc: 0.625,
+            auc_best_per_frame: Some(0.5),
+            evaluation_key: "e".into(),
+        };
+        registry
+            .finish_run(
+                "new",
+                RunStatus::Done,
+                None,
+                StepCounts::default(),
+                std::slice::from_ref(&row),
+            )
+            .unwrap();
+        assert_eq!(registry.run_record("new").unwrap().auc, [row]);
     }
 
     #[test]

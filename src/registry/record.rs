@@ -197,7 +197,13 @@ pub struct AucRow {
     /// The dataset's D in µm²/s, if it is fixed.
     pub diffusion: Option<f64>,
     pub eps_px: f64,
+    /// The AUC of every prediction (for ranked lists: the whole lists).
     pub auc: f64,
+    /// The AUC of each frame's best guess alone, when the evaluated
+    /// predictions are ranked lists (`Prediction::candidate`); `None`
+    /// otherwise, and in runs recorded before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auc_best_per_frame: Option<f64>,
     pub evaluation_key: String,
 }
 
@@ -465,7 +471,7 @@ impl Registry {
         record.auc = self.rows_of_run(
             "run_auc",
             id,
-            "SELECT detector, dataset, diffusion, eps_px, auc, evaluation_key
+            "SELECT detector, dataset, diffusion, eps_px, auc, auc_best_per_frame, evaluation_key
              FROM run_auc WHERE run_id = ?1 ORDER BY rowid",
             |columns| {
                 Ok(AucRow {
@@ -474,6 +480,7 @@ impl Registry {
                     diffusion: columns.get("diffusion")?,
                     eps_px: columns.get("eps_px")?,
                     auc: columns.get("auc")?,
+                    auc_best_per_frame: columns.get("auc_best_per_frame")?,
                     evaluation_key: columns.get("evaluation_key")?,
                 })
             },
@@ -571,6 +578,7 @@ mod tests {
             diffusion: Some(0.75),
             eps_px: 1.0,
             auc: 0.25,
+            auc_best_per_frame: Some(0.125),
             evaluation_key: "e".into(),
         };
         registry

@@ -146,7 +146,7 @@ impl Registry {
     pub fn list_evaluations(&self) -> anyhow::Result<Table> {
         query(
             self.connection(),
-            "SELECT e.key, e.detector, e.dataset, u.eps_px, u.auc, e.rmse_top_px,
+            "SELECT e.key, e.detector, e.dataset, u.eps_px, u.auc, u.auc_best_per_frame, e.rmse_top_px,
                     e.fraction_without_prediction, a.created_at
              FROM evaluations e JOIN auc u ON u.evaluation_key = e.key
              JOIN artefacts a ON a.key = e.key ORDER BY a.created_at, e.detector, e.dataset, u.eps_px",
@@ -255,7 +255,7 @@ impl Registry {
         if kind == super::ArtefactKind::Evaluation {
             record["auc"] = query(
                 self.connection(),
-                "SELECT eps_px, auc, true_positives, false_positives FROM auc
+                "SELECT eps_px, auc, auc_best_per_frame, true_positives, false_positives FROM auc
                  WHERE evaluation_key = ?1 ORDER BY eps_px",
                 &[&key],
             )?

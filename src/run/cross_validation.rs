@@ -363,6 +363,7 @@ mod tests {
             diffusion: None,
             eps_px: 1.0,
             auc,
+            auc_best_per_frame: None,
             evaluation_key: String::new(),
         }
     }

@@ -3,7 +3,7 @@
 use super::artefacts::Artefact;
 use super::compute::root_dataset;
 use super::plan::{Action, Plan};
-use crate::registry::ArtefactDetails;
+use crate::registry::{ArtefactDetails, EvaluationAuc};
 
 /// The typed registry row of step `index`'s new artefact.
 pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> ArtefactDetails {
@@ -79,7 +79,13 @@ pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> Artefac
                     .map(|s| {
                         s.per_eps
                             .iter()
-                            .map(|e| (e.eps_px, e.auc, e.true_positives, e.false_positives))
+                            .map(|e| EvaluationAuc {
+                                eps_px: e.eps_px,
+                                auc: e.auc,
+                                auc_best_per_frame: e.auc_best_per_frame,
+                                true_positives: e.true_positives,
+                                false_positives: e.false_positives,
+                            })
                             .collect()
                     })
                     .unwrap_or_default(),

@@ -124,7 +124,7 @@ impl Execution {
                 (stored, _) => self.make(registry, plan, index, stored, &mut loaded, clock)?,
             };
             if let Some(score) = evaluation(registry, step, &done)? {
-                auc.extend(score_rows(step, &score));
+                auc.extend(score_rows(plan, step, &score));
                 self.empty_frames.extend(empty_frames_row(step, &score));
             }
             if let Some(artefact) = &done.artefact {
@@ -346,18 +346,25 @@ fn empty_frames_row(step: &Step, score: &Score) -> Option<EmptyFramesRow> {
     })
 }
 
-/// The AUC table rows (one per ε) of scoring step `step` whose evaluation
-/// is `score`; none for a step that does not score.
-pub fn score_rows(step: &Step, score: &Score) -> Vec<AucRow> {
+/// The AUC table rows (one per ε) of scoring step `step` of `plan` whose
+/// evaluation is `score`; none for a step that does not score. Each frame's
+/// best-guess AUC is kept only where the scored predictions are ranked
+/// lists (the table prints it only for them).
+pub fn score_rows(plan: &Plan, step: &Step, score: &Score) -> Vec<AucRow> {
     let Action::Score {
         detector,
         dataset_name,
         diffusion,
+        predictions,
         ..
     } = &step.action
     else {
         return Vec::new();
     };
+    let ranked = matches!(
+        plan.steps.get(*predictions).map(|s| &s.action),
+        Some(Action::Locate { detector, .. }) if detector.spec.ranks_candidates()
+    );
     score
         .per_eps
         .iter()
@@ -367,6 +374,7 @@ pub fn score_rows(step: &Step, score: &Score) -> Vec<AucRow> {
             diffusion: *diffusion,
             eps_px: per_eps.eps_px,
             auc: per_eps.auc,
+            auc_best_per_frame: per_eps.auc_best_per_frame.filter(|_| ranked),
             evaluation_key: step.key.clone(),
         })
         .collect()

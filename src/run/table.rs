@@ -1,16 +1,22 @@
 //! The AUC table in the paper's layout: one row per detector, columns
 //! grouped by test set (labelled by its D when fixed) and, within each, one
 //! column per ε. Reference rows (e.g. the paper's) follow the detector they
-//! compare with. Sets with empty frames get a second table, of the false
-//! localisations per empty frame.
+//! compare with. A detector whose guesses are ranked lists has a second
+//! row under its own, `DETECTOR, best guess`: each frame's best guess alone
+//! (its own row is the whole lists'). Sets with empty frames get a second
+//! table, of the false localisations per empty frame.
 
 use super::EmptyFramesRow;
 use crate::limits::display_cell;
 use crate::manifest::Reference;
 use crate::registry::AucRow;
 
+/// The label of a detector's best-guess row.
+const BEST_GUESS: &str = ", best guess";
+
 /// Renders `rows` as text; `reference` rows are printed under their
-/// detector when given.
+/// detector when given. A detector gets a best-guess row when one of its
+/// rows has a best-guess AUC that differs from the whole lists'.
 pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     if rows.is_empty() {
         return "no AUC: the manifest scores no detector on a dataset with ground truth\n"
@@ -30,13 +36,25 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
             eps.push(row.eps_px);
         }
     }
+    let best_guess_differs = |detector: &str| {
+        rows.iter().any(|r| {
+            r.detector == detector && r.auc_best_per_frame.is_some_and(|best| best != r.auc)
+        })
+    };
     let cell = 6;
     let group = eps.len() * (cell + 1) + 2;
     // Labels are cut to a bounded width (`display_cell`), so no recorded
     // name can make a format width overflow.
     let mut label_width = detectors
         .iter()
-        .map(|d| display_cell(d).len())
+        .map(|d| {
+            let extra = if best_guess_differs(d) {
+                BEST_GUESS.len()
+            } else {
+                0
+            };
+            display_cell(d).len() + extra
+        })
         .max()
         .unwrap_or(0)
         .max(10);
@@ -91,6 +109,14 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
                 .find(|r| r.detector == *detector && r.dataset == dataset && r.eps_px == e)
                 .map(|r| r.auc)
         }));
+        if best_guess_differs(detector) {
+            let label = format!("{}{BEST_GUESS}", display_cell(detector));
+            out.push_str(&line(&label, &|dataset, e| {
+                rows.iter()
+                    .find(|r| r.detector == *detector && r.dataset == dataset && r.eps_px == e)
+                    .and_then(|r| r.auc_best_per_frame)
+            }));
+        }
         if let Some(reference) = reference {
             for row in reference.rows.iter().filter(|r| r.detector == *detector) {
                 out.push_str(&line(&format!("  paper: {}", row.label), &|dataset, e| {
@@ -227,6 +253,7 @@ mod tests {
                         diffusion: d,
                         eps_px: eps,
                         auc: base + eps / 10.0,
+                        auc_best_per_frame: None,
                         evaluation_key: String::new(),
                     });
                 }
@@ -244,5 +271,51 @@ mod tests {
             lines[3].starts_with("cnn") && lines[3].contains("0.600"),
             "{text}"
         );
+
+        // Ranked lists: a best-guess row under the detector's own, with
+        // "-" where a cell has none; a best guess equal to the lists' AUC
+        // everywhere (one guess per frame) adds no row.
+        for row in rows.iter_mut().filter(|r| r.detector == "cnn") {
+            row.auc_best_per_frame = (row.dataset == "t1").then_some(row.auc - 0.05);
+        }
+        for row in rows.iter_mut().filter(|r| r.detector == "trackpy") {
+            row.auc_best_per_frame = Some(row.auc);
+        }
+        let ranked = render(&rows, None);
+        let lines: Vec<&str> = ranked.lines().collect();
+        assert_eq!(lines.len(), 5, "{ranked}");
+        let words = |line: &str| {
+            line.split_whitespace()
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        };
+        let before: Vec<Vec<String>> = text.lines().map(words).collect();
+        assert_eq!(
+            lines[..4].iter().map(|l| words(l)).collect::<Vec<_>>(),
+            before,
+            "{ranked}"
+        );
+        assert_eq!(
+            lines[4].split_whitespace().collect::<Vec<_>>(),
+            ["cnn,", "best", "guess", "0.550", "0.650", "-", "-"],
+            "{ranked}"
+        );
+    }
+
+    #[test]
+    fn a_long_detector_name_widens_the_label_column_for_its_best_guess_row() {
+        let rows = [AucRow {
+            detector: "likelihood-list".into(),
+            dataset: "t".into(),
+            diffusion: None,
+            eps_px: 1.0,
+            auc: 0.5,
+            auc_best_per_frame: Some(0.25),
+            evaluation_key: String::new(),
+        }];
+        let text = render(&rows, None);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[2], "likelihood-list              0.500", "{text}");
+        assert_eq!(lines[3], "likelihood-list, best guess  0.250", "{text}");
     }
 }

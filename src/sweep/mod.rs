@@ -149,7 +149,7 @@ pub fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRo
     for step in &point.plan.steps {
         if matches!(step.action, Action::Score { .. }) {
             let score = load_artefact(registry, &step.key)?;
-            rows.extend(score_rows(step, score.evaluation()?));
+            rows.extend(score_rows(&point.plan, step, score.evaluation()?));
         }
     }
     Ok(rows)

@@ -375,6 +375,61 @@ fn a_refused_shard_is_rolled_back_and_the_next_one_imports() {
 }
 
 #[test]
+fn a_shard_of_schema_2_imports_with_no_best_guess_and_one_of_schema_1_is_refused() {
+    let template = template();
+    let dir = tempfile::tempdir().unwrap();
+    let best = "SELECT count(*) FROM auc WHERE auc_best_per_frame IS NOT NULL";
+    // A shard of this version carries each evaluation's best-guess AUC.
+    let dest = dir.path().join("registry");
+    import(&dest, &[&template.shards[1]])
+        .pop()
+        .unwrap()
+        .unwrap();
+    assert_ne!(query(&dest, best), "0");
+    assert_eq!(query(&dest, best), query(&template.shards[1], best));
+
+    // Schema 2 had no best-guess columns: read as NULL.
+    let old = shard_copy(0, &dir.path().join("old"));
+    tamper(
+        &old,
+        "ALTER TABLE auc DROP COLUMN auc_best_per_frame;
+         ALTER TABLE run_auc DROP COLUMN auc_best_per_frame;
+         PRAGMA user_version = 2;",
+    );
+    let dest = dir.path().join("from-old");
+    import(&dest, &[&old]).pop().unwrap().unwrap();
+    assert_eq!(runs(&dest), [template.runs[0].clone()]);
+    assert_eq!(
+        query(&dest, "SELECT count(*) FROM auc"),
+        query(&old, "SELECT count(*) FROM auc")
+    );
+    assert_eq!(query(&dest, best), "0");
+    assert_eq!(
+        query(
+            &dest,
+            "SELECT count(*) FROM run_auc WHERE auc_best_per_frame IS NULL"
+        ),
+        query(&old, "SELECT count(*) FROM run_auc")
+    );
+    assert_verify_clean(&dest);
+
+    // A schema-2 shard that has the new column anyway does not match.
+    let odd = shard_copy(0, &dir.path().join("odd"));
+    tamper(&odd, "PRAGMA user_version = 2;");
+    let error = refused(&dir.path().join("odd-dest"), &odd);
+    assert!(error.contains("table auc: columns"), "{error}");
+
+    // Schema 1 is older than a copy reads.
+    let older = shard_copy(0, &dir.path().join("older"));
+    tamper(&older, "PRAGMA user_version = 1;");
+    let error = refused(&dir.path().join("older-dest"), &older);
+    assert!(
+        error.contains("registry schema version 1, this scanloc reads versions 2 to 3"),
+        "{error}"
+    );
+}
+
+#[test]
 fn edited_specs_and_false_sizes_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     for (index, (edit, said)) in [

@@ -128,6 +128,160 @@ fn a_manifest_scores_the_likelihood_detector_on_the_first_frames() {
     assert_eq!(again["auc"], run["auc"]);
 }
 
+/// Ranked lists beside detectors without them: `list` gives two guesses
+/// per frame; `single` one; TrackPy's algorithm (diameter 3) several per
+/// frame without ranks, whose best-per-frame AUC differs from its AUC
+/// (checked below), so only ranks, not differing numbers, make the row.
+const RANKED_MANIFEST: &str = "name: best-guess
+seed: 5
+microscope: {height: 12, width: 12, margin_px: 3, brightness: 5}
+datasets:
+  test: {frames: 10, diffusion_um2_s: 1.75}
+detectors:
+  list: {likelihood: {particles: 200, max_candidates: 2}}
+  single: {likelihood: {particles: 200}}
+  trackpy:
+    crocker_grier: {diameter: 3, minmass: 0}
+evaluations:
+  - {detector: list, datasets: [test]}
+  - {detector: single, datasets: [test]}
+  - {detector: trackpy, datasets: [test]}
+";
+
+/// `scanloc run MANIFEST --registry DIR` (text), asserting success:
+/// (its output, the run id from its last line).
+fn run_text(manifest: &std::path::Path, registry: &std::path::Path) -> (String, String) {
+    let output = scanloc(&[
+        "run",
+        manifest.to_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let text = stdout(&output);
+    let id = text
+        .lines()
+        .last()
+        .and_then(|l| l.strip_prefix("run "))
+        .and_then(|l| l.split(':').next())
+        .unwrap_or_else(|| panic!("no run id in {text}"))
+        .to_string();
+    (text, id)
+}
+
+/// The AUC grid of a run's text: from its `AUC` heading to the last row.
+fn auc_grid(text: &str) -> Vec<&str> {
+    text.lines()
+        .skip_while(|l| !l.starts_with("AUC"))
+        .take_while(|l| !l.is_empty() && !l.starts_with("run "))
+        .collect()
+}
+
+#[test]
+fn the_run_table_gives_ranked_lists_a_best_guess_row_and_registry_show_reprints_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = write_manifest(dir.path(), "ranked.yaml", RANKED_MANIFEST);
+    let registry = dir.path().join("registry");
+    let (text, run) = run_text(&manifest, &registry);
+    let grid = auc_grid(&text);
+    let labels: Vec<&str> = grid[2..]
+        .iter()
+        .map(|l| l.split("  ").next().unwrap())
+        .collect();
+    assert_eq!(
+        labels,
+        ["list", "list, best guess", "single", "trackpy"],
+        "{text}"
+    );
+
+    // The row holds the evaluation's best-guess AUCs, stored in both the
+    // evaluation's and the run's rows; NULL in the run's rows without lists.
+    let sql = |query: &str| -> serde_json::Value {
+        let output = scanloc(&[
+            "registry",
+            "sql",
+            "--registry",
+            registry.to_str().unwrap(),
+            "--json",
+            query,
+        ]);
+        assert!(output.status.success(), "{}", stderr(&output));
+        serde_json::from_str(&stdout(&output)).unwrap()
+    };
+    let stored = sql(
+        "SELECT e.detector, u.eps_px, u.auc, u.auc_best_per_frame AS best, r.auc_best_per_frame AS shown
+         FROM auc u JOIN evaluations e ON e.key = u.evaluation_key
+         JOIN run_auc r ON r.evaluation_key = u.evaluation_key AND r.eps_px = u.eps_px
+         ORDER BY r.rowid",
+    );
+    let rows = stored.as_array().unwrap();
+    assert_eq!(rows.len(), 9, "{stored}");
+    let best_row: Vec<String> = grid[3]
+        .split_whitespace()
+        .skip(3)
+        .map(str::to_string)
+        .collect();
+    let mut best_cells = Vec::new();
+    for row in rows {
+        let best = row["best"]
+            .as_f64()
+            .expect("every evaluation has its best guess");
+        match row["detector"].as_str().unwrap() {
+            "list" => {
+                assert_eq!(row["shown"].as_f64(), Some(best), "{row}");
+                best_cells.push(format!("{best:.3}"));
+            }
+            _ => assert!(row["shown"].is_null(), "{row}"),
+        }
+    }
+    assert_eq!(best_row, best_cells, "{text}");
+    let differs = |detector: &str| {
+        rows.iter()
+            .any(|r| r["detector"] == detector && r["auc"] != r["best"])
+    };
+    assert!(differs("list"), "a second guess changes the AUC: {stored}");
+    assert!(
+        differs("trackpy"),
+        "unranked extras change it too: {stored}"
+    );
+
+    // `registry show` reprints the same grid from the record.
+    let output = scanloc(&[
+        "registry",
+        "show",
+        &run,
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let shown = stdout(&output);
+    assert_eq!(auc_grid(&shown), grid, "{shown}");
+
+    // A second run reads every evaluation from its stored score.json:
+    // the same table.
+    let (again, _) = run_text(&manifest, &registry);
+    assert_eq!(auc_grid(&again), grid, "{again}");
+
+    // A run without ranked lists prints no extra row, with its evaluations
+    // cached or not.
+    let plain = write_manifest(
+        dir.path(),
+        "plain.yaml",
+        &RANKED_MANIFEST
+            .replace(
+                "  list: {likelihood: {particles: 200, max_candidates: 2}}\n",
+                "",
+            )
+            .replace("  - {detector: list, datasets: [test]}\n", ""),
+    );
+    for registry in [registry.clone(), dir.path().join("fresh")] {
+        let (text, _) = run_text(&plain, &registry);
+        let grid = auc_grid(&text);
+        assert_eq!(grid.len(), 4, "{text}");
+        assert!(!text.contains("best guess"), "{text}");
+    }
+}
+
 #[test]
 fn evaluations_that_cannot_run_are_refused_by_check() {
     let dir = tempfile::tempdir().unwrap();

@@ -135,8 +135,8 @@ impl CopyReport {
 
 /// Opens the database in registry folder `dir` read-only, in place (to
 /// read a sweep task's record). A folder without one, a file that is not
-/// a registry, a registry of another schema version or one that fails
-/// SQLite's quick check is bad input naming it.
+/// a registry, a registry of a schema version this scanloc does not read
+/// or one that fails SQLite's quick check is bad input naming it.
 pub fn open_read_only(dir: &Path) -> anyhow::Result<Connection> {
     let path = dir.join(DATABASE_FILE);
     if !path.is_file() {
@@ -145,7 +145,7 @@ pub fn open_read_only(dir: &Path) -> anyhow::Result<Connection> {
             dir.display()
         )));
     }
-    source::open_database(&path, &path)
+    Ok(source::open_database(&path, &path)?.0)
 }
 
 /// The source's record in brief, read once to plan a copy.

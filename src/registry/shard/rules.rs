@@ -61,6 +61,25 @@ pub const DURABLE: &[Durable] = &[
     ),
 ];
 
+/// The oldest schema version a source may have: one whose durable tables
+/// lack only columns of [`ADDED_COLUMNS`], which are read as NULL (as a
+/// migration leaves them in rows recorded before it).
+pub const OLDEST_SOURCE_SCHEMA: i64 = 2;
+
+/// Columns of durable tables added after [`OLDEST_SOURCE_SCHEMA`]: (the
+/// schema version that added it, table, column).
+pub const ADDED_COLUMNS: &[(i64, &str, &str)] = &[
+    (3, "auc", "auc_best_per_frame"),
+    (3, "run_auc", "auc_best_per_frame"),
+];
+
+/// Whether `table.column` is one a source of schema `version` lacks.
+pub fn added_after(version: i64, table: &str, column: &str) -> bool {
+    ADDED_COLUMNS
+        .iter()
+        .any(|&(added, t, c)| version < added && t == table && c == column)
+}
+
 /// Tables of the moment: present in a registry, never copied.
 pub const TRANSIENT: &[&str] = &["step_claims"];
 

@@ -25,6 +25,9 @@ use crate::registry::{DATABASE_FILE, SCHEMA_VERSION};
 /// An open source database.
 pub struct Source {
     conn: Connection,
+    /// Its schema version, [`rules::OLDEST_SOURCE_SCHEMA`] to this
+    /// scanloc's: columns added since are read as NULL.
+    version: i64,
     /// The source folder, as messages name it.
     dir: PathBuf,
 }
@@ -43,9 +46,10 @@ fn absolute(path: &Path) -> PathBuf {
 }
 
 /// Opens the SQLite database `path` read-only, without URI processing;
-/// messages name `shown`. A file that is not a registry, one of another
-/// schema version or one that fails SQLite's quick check is bad input.
-pub fn open_database(path: &Path, shown: &Path) -> anyhow::Result<Connection> {
+/// messages name `shown`; returns it with its schema version. A file that
+/// is not a registry, one of a schema version this scanloc does not read
+/// or one that fails SQLite's quick check is bad input.
+pub fn open_database(path: &Path, shown: &Path) -> anyhow::Result<(Connection, i64)> {
     let conn = Connection::open_with_flags(
         absolute(path),
         OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
@@ -54,9 +58,11 @@ pub fn open_database(path: &Path, shown: &Path) -> anyhow::Result<Connection> {
     checked_source(conn, shown)
 }
 
-/// `conn`, a source database opened read-only, made query-only and checked:
-/// the schema version is this scanloc's and SQLite's quick check passes.
-fn checked_source(conn: Connection, shown: &Path) -> anyhow::Result<Connection> {
+/// `conn`, a source database opened read-only, made query-only and checked,
+/// with its schema version: the version is this scanloc's or an older one
+/// it reads ([`rules::OLDEST_SOURCE_SCHEMA`]), and SQLite's quick check
+/// passes.
+fn checked_source(conn: Connection, shown: &Path) -> anyhow::Result<(Connection, i64)> {
     let damaged = |e: &dyn std::fmt::Display| {
         input_error(format!("{}: damaged registry: {e}", shown.display()))
     };
@@ -67,10 +73,11 @@ fn checked_source(conn: Connection, shown: &Path) -> anyhow::Result<Connection> 
     let version: i64 = conn
         .query_row("PRAGMA user_version", [], |row| row.get(0))
         .map_err(|e| damaged(&e))?;
-    if version != SCHEMA_VERSION {
+    if !(rules::OLDEST_SOURCE_SCHEMA..=SCHEMA_VERSION).contains(&version) {
         return Err(input_error(format!(
-            "{}: registry schema version {version}, this scanloc reads version {SCHEMA_VERSION}{}",
+            "{}: registry schema version {version}, this scanloc reads versions {} to {SCHEMA_VERSION}{}",
             shown.display(),
+            rules::OLDEST_SOURCE_SCHEMA,
             if version < SCHEMA_VERSION {
                 " (any scanloc registry command on it, e.g. `scanloc registry runs --registry DIR`, upgrades it)"
             } else {
@@ -84,7 +91,7 @@ fn checked_source(conn: Connection, shown: &Path) -> anyhow::Result<Connection> 
     if check != "ok" {
         return Err(damaged(&check));
     }
-    Ok(conn)
+    Ok((conn, version))
 }
 
 impl Source {
@@ -110,8 +117,10 @@ impl Source {
                 .copy_file(&wal, &format!("{DATABASE_FILE}-wal"))
                 .map_err(|p| refuse(&wal, p))?;
         }
+        let (conn, version) = open_database(&copy, &database)?;
         let source = Self {
-            conn: open_database(&copy, &database)?,
+            conn,
+            version,
             dir: dir.to_path_buf(),
         };
         source.begin()?;
@@ -131,8 +140,10 @@ impl Source {
         // back to an immutable read, so a registry that cannot be written
         // still exports.
         let conn = crate::registry::open_database_read_only(dir)?;
+        let (conn, version) = checked_source(conn, &database)?;
         let source = Self {
-            conn: checked_source(conn, &database)?,
+            conn,
+            version,
             dir: dir.to_path_buf(),
         };
         source.begin()?;
@@ -205,7 +216,11 @@ impl Source {
             if !entries.iter().any(|(_, name, _)| name == table.name) {
                 return Err(self.damaged(Some(table.name), "missing"));
             }
-            let ours = columns(expected, table.name)?;
+            // A source of an older schema lacks the columns added since.
+            let ours: Vec<(String, i64)> = columns(expected, table.name)?
+                .into_iter()
+                .filter(|(name, _)| !rules::added_after(self.version, table.name, name))
+                .collect();
             let theirs = columns(&self.conn, table.name)
                 .map_err(|e| self.damaged(Some(table.name), &e.to_string()))?;
             let sorted = |list: &[(String, i64)]| {
@@ -245,9 +260,19 @@ impl Source {
             .collect()
     }
 
-    /// Every row of `table`, the values of `columns`.
+    /// Every row of `table`, the values of `columns` (NULL for a column
+    /// added after the source's schema version).
     pub fn rows(&self, table: &str, columns: &[&str]) -> anyhow::Result<Vec<Vec<Value>>> {
-        let list: Vec<String> = columns.iter().map(|c| format!("\"{c}\"")).collect();
+        let list: Vec<String> = columns
+            .iter()
+            .map(|c| {
+                if rules::added_after(self.version, table, c) {
+                    "NULL".to_string()
+                } else {
+                    format!("\"{c}\"")
+                }
+            })
+            .collect();
         let sql_err = |e: rusqlite::Error| self.damaged(Some(table), &e.to_string());
         let mut statement = self
             .conn
