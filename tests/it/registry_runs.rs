@@ -640,12 +640,11 @@ fn reproduce_compares_the_numbers_inside_an_altered_evaluation() {
     );
 }
 
-/// The content keys of the paper manifest's 38 steps, as the cold
-/// `make reproduce-paper` of commit a12a08c recorded them (the bound's since
-/// `scanloc-likelihood/2`, the CNN's since `scanloc-cnn/3` on the manifest's
-/// recipe of 2026-12-01: one network, 8 epochs on fresh frames only; every
-/// evaluation's since `scanloc-metric/4`, whose `score.json` holds each
-/// frame's best-guess AUC beside every AUC). A
+/// The content keys of the paper manifest's 44 steps, as the run of
+/// 2026-12-02 recorded them (the bound's since `scanloc-likelihood/2`, the CNN's
+/// since its recipe of 2026-12-02: the categorical head with 6 guesses per
+/// frame; every evaluation's since `scanloc-metric/5`, whose `score.json`
+/// holds a reliability diagram per candidate rank). A
 /// change that alters any of them makes every user's cached paper run
 /// recompute (tens of minutes), and a change to what an artefact holds that leaves its key
 /// alone would serve stale results: so a key may only change together with a
@@ -684,7 +683,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-0.75",
-            "c35cff93db61b169f9e0a145d2d7452e4fb09e54d649cd06f9266bfebc7e9853",
+            "f37cab693a5c1a75be336fc6031be13e347716d2819daaebe14017e48e6d6dc8",
         ),
         (
             "predictions/trackpy@test-1.00",
@@ -692,7 +691,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.00",
-            "98fa26b71d9338b61dd24ece62c8ec4a1e39b78c1329dbb600614dab7574a4d3",
+            "fbd997659781e8bf2c99075032e7f02875d838276d79b4b51a9cd9ba7a469735",
         ),
         (
             "predictions/trackpy@test-1.75",
@@ -700,35 +699,35 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/trackpy@test-1.75",
-            "564634c44d3b3b6e8e664390014ecb82e551710378ff87a47ddf26ca55a262c8",
+            "f3bcb109c28acc58a73438f23e3d7c557b4d31da2513e0f731f518ebb664320e",
         ),
         (
             "model/cnn",
-            "2da18c21cb92fe60492064f6d6f5d8980ea8c4c9c0adc027f722094bed237099",
+            "39b2934c0a6c6ac6ed3f818a92cf8d582e6c23bdb2ff7731d6fbffbd3ac79555",
         ),
         (
             "predictions/cnn@test-0.75",
-            "76169e0986c98812139802be356cf4c5fe330d979dd6c23138fe2a8fa17b16f1",
+            "c2a30bffaedd3b78e2f221f77a4b2c6640d07cd7369b0eb38454ae67d5e6f2e8",
         ),
         (
             "evaluation/cnn@test-0.75",
-            "c2f9205bfcbd16c4e50a83b9641a413490297acb7539888c1b50f56c5001f87a",
+            "11de1eef66e21ed459d9947bf575bcc925688fa294c9bb780c276307aea28345",
         ),
         (
             "predictions/cnn@test-1.00",
-            "c64bb5ec52872a75927373d86cc38d27f3fa0853a0b45cfa4bfe665f2f49c7d6",
+            "812fd0df66a20e937ea3b24580e78be9a18c75ef2e58e8ce184f90df00e8a0f4",
         ),
         (
             "evaluation/cnn@test-1.00",
-            "f2daf8516a38b12c50d8a5b208dac83ee59c3d4f84d2db3b482423e94e245b55",
+            "3b707f696b283f7cca3293d8d15c080e91c0e81689428e6d57636d42d0c34bf6",
         ),
         (
             "predictions/cnn@test-1.75",
-            "9db9498cd425aeea933d544d8cf2f4058c3deebc38c96a6f6e34579f7588e5d3",
+            "c759d39e0c05a9de7f3aa8ddc4c2d1c2617fa7222ccbdc53dbc28bfe21353381",
         ),
         (
             "evaluation/cnn@test-1.75",
-            "41d384ae01bc92e21d25cbe8f51387b501b5355d921458c5a54f6c026b9d0033",
+            "16a7522155f2d8be6db462d1de59baea1e70c5cc1343c8710cc152536eb7c8ed",
         ),
         (
             "dataset/test-0.75+first300",
@@ -740,7 +739,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-0.75+first300",
-            "8af3b312cc3a14045e4b75dd2f7bb404a5c172a4f62b6a3eb7e734714ec53cb4",
+            "6a20bbd8f0b2c9cd7db450a9b49734f32f5a8e0ca1fde75b746cbc5ec4196cdb",
         ),
         (
             "dataset/test-1.00+first300",
@@ -752,7 +751,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.00+first300",
-            "5b4d67b6a3260cbea1f2bcf6396ab7670d3203830ea614488fbdac79e1592149",
+            "eee7dde81be55cb1367559601ca4c279fd3db668088147aa1cb4bb5a6eed835a",
         ),
         (
             "dataset/test-1.75+first300",
@@ -764,7 +763,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-known-d@test-1.75+first300",
-            "3119ed7db18056f353e7c531f29db049dd4fc3ac8cfe788937704933205e63ce",
+            "83843bcf52b67bab39cec9c92e93c4a2ee4c90719b06359f07db63083c4f776f",
         ),
         (
             "predictions/bound-marginal-d@test-0.75+first300",
@@ -772,7 +771,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-0.75+first300",
-            "f3241f871f4b21de88a117949544b37fe6b6e58cb4a9c0dbc31d443c0c85695b",
+            "9abfa5cc571a1bbe2606ed8b1652baf60acfe9bea50ad0d9c586057fbc74ae65",
         ),
         (
             "predictions/bound-marginal-d@test-1.00+first300",
@@ -780,7 +779,7 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.00+first300",
-            "c133cadd69f19dd7428eaa62870cfd4800b01c48ed83eb425229ccb107626ec3",
+            "2788e9464f523999f65336710c0dbcb4dcf595466ff705ea03d4712bacf01762",
         ),
         (
             "predictions/bound-marginal-d@test-1.75+first300",
@@ -788,31 +787,55 @@ fn the_paper_manifests_content_keys_are_stable() {
         ),
         (
             "evaluation/bound-marginal-d@test-1.75+first300",
-            "1f5a58388fd1a24c944dd67127e75d7585c830ff9022125998e43552e14dbaf9",
+            "5275339bc82dc51ddc3881cf273529cdaa7b0573311af9f7338c28e79ae5c4f9",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-0.75+first300",
+            "cc561cfdef3e3c9bff37bbfa6a716ccaa54bb5a56aec392eac21fd2928983684",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-0.75+first300",
+            "9fd009e942cb9dd0fc049ea1bc4880a2406ec0c12b45da604d2f5b726fe358cc",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-1.00+first300",
+            "39a093fea8d0097151637888c9bfd159bfcde9bcd83225e6d88be80efcb14528",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-1.00+first300",
+            "62a06930e53ba684c50b3256cfbc181dc513cfdb45b2482112d0155e81439e37",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-1.75+first300",
+            "cfb3dc96508194acab0c1a0ff0ac22acb842cab09fff8a6609ebd6b7a590b724",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-1.75+first300",
+            "d61003e7ef093f702c01d8b53aacf06316ab46872ca99e0f689b6f4806301a94",
         ),
         (
             "predictions/cnn@test-0.75+first300",
-            "d72cd558555cf5dd956f51a7d55159d77acbf5d10366f7018d2068a06cbabbc2",
+            "e4c4546d5772d206b51fc14fa615d33c06b99b3c30b712475578de7ca6341747",
         ),
         (
             "evaluation/cnn@test-0.75+first300",
-            "c24e97165957bf30a1dc6763c03233bd73ddfb77685c067a93d971d42d17b024",
+            "b091dc52310a085af17fb4ae1c5284d068b341978a243d00a564a0ea93029f39",
         ),
         (
             "predictions/cnn@test-1.00+first300",
-            "2e9c8de59611bb7e3fc487cf76e99ea5c6beb70e7a3249f68d9e28dc1cc04d63",
+            "db7685028e68005aaa4aca598ff5be9def69bd12f9eec655f40decd2cfce6572",
         ),
         (
             "evaluation/cnn@test-1.00+first300",
-            "8aecfe463700a6c2a5e7aa8a1be5e44c36e30212c62aa807598be735daa79feb",
+            "958ae3d68253d056b5400005a2e22ecfc56e9334f5fe69c0a7aca9f730f82a2d",
         ),
         (
             "predictions/cnn@test-1.75+first300",
-            "ab80c699b7eab7f41d5302f59d5fe824a228cc03e65724c6d6943062b7ed0bde",
+            "fa3e6a5b7b2c969497d7bf6450d3e76acbe7a9a5fbdae84332978a0b2b9f014a",
         ),
         (
             "evaluation/cnn@test-1.75+first300",
-            "9b31d9b1a843150b7b5b4e08357eaf8acc9d6f0edfa0b0b0435fe2212bcc50b9",
+            "8809f043741d9f2e353b236b409f1baf249075c491354aa06beb519a14d82e9b",
         ),
     ];
     assert_eq!(planned, recorded.map(|(id, key)| (id.to_string(), key)));
