@@ -25,6 +25,32 @@
 
 use std::collections::HashMap;
 
+/// Most guesses per frame a detector may be asked for: beyond a handful a
+/// guess holds almost no mass.
+pub const MAX_CANDIDATES: usize = 100;
+
+/// The default guess count of a detector's settings: one, a position per
+/// frame (serde default).
+pub(crate) fn one_candidate() -> usize {
+    1
+}
+
+/// Whether a guess count is the default, left out of serialised settings
+/// so that content keys made before lists existed stand.
+pub(crate) fn is_one_candidate(count: &usize) -> bool {
+    *count == 1
+}
+
+/// The default radius of the cover's discs, px (serde default).
+pub(crate) fn unit_radius() -> f64 {
+    1.0
+}
+
+/// Whether a disc radius is the default, left out of serialised settings.
+pub(crate) fn is_unit_radius(radius: &f64) -> bool {
+    *radius == 1.0
+}
+
 /// A guess: a disc centre (px) and the posterior mass it newly covers.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Candidate {

@@ -38,6 +38,7 @@ use burn::prelude::Device;
 use burn::store::ModuleRecord;
 use serde::{Deserialize, Serialize};
 
+use crate::detect::candidates::MAX_CANDIDATES;
 use crate::error::{FieldError, input_error};
 pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
@@ -80,11 +81,17 @@ pub struct CnnArchitecture {
     /// the head gives ([`crate::detect::candidates`]), each scored by the
     /// mass it newly covers and ranked in [`crate::types::Prediction::candidate`].
     /// Left out of the serialised architecture when 1.
-    #[serde(default = "one_candidate", skip_serializing_if = "is_one_candidate")]
+    #[serde(
+        default = "crate::detect::candidates::one_candidate",
+        skip_serializing_if = "crate::detect::candidates::is_one_candidate"
+    )]
     pub max_candidates: usize,
     /// With the categorical head: radius (px, > 0) of the cover's discs,
     /// the ε the list is placed for. Left out when 1.
-    #[serde(default = "unit_radius", skip_serializing_if = "is_unit_radius")]
+    #[serde(
+        default = "crate::detect::candidates::unit_radius",
+        skip_serializing_if = "crate::detect::candidates::is_unit_radius"
+    )]
     pub candidate_radius_px: f64,
 }
 
@@ -110,25 +117,6 @@ impl CnnHead {
     fn is_peaks(&self) -> bool {
         *self == CnnHead::Peaks
     }
-}
-
-/// Most guesses per frame the categorical head may give.
-pub const MAX_CANDIDATES: usize = 100;
-
-fn one_candidate() -> usize {
-    1
-}
-
-fn is_one_candidate(count: &usize) -> bool {
-    *count == 1
-}
-
-fn unit_radius() -> f64 {
-    1.0
-}
-
-fn is_unit_radius(radius: &f64) -> bool {
-    *radius == 1.0
 }
 
 /// The score a CNN prediction is ranked by, read at its peak pixel; each is

@@ -35,7 +35,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::detect::candidates::{self, CentreSearch};
+use crate::detect::candidates::{self, CentreSearch, MAX_CANDIDATES};
 use crate::error::{FieldError, input_error, require_positive};
 use crate::sim::gaussian::standard_normal_from_bits;
 use crate::sim::{DetectorNoise, Distribution, ScanModel, SimParams, frame_rng};
@@ -90,32 +90,19 @@ pub struct LikelihoodParams {
     /// [`Prediction::candidate`]; the list stops early where a further disc
     /// would cover less than [`candidates::MASS_FLOOR`]. Left out of the
     /// serialised settings when 1, so the detector's content keys stand.
-    #[serde(default = "one_candidate", skip_serializing_if = "is_one_candidate")]
+    #[serde(
+        default = "crate::detect::candidates::one_candidate",
+        skip_serializing_if = "crate::detect::candidates::is_one_candidate"
+    )]
     pub max_candidates: usize,
     /// Radius (px) of the cover's discs (> 0): the ε the list is placed
     /// for. Used only with `max_candidates` > 1; left out of the serialised
     /// settings when 1.
-    #[serde(default = "unit_radius", skip_serializing_if = "is_unit_radius")]
+    #[serde(
+        default = "crate::detect::candidates::unit_radius",
+        skip_serializing_if = "crate::detect::candidates::is_unit_radius"
+    )]
     pub candidate_radius_px: f64,
-}
-
-/// Most guesses per frame: beyond a handful a guess holds almost no mass.
-pub const MAX_CANDIDATES: usize = 100;
-
-fn one_candidate() -> usize {
-    1
-}
-
-fn is_one_candidate(count: &usize) -> bool {
-    *count == 1
-}
-
-fn unit_radius() -> f64 {
-    1.0
-}
-
-fn is_unit_radius(radius: &f64) -> bool {
-    *radius == 1.0
 }
 
 impl Default for LikelihoodParams {
