@@ -1308,3 +1308,40 @@ fn the_categorical_head_refuses_what_it_cannot_learn_naming_the_field() {
     let error = peaks_with_a_list.validate().unwrap_err();
     assert!(error.to_string().contains("max_candidates"), "{error}");
 }
+
+#[test]
+fn the_categorical_head_trains_and_decodes_to_the_same_bits_whatever_the_thread_count() {
+    // The cross-entropy's gradient is summed in a fixed order and frames
+    // are decoded in parallel each on its own: 1 and 2 threads must give
+    // the same weights and the same ranked lists.
+    let data = dataset(40.0, 150, 71);
+    let test = dataset(40.0, 40, 72);
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let model = cnn::train(
+                    &categorical_architecture(4),
+                    &categorical_settings(2),
+                    &data,
+                    None,
+                    9,
+                    &metrics::paper_aucs,
+                    &hidden(),
+                )
+                .unwrap();
+                let predictions = model.locate(&test.frames, &hidden()).unwrap();
+                (model.to_bytes().unwrap(), predictions)
+            })
+    };
+    let (one_bytes, one_predictions) = run(1);
+    let (two_bytes, two_predictions) = run(2);
+    assert!(
+        one_bytes == two_bytes,
+        "weights differ between 1 and 2 threads"
+    );
+    assert!(!one_predictions.is_empty());
+    assert_eq!(one_predictions, two_predictions);
+}

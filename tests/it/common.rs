@@ -176,3 +176,22 @@ pub fn write_npy<T: npyz::AutoSerialize + Copy>(path: &Path, shape: &[u64], valu
     }
     std::fs::write(path, bytes).unwrap();
 }
+
+/// Runs the command line in-process (no child process, so a test can run
+/// it many times cheaply): (exit code, stdout, stderr); an exit code other
+/// than 0, 1 or 2 reads as 255.
+pub fn cli_in_process(args: &[&str]) -> (u8, String, String) {
+    let mut out = Vec::new();
+    let mut err = Vec::new();
+    let mut argv = vec!["scanloc"];
+    argv.extend_from_slice(args);
+    let exit = crate::cli::main_with(argv, &mut out, &mut err, false);
+    let code = (0..=2u8)
+        .find(|&c| exit == std::process::ExitCode::from(c))
+        .unwrap_or(u8::MAX);
+    (
+        code,
+        String::from_utf8_lossy(&out).into_owned(),
+        String::from_utf8_lossy(&err).into_owned(),
+    )
+}

@@ -396,23 +396,6 @@ fn a_long_recording_holds_its_set_density() {
     );
 }
 
-/// Runs the CLI in-process: exit code, stdout, stderr.
-fn cli(args: &[&str]) -> (u8, String, String) {
-    let mut out = Vec::new();
-    let mut err = Vec::new();
-    let mut argv = vec!["scanloc"];
-    argv.extend_from_slice(args);
-    let exit = crate::cli::main_with(argv, &mut out, &mut err, false);
-    let code = (0..=2u8)
-        .find(|&c| exit == std::process::ExitCode::from(c))
-        .unwrap_or(u8::MAX);
-    (
-        code,
-        String::from_utf8_lossy(&out).into_owned(),
-        String::from_utf8_lossy(&err).into_owned(),
-    )
-}
-
 #[test]
 fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables() {
     let dir = tempfile::tempdir().unwrap();
@@ -434,7 +417,8 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
         text.extend(rows);
     }
     std::fs::write(&good, &text).unwrap();
-    let (code, out, err) = cli(&["diffusion", "--tracks", good.to_str().unwrap()]);
+    let (code, out, err) =
+        crate::common::cli_in_process(&["diffusion", "--tracks", good.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     assert_eq!(
         out.lines().filter(|l| l.starts_with("ensemble,")).count(),
@@ -465,7 +449,8 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
     for (name, body, needle) in cases {
         let path = dir.path().join(format!("{name}.csv"));
         std::fs::write(&path, body).unwrap();
-        let (code, _, err) = cli(&["diffusion", "--tracks", path.to_str().unwrap()]);
+        let (code, _, err) =
+            crate::common::cli_in_process(&["diffusion", "--tracks", path.to_str().unwrap()]);
         assert_eq!(code, 2, "{name}: {err}");
         assert_eq!(err.trim().lines().count(), 1, "{name}: {err}");
         assert!(err.contains(needle) && err.contains(name), "{name}: {err}");
@@ -477,7 +462,7 @@ fn simulate_recording_writes_frames_and_truth() {
     let dir = tempfile::tempdir().unwrap();
     let frames = dir.path().join("rec.npy");
     let truth = dir.path().join("truth.csv");
-    let (code, _, err) = cli(&[
+    let (code, _, err) = crate::common::cli_in_process(&[
         "simulate-recording",
         "--frames",
         "5",
@@ -502,7 +487,7 @@ fn simulate_recording_writes_frames_and_truth() {
         text.lines().next().unwrap(),
         scanloc::io::tracks::RECORDING_TRUTH_COLUMNS.join(",")
     );
-    let (code, _, err) = cli(&[
+    let (code, _, err) = crate::common::cli_in_process(&[
         "simulate-recording",
         "--blink-on-ms",
         "-1",

@@ -6,23 +6,6 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Runs the command line in-process: (exit code, stdout, stderr).
-fn cli(args: &[&str]) -> (u8, String, String) {
-    let mut out = Vec::new();
-    let mut err = Vec::new();
-    let mut argv = vec!["scanloc"];
-    argv.extend_from_slice(args);
-    let exit = crate::cli::main_with(argv, &mut out, &mut err, false);
-    let code = (0..=2u8)
-        .find(|&c| exit == std::process::ExitCode::from(c))
-        .unwrap_or(u8::MAX);
-    (
-        code,
-        String::from_utf8_lossy(&out).into_owned(),
-        String::from_utf8_lossy(&err).into_owned(),
-    )
-}
-
 fn score_json(tracks: &Path, truth: &Path, extra: &[&str]) -> serde_json::Value {
     let mut args = vec![
         "score-tracks",
@@ -33,7 +16,7 @@ fn score_json(tracks: &Path, truth: &Path, extra: &[&str]) -> serde_json::Value 
         "--json",
     ];
     args.extend_from_slice(extra);
-    let (code, out, err) = cli(&args);
+    let (code, out, err) = crate::common::cli_in_process(&args);
     assert_eq!(code, 0, "{err}");
     serde_json::from_str(&out).expect("score-tracks --json prints JSON")
 }
@@ -63,7 +46,7 @@ fn linked_truth_positions_score_as_their_links_say() {
     let frames = dir.path().join("rec.npy");
     // 60 frames of the paper's 24 × 25 field at D = 1, dense enough that
     // QDs meet and leave.
-    let (code, _, err) = cli(&[
+    let (code, _, err) = crate::common::cli_in_process(&[
         "simulate-recording",
         "--frames",
         "60",
@@ -99,7 +82,7 @@ fn linked_truth_positions_score_as_their_links_say() {
     // Linked by TrackPy's rules with a search range shorter than many of
     // the steps (σ ≈ 3.4 px per axis): some links are wrong or missing.
     let tracks = dir.path().join("tracks.csv");
-    let (code, _, err) = cli(&[
+    let (code, _, err) = crate::common::cli_in_process(&[
         "link",
         "--locs",
         locs.to_str().unwrap(),
@@ -162,7 +145,7 @@ fn linked_truth_positions_score_as_their_links_say() {
     assert_eq!(s["truth_points"], s["estimated_points"], "{s}");
 
     // The table names every measure.
-    let (code, out, err) = cli(&[
+    let (code, out, err) = crate::common::cli_in_process(&[
         "score-tracks",
         "--tracks",
         tracks.to_str().unwrap(),
@@ -210,7 +193,7 @@ fn bad_input_is_one_line_naming_the_file_and_field() {
             truth.to_str().unwrap(),
         ];
         args.extend_from_slice(&extra);
-        let (code, out, err) = cli(&args);
+        let (code, out, err) = crate::common::cli_in_process(&args);
         if needle.is_empty() {
             assert_eq!(code, 0, "{err}");
             assert!(out.contains("alpha"), "{out}");
@@ -258,7 +241,7 @@ fn bad_input_is_one_line_naming_the_file_and_field() {
             "tracks" => (path.as_path(), truth.as_path()),
             _ => (tracks.as_path(), path.as_path()),
         };
-        let (code, _, err) = cli(&[
+        let (code, _, err) = crate::common::cli_in_process(&[
             "score-tracks",
             "--tracks",
             tracks_arg.to_str().unwrap(),
