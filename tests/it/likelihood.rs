@@ -257,6 +257,31 @@ fn the_run_table_gives_ranked_lists_a_best_guess_row_and_registry_show_reprints_
     let shown = stdout(&output);
     assert_eq!(auc_grid(&shown), grid, "{shown}");
 
+    // The report gives the list's calibration per rank: ranks 1 and 2,
+    // one guess of rank 1 per frame, a mean score and an observed share
+    // in [0, 1]; the single-guess detector has no such rows.
+    let report = crate::common::report_markdown(&registry, &run, &dir.path().join("report"));
+    let section = crate::common::report_section(&report, "Calibration of the score");
+    let rank_rows: Vec<Vec<&str>> = section
+        .lines()
+        .filter(|l| l.starts_with("| list |"))
+        .map(|l| l.split('|').map(str::trim).collect())
+        .collect();
+    assert_eq!(
+        rank_rows.len(),
+        3,
+        "the pooled row and one per rank: {section}"
+    );
+    let ranks: Vec<&str> = rank_rows[1..].iter().map(|r| r[3]).collect();
+    assert_eq!(ranks, ["1", "2"], "{section}");
+    for row in &rank_rows[1..] {
+        for cell in [row[5], row[6]] {
+            let value: f64 = cell.parse().unwrap_or_else(|_| panic!("{section}"));
+            assert!((0.0..=1.0).contains(&value), "{section}");
+        }
+    }
+    assert!(!section.contains("| single | test | 1 |"), "{section}");
+
     // A second run reads every evaluation from its stored score.json:
     // the same table.
     let (again, _) = run_text(&manifest, &registry);

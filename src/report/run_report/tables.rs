@@ -714,6 +714,58 @@ pub(super) fn write_calibration_table(
             or_dash(reliability.expected_calibration_error)
         )?;
     }
+    write_rank_calibration_table(markdown, evaluations)
+}
+
+/// Per candidate rank of ranked lists: the guesses' mean score against the
+/// share of them that are a QD's first guess within 1 px, and the ECE
+/// (docs/metric.md, "Calibration"); absent without lists.
+fn write_rank_calibration_table(
+    markdown: &mut String,
+    evaluations: &[Evaluation],
+) -> anyhow::Result<()> {
+    let ranked: Vec<&Evaluation> = evaluations
+        .iter()
+        .filter(|e| !e.score.reliability_by_rank.is_empty())
+        .collect();
+    if ranked.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        markdown,
+        "\nRanked lists, per rank: a guess's score is the probability that its frame's QD lies \
+         within 1 px of it and of no guess ranked above it (the posterior mass it newly covers); \
+         beside the mean score, the share of the rank's guesses for which that happened.\n"
+    )?;
+    writeln!(
+        markdown,
+        "| detector | dataset | rank | guesses | mean score | observed | ECE |"
+    )?;
+    writeln!(markdown, "|---|---|---|---|---|---|---|")?;
+    for e in ranked {
+        for by_rank in &e.score.reliability_by_rank {
+            let reliability = &by_rank.reliability;
+            let (mut scores, mut hits) = (0.0, 0.0);
+            for bin in &reliability.bins {
+                let count = bin.count as f64;
+                scores += count * bin.mean_score.unwrap_or(0.0);
+                hits += count * bin.observed_frequency.unwrap_or(0.0);
+            }
+            let n = reliability.localisations as f64;
+            let share = |sum: f64| (n > 0.0).then(|| sum / n);
+            writeln!(
+                markdown,
+                "| {} | {} | {} | {} | {} | {} | {} |",
+                e.detector,
+                e.dataset,
+                by_rank.rank,
+                reliability.localisations,
+                or_dash(share(scores)),
+                or_dash(share(hits)),
+                or_dash(reliability.expected_calibration_error)
+            )?;
+        }
+    }
     Ok(())
 }
 
