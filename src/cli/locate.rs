@@ -23,7 +23,10 @@ use scanloc::registry::{ModelOrigin, Registry};
 /// estimate of each localisation's error in pixels, the standard deviation
 /// per axis (read from its within-1-px probability; filter on them as on an
 /// SMLM localisation precision; `scanloc score` says how well they describe
-/// the errors), score as the model's `architecture.score`;
+/// the errors), score as the model's `architecture.score`; a model with
+/// the categorical head gives a ranked list of guesses per frame (up to
+/// its `architecture.max_candidates`, or --max-candidates), scored by
+/// their posterior mass, and adds the column candidate, their rank;
 /// a line on standard output names the model (its registry key, run and
 /// detector, or folder) and the sha256 of its bytes, the same for a
 /// registry model and its exported folder. With `--method likelihood` (a

@@ -773,6 +773,27 @@ fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
         table.starts_with("frame,x,y,sigma_x,sigma_y,score\n"),
         "{table}"
     );
+    // A peaks model gives no list: asking for one is bad input.
+    let out = crate::common::scanloc(&[
+        "locate",
+        "--method",
+        "cnn",
+        "--model",
+        &path("model"),
+        "--input",
+        &path("easy.npy"),
+        "--out",
+        &path("list.csv"),
+        "--max-candidates",
+        "2",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = crate::common::stderr(&out);
+    assert!(
+        err.contains("max_candidates") && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    assert!(!dir.path().join("list.csv").exists());
     let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();
     assert_eq!(read, model.locate(&easy.frames, &hidden()).unwrap());
     let out = crate::common::scanloc(&[
@@ -1263,6 +1284,46 @@ fn the_categorical_head_learns_and_gives_ranked_guesses_whose_masses_are_a_distr
         eps1.auc
     );
     assert!(eps1.auc >= best - 0.01, "list {} vs best {best}", eps1.auc);
+
+    // `scanloc locate` writes the ranks, decodes the saved model as it
+    // decodes itself, and re-decodes it into another list length.
+    let dir = tempfile::tempdir().unwrap();
+    let path = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
+    model.save(&dir.path().join("model")).unwrap();
+    scanloc::io::write_frames(&dir.path().join("test.npy"), &test.frames).unwrap();
+    let out = locate_cli(&path("model"), &path("test.npy"), &path("locs.csv"));
+    assert!(out.status.success(), "{}", crate::common::stderr(&out));
+    let table = std::fs::read_to_string(path("locs.csv")).unwrap();
+    assert!(
+        table.starts_with("frame,x,y,sigma_x,sigma_y,score,candidate\n"),
+        "{table}"
+    );
+    let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();
+    assert_eq!(read, predictions);
+    let out = crate::common::scanloc(&[
+        "locate",
+        "--method",
+        "cnn",
+        "--model",
+        &path("model"),
+        "--input",
+        &path("test.npy"),
+        "--out",
+        &path("one.csv"),
+        "--max-candidates",
+        "1",
+    ]);
+    assert!(out.status.success(), "{}", crate::common::stderr(&out));
+    let one = scanloc::io::csv_tables::read_predictions(&dir.path().join("one.csv")).unwrap();
+    assert_eq!(one.len(), test.frames.n);
+    let firsts: Vec<Prediction> = predictions
+        .iter()
+        .filter(|p| p.candidate == Some(1))
+        .copied()
+        .collect();
+    // The cover's first disc does not depend on how many follow it, and
+    // (sorting by mass moving none of these frames' first discs) it is rank 1.
+    assert_eq!(one, firsts);
 }
 
 #[test]
