@@ -30,6 +30,8 @@
 //!   set; this uses destination order, so labels may differ there and the
 //!   trajectories do not.
 
+use std::ops::Range;
+
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
 use crate::error::input_error;
 
@@ -64,26 +66,32 @@ impl TrackpyParams {
 /// Links `detections` (any order) as TrackPy 0.7's `link` does.
 pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<Linking> {
     params.validate()?;
+    // The linker works on the detections in frame order, gathered once
+    // into contiguous arrays: a frame's detections are then a range, and
+    // reading them does not jump around the input.
     let order = frame_order(detections);
-    let mut state = State::new(detections, params);
-    let mut at = 0;
-    let Some(first) = order.first().map(|&i| detections[i].frame) else {
-        return Ok(state.finish());
+    let frames: Vec<usize> = order.iter().map(|&i| detections[i].frame).collect();
+    let positions: Vec<[f64; 2]> = order
+        .iter()
+        .map(|&i| [detections[i].x, detections[i].y])
+        .collect();
+    let mut state = State::new(&frames, &positions, params);
+    let (Some(&first), Some(&last)) = (frames.first(), frames.last()) else {
+        return Ok(state.finish(&order));
     };
-    let last = detections[*order.last().unwrap_or(&0)].frame;
+    let mut at = 0;
     for frame in first..=last {
         let start = at;
-        while at < order.len() && detections[order[at]].frame == frame {
+        while at < frames.len() && frames[at] == frame {
             at += 1;
         }
-        let destinations = &order[start..at];
         if frame == first {
-            state.start(destinations);
+            state.start(start..at);
         } else {
-            state.step(frame, destinations)?;
+            state.step(frame, start..at)?;
         }
     }
-    Ok(state.finish())
+    Ok(state.finish(&order))
 }
 
 /// Each destination's candidate sources, flat: those of destination `d`
@@ -149,15 +157,17 @@ struct FrameBuffers {
     links: Vec<Option<usize>>,
 }
 
-/// The linker between frames.
+/// The linker between frames. Detections are named by their place in
+/// frame order.
 struct State<'a> {
-    detections: &'a [Detection],
+    frames: &'a [usize],
+    positions: &'a [[f64; 2]],
     search_range: f64,
     memory: usize,
     particle: Vec<usize>,
     next_label: usize,
     /// The previous frame's detections.
-    previous: Vec<usize>,
+    previous: Range<usize>,
     /// Remembered detections and the frame at which each was lost.
     remembered: Vec<(usize, usize)>,
     in_memory: Vec<bool>,
@@ -166,24 +176,31 @@ struct State<'a> {
 }
 
 impl<'a> State<'a> {
-    fn new(detections: &'a [Detection], params: &TrackpyParams) -> Self {
+    fn new(frames: &'a [usize], positions: &'a [[f64; 2]], params: &TrackpyParams) -> Self {
         Self {
-            detections,
+            frames,
+            positions,
             search_range: params.search_range,
             memory: params.memory,
-            particle: vec![usize::MAX; detections.len()],
+            particle: vec![usize::MAX; frames.len()],
             next_label: 0,
-            previous: Vec::new(),
+            previous: 0..0,
             remembered: Vec::new(),
-            in_memory: vec![false; detections.len()],
+            in_memory: vec![false; frames.len()],
             stats: LinkStats::default(),
             buffers: FrameBuffers::default(),
         }
     }
 
-    fn finish(self) -> Linking {
+    /// The labels back in input order (`order`: the input index of each
+    /// detection in frame order).
+    fn finish(self, order: &[usize]) -> Linking {
+        let mut particle = vec![usize::MAX; order.len()];
+        for (&i, &label) in order.iter().zip(&self.particle) {
+            particle[i] = label;
+        }
         Linking {
-            particle: self.particle,
+            particle,
             stats: self.stats,
         }
     }
@@ -194,23 +211,22 @@ impl<'a> State<'a> {
     }
 
     /// The first frame: every detection starts a trajectory.
-    fn start(&mut self, destinations: &[usize]) {
-        for &d in destinations {
+    fn start(&mut self, destinations: Range<usize>) {
+        for d in destinations.clone() {
             self.new_trajectory(d);
         }
-        self.previous.clear();
-        self.previous.extend_from_slice(destinations);
+        self.previous = destinations;
     }
 
     /// One frame: candidates, subnetworks, their solutions, memory.
-    fn step(&mut self, frame: usize, destinations: &[usize]) -> anyhow::Result<()> {
+    fn step(&mut self, frame: usize, destinations: Range<usize>) -> anyhow::Result<()> {
         // The buffers leave `self` for the frame so that linking (which
         // needs `self`) can read them.
         let mut b = std::mem::take(&mut self.buffers);
         b.sources.clear();
-        b.sources.extend_from_slice(&self.previous);
+        b.sources.extend(self.previous.clone());
         b.sources.extend(self.remembered.iter().map(|&(d, _)| d));
-        self.find_candidates(destinations, &mut b);
+        self.find_candidates(destinations.clone(), &mut b);
         find_subnets(b.sources.len(), &b.candidates, &mut b.sets, &mut b.subnets);
         b.source_linked.clear();
         b.source_linked.resize(b.sources.len(), false);
@@ -228,14 +244,14 @@ impl<'a> State<'a> {
             )?;
             for (&s, link) in subnet_sources.iter().zip(&b.links) {
                 if let Some(d) = *link {
-                    self.link(b.sources[s], destinations[d]);
+                    self.link(b.sources[s], destinations.start + d);
                     b.source_linked[s] = true;
                     b.destination_linked[d] = true;
                 }
             }
             for &d in subnet_destinations {
                 if !b.destination_linked[d] {
-                    self.new_trajectory(destinations[d]);
+                    self.new_trajectory(destinations.start + d);
                 }
             }
         }
@@ -248,8 +264,7 @@ impl<'a> State<'a> {
                 .map(|(&s, _)| s),
         );
         self.remember(frame, &b.lost);
-        self.previous.clear();
-        self.previous.extend_from_slice(destinations);
+        self.previous = destinations;
         self.buffers = b;
         Ok(())
     }
@@ -257,19 +272,17 @@ impl<'a> State<'a> {
     /// For each destination, its up to [`MAX_NEIGHBORS`] nearest sources
     /// within the search range (ties by source index), into
     /// `b.candidates`.
-    fn find_candidates(&self, destinations: &[usize], b: &mut FrameBuffers) {
-        let position = |d: usize| [self.detections[d].x, self.detections[d].y];
+    fn find_candidates(&self, destinations: Range<usize>, b: &mut FrameBuffers) {
         b.source_positions.clear();
         b.source_positions
-            .extend(b.sources.iter().map(|&d| position(d)));
+            .extend(b.sources.iter().map(|&d| self.positions[d]));
         let limit = self.search_range + RANGE_SLACK;
         b.grid.build(&b.source_positions, limit);
         let candidates = &mut b.candidates;
         candidates.list.clear();
         candidates.offsets.clear();
         candidates.offsets.push(0);
-        for &d in destinations {
-            let [px, py] = position(d);
+        for &[px, py] in &self.positions[destinations] {
             b.near.clear();
             b.grid.near(px, py, limit, |s| {
                 let [x, y] = b.source_positions[s];
@@ -337,7 +350,7 @@ impl<'a> State<'a> {
     fn link(&mut self, source: usize, destination: usize) {
         self.particle[destination] = self.particle[source];
         self.stats.links += 1;
-        if self.detections[source].frame + 1 < self.detections[destination].frame {
+        if self.frames[source] + 1 < self.frames[destination] {
             self.stats.gap_links += 1;
         }
         // Linked: no longer remembered (dropped from the list below).
