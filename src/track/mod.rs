@@ -243,4 +243,22 @@ mod tests {
         let links = assign(2, 2, &candidates, &[1.5, 1.5], &[0.0, 0.0]).unwrap();
         assert_eq!(links, [Some(0), None]);
     }
+
+    #[test]
+    fn frame_order_is_a_stable_sort_by_frame() {
+        // Dense frames (the counting sort) and sparse ones (the sort).
+        for frames in [
+            vec![3, 1, 3, 2, 1, 1, 4],
+            vec![9_000_000, 5, 9_000_000, 5, 0],
+        ] {
+            let detections: Vec<Detection> = frames
+                .iter()
+                .map(|&f| Detection::new(f, 0.0, 0.0))
+                .collect();
+            let mut expected: Vec<usize> = (0..frames.len()).collect();
+            expected.sort_by_key(|&i| frames[i]);
+            assert_eq!(frame_order(&detections), expected);
+        }
+        assert!(frame_order(&[]).is_empty());
+    }
 }

@@ -29,6 +29,12 @@
 //!   one subnetwork TrackPy labels new trajectories in the order of a Python
 //!   set; this uses destination order, so labels may differ there and the
 //!   trajectories do not.
+//!
+//! For speed (docs/tracking.md, "Speed"): the detections are gathered in
+//! frame order once, each frame's sources are bucketed in a uniform grid
+//! (cells at least the search range wide) for the neighbour search,
+//! subnetworks are grouped by a counting sort on their key, and the
+//! per-frame buffers are kept from frame to frame.
 
 use std::ops::Range;
 
@@ -76,11 +82,11 @@ pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<
         .map(|&i| [detections[i].x, detections[i].y])
         .collect();
     let mut state = State::new(&frames, &positions, params);
-    let (Some(&first), Some(&last)) = (frames.first(), frames.last()) else {
+    let Some(&first) = frames.first() else {
         return Ok(state.finish(&order));
     };
-    let mut at = 0;
-    for frame in first..=last {
+    let (mut at, mut frame) = (0, first);
+    loop {
         let start = at;
         while at < frames.len() && frames[at] == frame {
             at += 1;
@@ -90,6 +96,17 @@ pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<
         } else {
             state.step(frame, start..at)?;
         }
+        if at == frames.len() {
+            break;
+        }
+        // Every frame counts for memory; but once no source is left, the
+        // frames without detections change nothing: go to the next one
+        // with detections (frame numbers may be far apart).
+        frame = if state.has_sources() {
+            frame + 1
+        } else {
+            frames[at]
+        };
     }
     Ok(state.finish(&order))
 }
@@ -208,6 +225,11 @@ impl<'a> State<'a> {
     fn new_trajectory(&mut self, detection: usize) {
         self.particle[detection] = self.next_label;
         self.next_label += 1;
+    }
+
+    /// Whether the next frame has sources to link to.
+    fn has_sources(&self) -> bool {
+        !(self.previous.is_empty() && self.remembered.is_empty())
     }
 
     /// The first frame: every detection starts a trajectory.
@@ -661,6 +683,20 @@ mod tests {
     }
 
     #[test]
+    fn frames_far_apart_are_not_walked_one_by_one() {
+        let far = 1 << 50;
+        let detections = [
+            Detection::new(0, 1.0, 1.0),
+            Detection::new(far, 1.0, 1.0),
+            Detection::new(far + 2, 1.0, 1.0),
+        ];
+        // Returns at once; memory still bridges the gap after `far`.
+        let linked = link(&detections, &params(1.0, 1)).unwrap();
+        assert_eq!(linked.particle, [0, 1, 1]);
+        assert_eq!(linked.stats.gap_links, 1);
+    }
+
+    #[test]
     fn input_order_does_not_change_the_trajectories() {
         let detections = [
             Detection::new(2, 1.2, 0.0),
@@ -671,5 +707,50 @@ mod tests {
         ];
         let linked = link(&detections, &params(1.0, 0)).unwrap();
         assert_eq!(linked.particle, [0, 0, 0, 1, 1]);
+    }
+
+    #[test]
+    fn the_grid_finds_exactly_the_sources_in_range() {
+        use rand::{RngExt as _, SeedableRng as _};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(38);
+        let limit = 2.0 + RANGE_SLACK;
+        let mut grid = SourceGrid::default();
+        // Dense and sparse fields (the sparse ones get cells wider than the
+        // range), far from the origin, and sources exactly one range away
+        // along an axis (out: the bound is strict).
+        for (sources, side, offset) in [(300, 60.0, 0.0), (20, 1e4, -3e5), (1, 5.0, 7.0)] {
+            let mut positions: Vec<[f64; 2]> = (0..sources)
+                .map(|_| {
+                    let x = offset + rng.random_range(0.0..side);
+                    [x, offset + rng.random_range(0.0..side)]
+                })
+                .collect();
+            let [x0, y0] = positions[0];
+            positions.extend([[x0 + limit, y0], [x0, y0 - limit], [x0 + 1.0, y0 + 1.0]]);
+            grid.build(&positions, limit);
+            let mut queries: Vec<[f64; 2]> = (0..200)
+                .map(|_| {
+                    let x = offset + rng.random_range(-5.0..side + 5.0);
+                    [x, offset + rng.random_range(-5.0..side + 5.0)]
+                })
+                .collect();
+            queries.push([x0, y0]);
+            let d2 = |p: [f64; 2], q: [f64; 2]| {
+                (p[0] - q[0]) * (p[0] - q[0]) + (p[1] - q[1]) * (p[1] - q[1])
+            };
+            for q in queries {
+                let mut found = Vec::new();
+                grid.near(q[0], q[1], limit, |s| {
+                    if d2(positions[s], q) < limit * limit {
+                        found.push(s);
+                    }
+                });
+                found.sort_unstable();
+                let expected: Vec<usize> = (0..positions.len())
+                    .filter(|&s| d2(positions[s], q) < limit * limit)
+                    .collect();
+                assert_eq!(found, expected, "query {q:?}");
+            }
+        }
     }
 }
