@@ -676,9 +676,16 @@ fn mean_of_top(
 
 /// Runs `scanloc locate --method cnn --model MODEL --input FRAMES --out OUT`.
 fn locate_cli(model: &str, frames: &str, out: &str) -> std::process::Output {
-    crate::common::scanloc(&[
+    locate_cli_with(model, frames, out, &[])
+}
+
+/// `scanloc locate --method cnn` with further options.
+fn locate_cli_with(model: &str, frames: &str, out: &str, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
         "locate", "--method", "cnn", "--model", model, "--input", frames, "--out", out,
-    ])
+    ];
+    args.extend_from_slice(extra);
+    crate::common::scanloc(&args)
 }
 
 #[test]
@@ -774,19 +781,12 @@ fn a_static_in_focus_qd_gets_a_smaller_uncertainty_than_a_fast_one() {
         "{table}"
     );
     // A peaks model gives no list: asking for one is bad input.
-    let out = crate::common::scanloc(&[
-        "locate",
-        "--method",
-        "cnn",
-        "--model",
+    let out = locate_cli_with(
         &path("model"),
-        "--input",
         &path("easy.npy"),
-        "--out",
         &path("list.csv"),
-        "--max-candidates",
-        "2",
-    ]);
+        &["--max-candidates", "2"],
+    );
     assert_eq!(out.status.code(), Some(2));
     let err = crate::common::stderr(&out);
     assert!(
@@ -1300,19 +1300,12 @@ fn the_categorical_head_learns_and_gives_ranked_guesses_whose_masses_are_a_distr
     );
     let read = scanloc::io::csv_tables::read_predictions(&dir.path().join("locs.csv")).unwrap();
     assert_eq!(read, predictions);
-    let out = crate::common::scanloc(&[
-        "locate",
-        "--method",
-        "cnn",
-        "--model",
+    let out = locate_cli_with(
         &path("model"),
-        "--input",
         &path("test.npy"),
-        "--out",
         &path("one.csv"),
-        "--max-candidates",
-        "1",
-    ]);
+        &["--max-candidates", "1"],
+    );
     assert!(out.status.success(), "{}", crate::common::stderr(&out));
     let one = scanloc::io::csv_tables::read_predictions(&dir.path().join("one.csv")).unwrap();
     assert_eq!(one.len(), test.frames.n);

@@ -6,17 +6,24 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-fn score_json(tracks: &Path, truth: &Path, extra: &[&str]) -> serde_json::Value {
+/// `scanloc score-tracks --tracks TRACKS --truth TRUTH EXTRA…`, in
+/// process: (exit code, stdout, stderr).
+fn score_tracks(tracks: &Path, truth: &Path, extra: &[&str]) -> (u8, String, String) {
     let mut args = vec![
         "score-tracks",
         "--tracks",
         tracks.to_str().unwrap(),
         "--truth",
         truth.to_str().unwrap(),
-        "--json",
     ];
     args.extend_from_slice(extra);
-    let (code, out, err) = crate::common::cli_in_process(&args);
+    crate::common::cli_in_process(&args)
+}
+
+fn score_json(tracks: &Path, truth: &Path, extra: &[&str]) -> serde_json::Value {
+    let mut with_json = vec!["--json"];
+    with_json.extend_from_slice(extra);
+    let (code, out, err) = score_tracks(tracks, truth, &with_json);
     assert_eq!(code, 0, "{err}");
     serde_json::from_str(&out).expect("score-tracks --json prints JSON")
 }
@@ -145,13 +152,7 @@ fn linked_truth_positions_score_as_their_links_say() {
     assert_eq!(s["truth_points"], s["estimated_points"], "{s}");
 
     // The table names every measure.
-    let (code, out, err) = crate::common::cli_in_process(&[
-        "score-tracks",
-        "--tracks",
-        tracks.to_str().unwrap(),
-        "--truth",
-        truth.to_str().unwrap(),
-    ]);
+    let (code, out, err) = score_tracks(&tracks, &truth, &[]);
     assert_eq!(code, 0, "{err}");
     for measure in ["alpha", "beta", "jaccard_tracks", "link_recall"] {
         assert!(out.contains(measure), "{out}");
@@ -185,15 +186,7 @@ fn bad_input_is_one_line_naming_the_file_and_field() {
         ),
     ];
     for (extra, needle) in cases {
-        let mut args = vec![
-            "score-tracks",
-            "--tracks",
-            tracks.to_str().unwrap(),
-            "--truth",
-            truth.to_str().unwrap(),
-        ];
-        args.extend_from_slice(&extra);
-        let (code, out, err) = crate::common::cli_in_process(&args);
+        let (code, out, err) = score_tracks(&tracks, &truth, &extra);
         if needle.is_empty() {
             assert_eq!(code, 0, "{err}");
             assert!(out.contains("alpha"), "{out}");
@@ -241,13 +234,7 @@ fn bad_input_is_one_line_naming_the_file_and_field() {
             "tracks" => (path.as_path(), truth.as_path()),
             _ => (tracks.as_path(), path.as_path()),
         };
-        let (code, _, err) = crate::common::cli_in_process(&[
-            "score-tracks",
-            "--tracks",
-            tracks_arg.to_str().unwrap(),
-            "--truth",
-            truth_arg.to_str().unwrap(),
-        ]);
+        let (code, _, err) = score_tracks(tracks_arg, truth_arg, &[]);
         assert_eq!(code, 2, "{name}: {err}");
         assert_eq!(err.trim().lines().count(), 1, "{name}: {err}");
         assert!(err.contains(needle), "{name}: {err}");
