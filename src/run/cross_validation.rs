@@ -36,6 +36,29 @@ pub struct CvCell {
     /// fold (`scanloc cv --fold`).
     pub std: Option<f64>,
     pub per_fold: Vec<f64>,
+    /// For a detector giving ranked lists: the same over folds of each
+    /// frame's best guess alone (`None` without lists).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub best_guess: Option<BestGuessCell>,
+}
+
+/// Mean and spread over the folds of the best-guess-per-frame AUC.
+#[derive(Debug, Clone, Serialize)]
+pub struct BestGuessCell {
+    pub mean: f64,
+    /// As [`CvCell::std`].
+    pub std: Option<f64>,
+    pub per_fold: Vec<f64>,
+}
+
+/// The mean and sample standard deviation (none for one value) of
+/// `values`, which are not empty.
+fn mean_and_std(values: &[f64]) -> (f64, Option<f64>) {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let std = (values.len() > 1)
+        .then(|| (values.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt());
+    (mean, std)
 }
 
 /// The outcome of a cross-validation run.
@@ -276,21 +299,32 @@ pub fn summarise(auc: &[AucRow], cv: &CrossValidationPlan, training_set: &str) -
     }
     let mut cells = Vec::new();
     for (dataset, diffusion, eps_px) in columns {
-        let per_fold: Vec<f64> = folds
+        let rows: Vec<&AucRow> = folds
             .iter()
             .filter_map(|&fold| {
                 auc.iter()
                     .find(|row| row.eps_px == eps_px && place(row) == Some((fold, dataset.clone())))
             })
-            .map(|row| row.auc)
             .collect();
-        if per_fold.is_empty() {
+        if rows.is_empty() {
             continue;
         }
-        let n = per_fold.len() as f64;
-        let mean = per_fold.iter().sum::<f64>() / n;
-        let std = (per_fold.len() > 1)
-            .then(|| (per_fold.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt());
+        let per_fold: Vec<f64> = rows.iter().map(|row| row.auc).collect();
+        let (mean, std) = mean_and_std(&per_fold);
+        // Every fold's model ranks its guesses, or none does: the table
+        // gives the best guesses' row only when all folds have it.
+        let best_guess = rows
+            .iter()
+            .map(|row| row.auc_best_per_frame)
+            .collect::<Option<Vec<f64>>>()
+            .map(|per_fold| {
+                let (mean, std) = mean_and_std(&per_fold);
+                BestGuessCell {
+                    mean,
+                    std,
+                    per_fold,
+                }
+            });
         cells.push(CvCell {
             dataset,
             diffusion,
@@ -298,6 +332,7 @@ pub fn summarise(auc: &[AucRow], cv: &CrossValidationPlan, training_set: &str) -
             mean,
             std,
             per_fold,
+            best_guess,
         });
     }
     cells
@@ -327,8 +362,13 @@ pub fn render(outcome: &CrossValidationOutcome) -> String {
             Some(d) => format!("{dataset} (D = {d})"),
             None => dataset.to_string(),
         };
+        let cells: Vec<&CvCell> = outcome
+            .cells
+            .iter()
+            .filter(|c| c.dataset == dataset)
+            .collect();
         out.push_str(&format!("{label:<28}"));
-        for cell in outcome.cells.iter().filter(|c| c.dataset == dataset) {
+        for cell in &cells {
             out.push_str(&format!(
                 "  ε={}: {:.3} ± {}",
                 cell.eps_px,
@@ -337,6 +377,23 @@ pub fn render(outcome: &CrossValidationOutcome) -> String {
             ));
         }
         out.push('\n');
+        // Ranked lists: the same cells for each frame's best guess alone.
+        if cells.iter().all(|c| c.best_guess.is_some()) {
+            out.push_str(&format!("{:<28}", "  best guess per frame"));
+            for cell in cells
+                .iter()
+                .filter_map(|c| c.best_guess.as_ref().map(|b| (c, b)))
+            {
+                let (cell, best) = cell;
+                out.push_str(&format!(
+                    "  ε={}: {:.3} ± {}",
+                    cell.eps_px,
+                    best.mean,
+                    format_std(best.std)
+                ));
+            }
+            out.push('\n');
+        }
     }
     out
 }
@@ -402,5 +459,60 @@ mod tests {
         assert_eq!(cells.len(), 2);
         assert_eq!(cells[1].per_fold, [0.3]);
         assert_eq!(cells[1].std, None);
+    }
+
+    #[test]
+    fn ranked_lists_get_a_best_guess_line_with_its_own_mean_and_spread() {
+        let cv = CrossValidationPlan {
+            detector: "cnn".into(),
+            folds: 2,
+            fold: None,
+        };
+        let ranked = |detector: &str, auc: f64, best: f64| AucRow {
+            auc_best_per_frame: Some(best),
+            ..row(detector, "test", auc)
+        };
+        let auc = [
+            ranked("cnn-cv1of2", 0.6, 0.4),
+            ranked("cnn-cv2of2", 0.8, 0.5),
+        ];
+        let cells = summarise(&auc, &cv, "train");
+        let best = cells[0].best_guess.as_ref().expect("both folds rank");
+        assert!((best.mean - 0.45).abs() < 1e-12);
+        assert!((best.std.unwrap() - 0.05f64.hypot(0.05)).abs() < 1e-12);
+        let outcome = CrossValidationOutcome {
+            detector: "cnn".into(),
+            folds: 2,
+            run: RunOutcome {
+                run: "R".into(),
+                manifest: "m".into(),
+                status: crate::registry::RunStatus::Done,
+                auc: Vec::new(),
+                empty_frames: Vec::new(),
+                counts: Default::default(),
+                steps: Vec::new(),
+                damaged_blobs: Vec::new(),
+                seconds: 0.0,
+            },
+            cells,
+        };
+        let text = render(&outcome);
+        assert!(
+            text.contains("test                          ε=1: 0.700 ± 0.141\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("  best guess per frame        ε=1: 0.450 ± 0.071\n"),
+            "{text}"
+        );
+        // Without ranks (one fold's row lacks the value): no such line.
+        let mixed = [
+            ranked("cnn-cv1of2", 0.6, 0.4),
+            row("cnn-cv2of2", "test", 0.8),
+        ];
+        let cells = summarise(&mixed, &cv, "train");
+        assert!(cells[0].best_guess.is_none());
+        let text = render(&CrossValidationOutcome { cells, ..outcome });
+        assert!(!text.contains("best guess"), "{text}");
     }
 }
