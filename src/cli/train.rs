@@ -247,8 +247,7 @@ fn network_and_settings(args: &TrainArgs) -> anyhow::Result<(CnnArchitecture, Tr
         teacher_particles: args.teacher_particles.unwrap_or(defaults.teacher_particles),
         teacher_fresh_frames: args.teacher_fresh_frames,
     };
-    architecture.validate()?;
-    settings.validate()?;
+    cnn::validate_recipe(&architecture, &settings)?;
     Ok((architecture, settings))
 }
 

@@ -217,8 +217,7 @@ impl DetectorSpec {
         match self {
             DetectorSpec::CrockerGrier(params) => params.validate(),
             DetectorSpec::Cnn(spec) => {
-                spec.architecture.validate()?;
-                spec.training.validate()
+                crate::detect::cnn::validate_recipe(&spec.architecture, &spec.training)
             }
             DetectorSpec::Likelihood(params) => params.validate(),
         }

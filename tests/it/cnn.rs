@@ -1340,6 +1340,14 @@ fn the_categorical_head_refuses_what_it_cannot_learn_naming_the_field() {
         format!("{error:#}").contains("offset_radius_px"),
         "{error:#}"
     );
+    // The same recipe is refused when checked, before any training (a
+    // manifest's `check`, `scanloc train`'s flags).
+    let error = cnn::validate_recipe(&categorical_architecture(2), &tiny_settings(1)).unwrap_err();
+    assert!(
+        error.to_string().contains("training.offset_radius_px"),
+        "{error}"
+    );
+    assert!(cnn::validate_recipe(&categorical_architecture(2), &categorical_settings(1)).is_ok());
     // Frames of two QDs: one softmax cannot hold two centroids.
     let two = sim::simulate(
         &SimParams {

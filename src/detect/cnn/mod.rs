@@ -106,7 +106,8 @@ pub enum CnnHead {
     Peaks,
     /// A softmax over the frame's pixels: the probability that the
     /// centroid is nearest each pixel (cross-entropy against the pixel
-    /// nearest the centroid), each pixel's mass placed at pixel + offset.
+    /// nearest the centroid), each pixel's mass placed at pixel + offset
+    /// and spread by the σ maps ([`inference::categorical_guesses`]).
     /// That posterior is decoded by the greedy disc cover into up to
     /// `max_candidates` ranked guesses, each scored by its mass. Frames of
     /// exactly one QD (the paper's datasets); training refuses others.
@@ -371,6 +372,31 @@ impl Default for TrainingSettings {
             teacher_fresh_frames: false,
         }
     }
+}
+
+/// Checks a recipe: the architecture's fields, the training settings'
+/// fields, and what one asks of the other (the categorical head needs
+/// offsets supervised at the centroid's pixel only, `offset_radius_px: 0`:
+/// each pixel's offset is then the centroid given that it is nearest that
+/// pixel, which is how the decoding reads it; a wider window would pull
+/// every offset towards the posterior mean and merge the modes the list is
+/// made of). The error names the field.
+pub fn validate_recipe(
+    arch: &CnnArchitecture,
+    settings: &TrainingSettings,
+) -> Result<(), FieldError> {
+    arch.validate()?;
+    settings.validate()?;
+    if arch.head == CnnHead::Categorical && settings.offset_radius_px != 0 {
+        return Err(FieldError::new(
+            "training.offset_radius_px",
+            format!(
+                "the categorical head needs 0 (offsets supervised at the centroid's pixel only), got {}",
+                settings.offset_radius_px
+            ),
+        ));
+    }
+    Ok(())
 }
 
 impl TrainingSettings {

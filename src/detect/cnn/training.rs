@@ -508,8 +508,7 @@ fn train_and_select(
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<TrainedCnn> {
-    arch.validate()?;
-    settings.validate()?;
+    super::validate_recipe(arch, settings)?;
     let fresh_params = match (settings.fresh_frames_per_epoch, fresh_frames) {
         (0, _) => None,
         (_, None) => crate::bail_input!(
@@ -728,7 +727,7 @@ fn train_member(
         .external
         .or(split.held_out.as_ref())
         .expect("frames are held out unless the job brings a validation set");
-    let samples_per_epoch = check_trainable(job, &training_indices, split.n_split_off)?;
+    let samples_per_epoch = check_trainable(job, &emitters, &training_indices, split.n_split_off)?;
     let fixed = fixed_source(job, emitters);
     let device = super::inference_device().autodiff();
     let init_seed = stream(seed, STREAM_INIT, 0).random::<u64>();
@@ -861,9 +860,12 @@ fn split_frames(job: Job<'_>, seed: u64) -> anyhow::Result<SplitFrames> {
 }
 
 /// The samples of one epoch, refusing a training without any and fresh
-/// frames of another size than the dataset's (both go in one batch).
+/// frames of another size than the dataset's (both go in one batch), and
+/// what the head cannot learn from (`emitters`: the centroids of each of
+/// the dataset's frames).
 fn check_trainable(
     job: Job<'_>,
+    emitters: &[Vec<(f64, f64)>],
     training_indices: &[usize],
     n_split_off: usize,
 ) -> anyhow::Result<usize> {
@@ -888,24 +890,20 @@ fn check_trainable(
         );
     }
     if job.arch.head == CnnHead::Categorical {
-        check_categorical(job, training_indices)?;
+        check_categorical(job, emitters, training_indices)?;
     }
     Ok(samples_per_epoch)
 }
 
-/// The categorical head's conditions: one QD in every training frame (its
-/// softmax is one distribution of one centroid) and offsets supervised at
-/// the centroid's pixel only (each pixel's offset is then the centroid
-/// given that it is nearest that pixel, which is how the decoding reads
-/// it; a wider window would pull every offset towards the posterior mean
-/// and merge the modes the list is made of).
-fn check_categorical(job: Job<'_>, training_indices: &[usize]) -> anyhow::Result<()> {
-    if job.settings.offset_radius_px != 0 {
-        crate::bail_input!(
-            "training.offset_radius_px: the categorical head needs 0 (offsets supervised at the centroid's pixel only), got {}",
-            job.settings.offset_radius_px
-        );
-    }
+/// The categorical head's condition on its frames: one QD in every
+/// training frame, fixed or fresh (its softmax is one distribution of one
+/// centroid). Its condition on the settings is checked with the recipe
+/// ([`super::validate_recipe`]).
+fn check_categorical(
+    job: Job<'_>,
+    emitters: &[Vec<(f64, f64)>],
+    training_indices: &[usize],
+) -> anyhow::Result<()> {
     if let Some(params) = job.fresh_params
         && job.settings.fresh_frames_per_epoch > 0
         && params.emitters != EmitterCount::Fixed(1)
@@ -915,11 +913,10 @@ fn check_categorical(job: Job<'_>, training_indices: &[usize]) -> anyhow::Result
             params.emitters
         );
     }
-    let truth = truth_by_frame(&job.training.truth, job.training.frames.n)?;
-    if let Some(&i) = training_indices.iter().find(|&&i| truth[i].len() != 1) {
+    if let Some(&i) = training_indices.iter().find(|&&i| emitters[i].len() != 1) {
         crate::bail_input!(
             "training frames: the categorical head trains on frames of exactly one QD; frame {i} holds {}",
-            truth[i].len()
+            emitters[i].len()
         );
     }
     Ok(())
