@@ -330,12 +330,19 @@ fn decode_as_asked(model: &mut TrainedCnn, asked: &CandidateArgs) -> anyhow::Res
 
 fn locate_likelihood(args: &LocateArgs) -> anyhow::Result<()> {
     let filter = &args.likelihood;
+    let defaults = LikelihoodParams::default();
     let settings = LikelihoodParams {
         particles: filter.particles,
         score_radius_px: filter.score_radius_px,
-        max_candidates: args.candidates.max_candidates.unwrap_or(1),
-        candidate_radius_px: args.candidates.candidate_radius_px.unwrap_or(1.0),
-        ..LikelihoodParams::default()
+        max_candidates: args
+            .candidates
+            .max_candidates
+            .unwrap_or(defaults.max_candidates),
+        candidate_radius_px: args
+            .candidates
+            .candidate_radius_px
+            .unwrap_or(defaults.candidate_radius_px),
+        ..defaults
     };
     settings
         .validate()
