@@ -12,8 +12,9 @@ use serde_json::json;
 
 /// Run an experiment manifest: simulate its datasets, run its detectors,
 /// score its evaluations, print the AUC table (and, for test sets with
-/// empty frames, the false localisations per empty frame) and record the
-/// run.
+/// empty frames, the false localisations per empty frame), run its
+/// tracking pipelines on its recordings (tracking measures and D; see
+/// docs/tracking.md) and record the run.
 ///
 /// Every artefact is content-addressed: a step whose artefact is already in
 /// the registry (and whose blobs re-hash correctly) is skipped and counted
@@ -24,6 +25,8 @@ use serde_json::json;
 /// {"run", "auc": [{"detector", "dataset", "diffusion", "eps_px", "auc", …}],
 /// "empty_frames": [{"detector", "dataset", "threshold", "frames",
 /// "localisations", "false_localisations_per_frame"}],
+/// "tracking": [{"pipeline", "recording", "diffusion", "tracking": {"alpha",
+/// …}, "estimators": [{"method", "ensemble", "per_track", …}]}],
 /// "cached_steps", "computed_steps", …}.
 ///
 /// Manifest format: docs/manifest.md; the registry: docs/registry.md.
@@ -65,6 +68,7 @@ pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
             "status": outcome.status,
             "auc": outcome.auc,
             "empty_frames": outcome.empty_frames,
+            "tracking": outcome.tracking,
             "cached_steps": outcome.counts.cached,
             "computed_steps": outcome.counts.computed,
             "rebuilt_steps": outcome.counts.rebuilt,
@@ -74,8 +78,11 @@ pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
         });
         writeln!(stdout, "{value}")?;
     } else {
-        // A run that scores only sets of empty frames has no AUC to show.
-        if !outcome.auc.is_empty() || outcome.empty_frames.is_empty() {
+        // A run that scores only sets of empty frames, or only tracks, has
+        // no AUC to show.
+        if !outcome.auc.is_empty()
+            || (outcome.empty_frames.is_empty() && outcome.tracking.is_empty())
+        {
             write!(
                 stdout,
                 "{}",
@@ -87,6 +94,7 @@ pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
             "{}",
             table::render_empty_frames(&outcome.empty_frames)
         )?;
+        write!(stdout, "{}", table::render_tracking(&outcome.tracking))?;
         writeln!(
             stdout,
             "run {}: {} steps cached, {} computed, {} rebuilt in {:.2} s (registry {})",

@@ -142,6 +142,43 @@ fn parse_truth_row(
     })
 }
 
+/// Writes `tracks` as a tracks table: `frame,x,y,particle`, with
+/// `sigma_x,sigma_y` before `particle` when any point has an uncertainty
+/// (empty cells where one has none); rows by frame, then particle. Floats
+/// in Rust's shortest round-trip form, so [`read_tracks_from`] gives back
+/// the same bits.
+pub fn write_tracks_to<W: Write>(writer: W, tracks: &[Track]) -> anyhow::Result<()> {
+    let with_sigma = tracks
+        .iter()
+        .any(|t| t.points.iter().any(|p| p.sigma.is_some()));
+    let mut rows: Vec<(usize, i64, &TrackPoint)> = tracks
+        .iter()
+        .flat_map(|t| t.points.iter().map(move |p| (p.frame, t.particle, p)))
+        .collect();
+    rows.sort_by_key(|&(frame, particle, _)| (frame, particle));
+    let mut csv = csv::Writer::from_writer(writer);
+    if with_sigma {
+        csv.write_record(["frame", "x", "y", "sigma_x", "sigma_y", "particle"])?;
+    } else {
+        csv.write_record(["frame", "x", "y", "particle"])?;
+    }
+    for (frame, particle, point) in rows {
+        let mut record = vec![frame.to_string(), point.x.to_string(), point.y.to_string()];
+        if with_sigma {
+            let (sx, sy) = point
+                .sigma
+                .map_or((String::new(), String::new()), |(sx, sy)| {
+                    (sx.to_string(), sy.to_string())
+                });
+            record.extend([sx, sy]);
+        }
+        record.push(particle.to_string());
+        csv.write_record(&record)?;
+    }
+    csv.flush()?;
+    Ok(())
+}
+
 /// Reads a tracks table (see the module's documentation).
 pub fn read_tracks(path: &Path) -> anyhow::Result<Vec<Track>> {
     read_tracks_from(open_input(path)?, &path.display().to_string())

@@ -92,6 +92,15 @@ pub struct Manifest {
     pub cross_validation: Option<CrossValidation>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reference: Option<Reference>,
+    /// Continuous recordings in manifest order (docs/tracking.md).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub recordings: Vec<RecordingSpec>,
+    /// Linkers in manifest order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub linkers: Vec<LinkerEntry>,
+    /// The tracking pipelines to run and score, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tracking: Option<TrackingSpec>,
     /// The manifest text exactly as read (recorded with runs).
     #[serde(skip)]
     pub text: String,
@@ -115,6 +124,103 @@ impl DatasetSpec {
             crate::sim::Distribution::Fixed(d) => Some(d),
             crate::sim::Distribution::Random(_) => None,
         }
+    }
+}
+
+/// A continuous recording (`docs/tracking.md`): the microscope with this
+/// recording's overrides, the volume's QDs and their blinking.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecordingSpec {
+    pub name: String,
+    /// `derive_seed(master, "dataset", name)`: recordings and datasets share
+    /// one namespace.
+    pub seed: u64,
+    pub params: crate::sim::recording::RecordingParams,
+}
+
+impl RecordingSpec {
+    /// Everything that determines the recording except its seed, as JSON
+    /// (part of its content key; the names are the manifest's).
+    pub fn params_json(&self) -> serde_json::Value {
+        let p = &self.params;
+        serde_json::json!({
+            "microscope": p.microscope,
+            "frames": p.frames,
+            "qd_density": p.density_per_um3,
+            "lateral_margin_um": p.lateral_margin_um,
+            "half_depth_um": p.half_depth_um,
+            "dead_time_ms": p.dead_time_ms,
+            "blink": p.blinking.map(|b| serde_json::json!({"on_ms": b.on_ms, "off_ms": b.off_ms})),
+        })
+    }
+
+    /// The recording's D, µm²/s (a recording's D is a fixed number).
+    pub fn diffusion(&self) -> f64 {
+        self.params
+            .microscope
+            .diffusion_um2_s
+            .fixed()
+            .unwrap_or(f64::NAN)
+    }
+
+    /// The scan as the D estimators see it.
+    pub fn geometry(&self) -> crate::track::diffusion::ScanGeometry {
+        let m = &self.params.microscope;
+        crate::track::diffusion::ScanGeometry {
+            height: m.height,
+            width: m.width,
+            pixel_size_um: m.pixel_size_um,
+            dwell_us: m.dwell_us,
+            retrace_ms: m.retrace_ms,
+            dead_time_ms: self.params.dead_time_ms,
+            sigma_xy_um: m.sigma_xy_um,
+        }
+    }
+}
+
+impl Serialize for RecordingSpec {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serde_json::json!({
+            "name": self.name,
+            "seed": self.seed,
+            "params": self.params_json(),
+        })
+        .serialize(serializer)
+    }
+}
+
+/// A named linker.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LinkerEntry {
+    pub name: String,
+    pub spec: crate::track::pipeline::LinkerSpec,
+}
+
+/// The `tracking` section: how tracks are scored, and which pipelines
+/// (detector, linker) run on which recordings.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrackingSpec {
+    pub scoring: crate::track::pipeline::TrackScoring,
+    /// Every (detector, linker, recording), in manifest order.
+    pub evaluations: Vec<TrackingEvaluationSpec>,
+}
+
+/// One tracking pipeline on one recording.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrackingEvaluationSpec {
+    pub detector: String,
+    pub linker: String,
+    pub recording: String,
+    /// Only predictions scoring at least this are linked (all when absent).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_score: Option<f64>,
+}
+
+impl TrackingEvaluationSpec {
+    /// The pipeline's name, `DETECTOR+LINKER` (`+` is never part of a
+    /// manifest's names, so it cannot collide with a detector's).
+    pub fn pipeline(&self) -> String {
+        format!("{}+{}", self.detector, self.linker)
     }
 }
 

@@ -19,6 +19,7 @@ pub(super) struct RawManifest {
     pub seed: u64,
     #[serde(default)]
     pub microscope: serde_yaml::Mapping,
+    #[serde(default)]
     pub datasets: Named<serde_yaml::Mapping>,
     #[serde(default)]
     pub detectors: Named<SingletonMap<DetectorSpec>>,
@@ -30,6 +31,14 @@ pub(super) struct RawManifest {
     pub cross_validation: Option<CrossValidation>,
     #[serde(default)]
     pub reference: Option<RawReference>,
+    /// Continuous recordings: name → frames, overrides of the microscope
+    /// and the volume's settings.
+    #[serde(default)]
+    pub recordings: Named<serde_yaml::Mapping>,
+    #[serde(default)]
+    pub linkers: Named<SingletonMap<crate::track::pipeline::LinkerSpec>>,
+    #[serde(default)]
+    pub tracking: Option<RawTracking>,
     /// A parameter grid for `scanloc sweep run`, read by the sweep
     /// module (a plain run ignores it).
     #[serde(default, rename = "sweep")]
@@ -45,6 +54,27 @@ pub(super) struct RawEvaluation {
     /// Score on only the first this many frames of each dataset.
     #[serde(default)]
     pub frames: Option<usize>,
+}
+
+/// The `tracking` section as written.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawTracking {
+    #[serde(default)]
+    pub scoring: crate::track::pipeline::TrackScoring,
+    pub evaluations: Vec<RawTrackingEvaluation>,
+}
+
+/// One entry of `tracking.evaluations`: a detector, a linker and the
+/// recordings they run on.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawTrackingEvaluation {
+    pub detector: String,
+    pub linker: String,
+    pub recordings: Vec<String>,
+    #[serde(default)]
+    pub min_score: Option<f64>,
 }
 
 #[derive(Deserialize)]

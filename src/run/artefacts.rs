@@ -10,6 +10,13 @@
 //!   gives back the same bits).
 //! - evaluation: `score.json`, the metric's [`Score`] (with curves if the
 //!   manifest keeps them).
+//! - recording (a dataset): `frames.npy` as a dataset's and `truth.csv`,
+//!   the recording truth of `scanloc simulate-recording` (one row per QD
+//!   per frame, with a `qd` column).
+//! - tracks (predictions of a tracking pipeline): `predictions.csv`, the
+//!   tracks table (`frame,x,y[,sigma_x,sigma_y],particle`).
+//! - tracking evaluation: `score.json`, the [`TrackEvaluation`] (with a
+//!   top-level `tracking` object).
 //!
 //! Every encoding is the one writer and reader of its format in
 //! [`crate::io`]. Bump [`FORMAT_VERSION`] when an encoding changes: it is part of every
@@ -22,7 +29,16 @@ use anyhow::Context;
 use crate::io::{csv_tables, npy};
 use crate::metrics::Score;
 use crate::registry::BlobRole;
-use crate::types::{Dataset, Prediction};
+use crate::track::pipeline::TrackEvaluation;
+use crate::types::{Dataset, FrameStack, Prediction, RecordingTruthRow, Track};
+
+/// A recording as stored: its frames and its truth (one row per QD per
+/// frame it is in the field).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RecordingData {
+    pub frames: FrameStack,
+    pub truth: Vec<RecordingTruthRow>,
+}
 
 /// Version of the blob encodings below.
 pub const FORMAT_VERSION: &str = "scanloc-blobs/1";
@@ -34,6 +50,9 @@ pub enum Artefact {
     Model(Arc<Vec<u8>>),
     Predictions(Arc<Vec<Prediction>>),
     Evaluation(Arc<Score>),
+    Recording(Arc<RecordingData>),
+    Tracks(Arc<Vec<Track>>),
+    TrackEvaluation(Arc<TrackEvaluation>),
 }
 
 impl Artefact {
@@ -56,7 +75,52 @@ impl Artefact {
             Artefact::Evaluation(score) => {
                 vec![(BlobRole::Score, serde_json::to_vec(score.as_ref())?)]
             }
+            Artefact::Recording(recording) => {
+                let mut frames = Vec::new();
+                npy::write_frames(&mut frames, &recording.frames)?;
+                let mut truth = Vec::new();
+                crate::io::tracks::write_recording_truth_to(&mut truth, &recording.truth)?;
+                vec![(BlobRole::Frames, frames), (BlobRole::Truth, truth)]
+            }
+            Artefact::Tracks(tracks) => {
+                let mut csv = Vec::new();
+                crate::io::tracks::write_tracks_to(&mut csv, tracks)?;
+                vec![(BlobRole::Predictions, csv)]
+            }
+            Artefact::TrackEvaluation(evaluation) => {
+                vec![(BlobRole::Score, serde_json::to_vec(evaluation.as_ref())?)]
+            }
         })
+    }
+
+    /// The frames of a dataset or a recording.
+    pub fn frames(&self) -> anyhow::Result<&FrameStack> {
+        match self {
+            Artefact::Dataset(d) => Ok(&d.frames),
+            Artefact::Recording(r) => Ok(&r.frames),
+            _ => anyhow::bail!("expected a dataset or recording artefact"),
+        }
+    }
+
+    pub fn recording(&self) -> anyhow::Result<&Arc<RecordingData>> {
+        match self {
+            Artefact::Recording(r) => Ok(r),
+            _ => anyhow::bail!("expected a recording artefact"),
+        }
+    }
+
+    pub fn tracks(&self) -> anyhow::Result<&Arc<Vec<Track>>> {
+        match self {
+            Artefact::Tracks(t) => Ok(t),
+            _ => anyhow::bail!("expected a tracks artefact"),
+        }
+    }
+
+    pub fn track_evaluation(&self) -> anyhow::Result<&Arc<TrackEvaluation>> {
+        match self {
+            Artefact::TrackEvaluation(e) => Ok(e),
+            _ => anyhow::bail!("expected a tracking evaluation artefact"),
+        }
     }
 
     pub fn dataset(&self) -> anyhow::Result<&Arc<Dataset>> {
@@ -107,6 +171,63 @@ pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> 
     let truth =
         csv_tables::read_truth_from(blob(blobs, BlobRole::Truth)?, BlobRole::Truth.as_str())?;
     Ok(Dataset { frames, truth })
+}
+
+/// Whether a dataset's blobs hold a recording (its truth has a `qd`
+/// column) rather than per-frame frames.
+pub fn holds_recording(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+    header_has(blobs, BlobRole::Truth, "qd")
+}
+
+/// Whether a predictions artefact's blobs hold tracks (a `particle` column).
+pub fn holds_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+    header_has(blobs, BlobRole::Predictions, "particle")
+}
+
+/// Whether an evaluation's `score.json` is a tracking evaluation (a
+/// top-level `tracking` object).
+pub fn holds_track_evaluation(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+    blob(blobs, BlobRole::Score).is_ok_and(|json| {
+        serde_json::from_slice::<serde_json::Value>(json)
+            .is_ok_and(|v| v.get("tracking").is_some_and(|t| t.is_object()))
+    })
+}
+
+/// Whether the first line of CSV blob `role` names column `column`.
+fn header_has(blobs: &[(BlobRole, Vec<u8>)], role: BlobRole, column: &str) -> bool {
+    blob(blobs, role).is_ok_and(|bytes| {
+        let line = bytes.split(|&b| b == b'\n').next().unwrap_or_default();
+        line.split(|&b| b == b',')
+            .any(|name| name.trim_ascii() == column.as_bytes())
+    })
+}
+
+/// Decodes a recording from its `frames.npy` and `truth.csv` blobs.
+pub fn decode_recording(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<RecordingData> {
+    let frames_npy = blob(blobs, BlobRole::Frames)?;
+    let frames = npy::read_frames_from(
+        frames_npy,
+        frames_npy.len() as u64,
+        BlobRole::Frames.as_str(),
+    )?;
+    let truth = crate::io::tracks::read_recording_truth_from(
+        blob(blobs, BlobRole::Truth)?,
+        BlobRole::Truth.as_str(),
+    )?;
+    Ok(RecordingData { frames, truth })
+}
+
+/// Decodes tracks from their `predictions.csv` blob.
+pub fn decode_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Track>> {
+    crate::io::tracks::read_tracks_from(
+        blob(blobs, BlobRole::Predictions)?,
+        BlobRole::Predictions.as_str(),
+    )
+}
+
+/// Decodes a tracking evaluation from its `score.json` blob.
+pub fn decode_track_evaluation(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<TrackEvaluation> {
+    serde_json::from_slice(blob(blobs, BlobRole::Score)?).context("decoding score.json")
 }
 
 /// Decodes predictions from their `predictions.csv` blob.

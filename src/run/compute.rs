@@ -9,7 +9,9 @@ use anyhow::Context;
 use super::artefacts::Artefact;
 use super::plan::{Action, Plan, Step};
 use super::stored::load_step_artefact;
-use crate::manifest::{CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, MetricsSpec};
+use crate::manifest::{
+    CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, MetricsSpec, RecordingSpec,
+};
 use crate::registry::Registry;
 
 /// Artefacts held in memory for the steps still to come, each dropped after
@@ -86,7 +88,7 @@ pub(super) fn compute(
             dataset,
             model,
         } => {
-            let microscope = root_dataset(plan, *dataset).map(|d| &d.params);
+            let microscope = root_microscope(plan, *dataset);
             let dataset = read_input(*dataset)?;
             let model = model.map(&mut read_input).transpose()?;
             locate(step, detector, &dataset, model.as_ref(), microscope)
@@ -102,7 +104,66 @@ pub(super) fn compute(
             let predictions = read_input(*predictions)?;
             score(step, &dataset, &predictions, metrics, *reading)
         }
+        Action::SimulateRecording { recording } => simulate_recording(recording),
+        Action::Link {
+            linker,
+            min_score,
+            recording,
+            predictions,
+            ..
+        } => {
+            let spec = recording_spec(plan, *recording)?;
+            let predictions = read_input(*predictions)?;
+            let tracks = crate::track::pipeline::link_predictions(
+                predictions.predictions()?,
+                *min_score,
+                &linker.spec,
+                &spec.geometry(),
+            )
+            .with_context(|| format!("linking {}", step.name()))?;
+            Ok(Artefact::Tracks(Arc::new(tracks)))
+        }
+        Action::ScoreTracks {
+            recording,
+            tracks,
+            scoring,
+            ..
+        } => {
+            let spec = recording_spec(plan, *recording)?;
+            let data = read_input(*recording)?;
+            let tracks = read_input(*tracks)?;
+            let evaluation = crate::track::pipeline::evaluate(
+                &data.recording()?.truth,
+                tracks.tracks()?,
+                &spec.geometry(),
+                scoring,
+                spec.diffusion(),
+            )
+            .with_context(|| format!("scoring {}", step.name()))?;
+            Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
+        }
     }
+}
+
+/// The recording simulated by step `index`.
+fn recording_spec(plan: &Plan, index: usize) -> anyhow::Result<&RecordingSpec> {
+    match &plan.steps[index].action {
+        Action::SimulateRecording { recording } => Ok(recording),
+        _ => anyhow::bail!("{} is not a recording", plan.steps[index].id),
+    }
+}
+
+fn simulate_recording(recording: &RecordingSpec) -> anyhow::Result<Artefact> {
+    let progress = crate::progress::bar(0, &recording.name);
+    let made = crate::sim::recording::simulate_recording(&recording.params, recording.seed, true)
+        .with_context(|| format!("simulating recording {}", recording.name))?;
+    progress.finish_and_clear();
+    Ok(Artefact::Recording(Arc::new(
+        super::artefacts::RecordingData {
+            frames: made.frames,
+            truth: made.truth,
+        },
+    )))
 }
 
 /// The artefact of step `index`, from memory or from the registry (then
@@ -187,7 +248,7 @@ fn locate(
     model: Option<&Artefact>,
     microscope: Option<&crate::sim::SimParams>,
 ) -> anyhow::Result<Artefact> {
-    let frames = &dataset.dataset()?.frames;
+    let frames = dataset.frames()?;
     let progress = crate::progress::bar(frames.n as u64, &step.name());
     let predictions = match &detector.spec {
         DetectorSpec::CrockerGrier(params) => {
@@ -250,6 +311,19 @@ pub(super) fn root_dataset(plan: &Plan, mut index: usize) -> Option<&DatasetSpec
     }
     match &plan.steps[index].action {
         Action::Simulate { dataset } => Some(dataset),
+        _ => None,
+    }
+}
+
+/// The microscope of the frames step `index` makes: a dataset's (or its
+/// source's) or a recording's.
+fn root_microscope(plan: &Plan, mut index: usize) -> Option<&crate::sim::SimParams> {
+    while let Action::Subset { source, .. } = &plan.steps[index].action {
+        index = *source;
+    }
+    match &plan.steps[index].action {
+        Action::Simulate { dataset } => Some(&dataset.params),
+        Action::SimulateRecording { recording } => Some(&recording.params.microscope),
         _ => None,
     }
 }

@@ -489,6 +489,7 @@ mod tests {
                 status: crate::registry::RunStatus::Done,
                 auc: Vec::new(),
                 empty_frames: Vec::new(),
+                tracking: Vec::new(),
                 counts: Default::default(),
                 steps: Vec::new(),
                 damaged_blobs: Vec::new(),

@@ -91,5 +91,69 @@ pub(super) fn details(plan: &Plan, index: usize, artefact: &Artefact) -> Artefac
                     .unwrap_or_default(),
             }
         }
+        (Action::SimulateRecording { recording }, _) => {
+            let m = &recording.params.microscope;
+            ArtefactDetails::Dataset {
+                frames: recording.params.frames,
+                height: m.height,
+                width: m.width,
+                seed: recording.seed,
+                diffusion: m.diffusion_um2_s.fixed(),
+                brightness: m.brightness,
+                params_json: recording.params_json().to_string(),
+            }
+        }
+        (
+            Action::Link {
+                pipeline,
+                recording,
+                predictions,
+                ..
+            },
+            artefact,
+        ) => ArtefactDetails::Predictions {
+            detector: pipeline.clone(),
+            dataset_key: plan.steps[*recording].key.clone(),
+            // The localiser's model, if it is trained.
+            model_key: match &plan.steps[*predictions].action {
+                Action::Locate { model, .. } => model.map(|m| plan.steps[m].key.clone()),
+                _ => None,
+            },
+            count: artefact
+                .tracks()
+                .map(|tracks| tracks.iter().map(|t| t.points.len()).sum())
+                .unwrap_or(0),
+        },
+        (
+            Action::ScoreTracks {
+                pipeline,
+                recording_name,
+                recording,
+                tracks,
+                ..
+            },
+            artefact,
+        ) => {
+            // No AUC: the tracking measures are in score.json. The share of
+            // truth points no track point matched stands for the frames
+            // without a prediction.
+            let missed = artefact.track_evaluation().ok().map(|e| {
+                let t = &e.tracking;
+                if t.truth_points == 0 {
+                    0.0
+                } else {
+                    t.missed_points as f64 / t.truth_points as f64
+                }
+            });
+            ArtefactDetails::Evaluation {
+                detector: pipeline.clone(),
+                dataset: recording_name.clone(),
+                dataset_key: plan.steps[*recording].key.clone(),
+                predictions_key: plan.steps[*tracks].key.clone(),
+                rmse_top_px: None,
+                fraction_without_prediction: missed.unwrap_or(0.0),
+                auc: Vec::new(),
+            }
+        }
     }
 }

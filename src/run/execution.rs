@@ -18,6 +18,7 @@ use crate::registry::hashing::sha256_hex;
 use crate::registry::{
     AucRow, BlobRef, BlobRole, NewArtefact, Registry, StepCounts, StepOutcome, StepRecord,
 };
+use crate::track::pipeline::TrackEvaluation;
 
 /// How often a run waiting for another's step looks again.
 const CLAIM_POLL: std::time::Duration = std::time::Duration::from_millis(200);
@@ -34,6 +35,8 @@ pub(super) struct Execution {
     pub counts: StepCounts,
     /// The empty-frame figures of the evaluations so far, in plan order.
     pub empty_frames: Vec<EmptyFramesRow>,
+    /// The tracking pipelines' figures so far, in plan order.
+    pub tracking: Vec<TrackingRow>,
 }
 
 /// The localisations of one evaluation on the empty frames (frames
@@ -50,6 +53,63 @@ pub struct EmptyFramesRow {
     /// The set's empty frames and the localisations on them.
     #[serde(flatten)]
     pub empty_frames: EmptyFrames,
+}
+
+/// A tracking pipeline's figures on one recording, as the run table
+/// prints them (the per-track estimates stay in the evaluation's
+/// `score.json`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TrackingRow {
+    /// `DETECTOR+LINKER`.
+    pub pipeline: String,
+    pub recording: String,
+    /// The recording's true D, µm²/s.
+    pub diffusion: f64,
+    pub tracking: crate::metrics::tracking::TrackingScore,
+    pub estimators: Vec<EstimatorRow>,
+    pub evaluation_key: String,
+}
+
+/// One estimator's D on a recording: the ensemble and the per-track
+/// metrics.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct EstimatorRow {
+    pub method: crate::track::diffusion::Method,
+    pub ensemble: Option<crate::track::pipeline::StoredEstimate>,
+    pub ensemble_relative_error: Option<f64>,
+    pub per_track: Option<crate::metrics::diffusion::DiffusionScore>,
+}
+
+impl TrackingRow {
+    /// The row of tracking evaluation step `step` whose evaluation is
+    /// `evaluation`; `None` for a step that does not score tracks.
+    pub fn of(step: &Step, evaluation: &TrackEvaluation) -> Option<Self> {
+        let Action::ScoreTracks {
+            pipeline,
+            recording_name,
+            ..
+        } = &step.action
+        else {
+            return None;
+        };
+        Some(Self {
+            pipeline: pipeline.clone(),
+            recording: recording_name.clone(),
+            diffusion: evaluation.true_diffusion_um2_s,
+            tracking: evaluation.tracking.clone(),
+            estimators: evaluation
+                .diffusion
+                .iter()
+                .map(|e| EstimatorRow {
+                    method: e.method,
+                    ensemble: e.ensemble,
+                    ensemble_relative_error: e.ensemble_relative_error,
+                    per_track: e.per_track,
+                })
+                .collect(),
+            evaluation_key: step.key.clone(),
+        })
+    }
 }
 
 /// One step done: how, with which blobs, and its artefact if it was made
@@ -90,6 +150,7 @@ impl Execution {
             mismatches: Vec::new(),
             counts: StepCounts::default(),
             empty_frames: Vec::new(),
+            tracking: Vec::new(),
         }
     }
 
@@ -126,6 +187,9 @@ impl Execution {
             if let Some(score) = evaluation(registry, step, &done)? {
                 auc.extend(score_rows(plan, step, &score));
                 self.empty_frames.extend(empty_frames_row(step, &score));
+            }
+            if let Some(evaluation) = track_evaluation(registry, step, &done)? {
+                self.tracking.extend(TrackingRow::of(step, &evaluation));
             }
             if let Some(artefact) = &done.artefact {
                 loaded.keep_if_read_later(index, artefact.clone());
@@ -322,6 +386,26 @@ fn evaluation(
         )?)?),
     };
     Ok(Some(score))
+}
+
+/// The evaluation of a tracks-scoring step, `None` for other steps. A
+/// cached evaluation is read from its `score.json` blob.
+fn track_evaluation(
+    registry: &Registry,
+    step: &Step,
+    done: &StepDone,
+) -> anyhow::Result<Option<Arc<TrackEvaluation>>> {
+    if !matches!(step.action, Action::ScoreTracks { .. }) {
+        return Ok(None);
+    }
+    let evaluation = match &done.artefact {
+        Some(artefact) => artefact.track_evaluation()?.clone(),
+        None => Arc::new(artefacts::decode_track_evaluation(&read_blobs(
+            registry,
+            &done.blobs,
+        )?)?),
+    };
+    Ok(Some(evaluation))
 }
 
 /// The empty-frame figures of scoring step `step` whose evaluation is

@@ -33,7 +33,7 @@ use serde::Serialize;
 
 pub use artefacts::Artefact;
 pub use compute::subset;
-pub use execution::{EmptyFramesRow, score_rows};
+pub use execution::{EmptyFramesRow, EstimatorRow, TrackingRow, score_rows};
 pub use plan::{Action, Plan, Step};
 pub use stored::{load_artefact, read_blobs};
 
@@ -71,6 +71,8 @@ pub struct RunOutcome {
     /// one row per evaluation of a set that has some, in plan order: a set
     /// of empty frames has no AUC row, only this.
     pub empty_frames: Vec<EmptyFramesRow>,
+    /// The tracking pipelines' figures, in plan order.
+    pub tracking: Vec<TrackingRow>,
     /// Steps cached, computed, and rebuilt (made again because a stored
     /// blob was missing or damaged).
     #[serde(flatten)]
@@ -160,6 +162,7 @@ pub fn execute(
         status,
         auc,
         empty_frames: execution.empty_frames,
+        tracking: execution.tracking,
         counts: execution.counts,
         steps: execution.steps,
         damaged_blobs: execution.damaged,

@@ -20,11 +20,15 @@ use serde::Serialize;
 use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
-use crate::manifest::{DatasetSpec, DetectorEntry, Manifest, MetricsSpec};
+use crate::manifest::{
+    DatasetSpec, DetectorEntry, LinkerEntry, Manifest, MetricsSpec, RecordingSpec,
+};
 use crate::metrics::ScoreReading;
 use crate::registry::hashing::{canonical_json, content_key};
 use crate::registry::{ArtefactKind, StepId};
 use crate::sim::GENERATOR_VERSION;
+use crate::sim::recording::RECORDING_VERSION;
+use crate::track::pipeline::{LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring};
 
 /// Version of the frame-subset step (cross-validation folds).
 pub const SUBSET_VERSION: &str = "scanloc-subset/1";
@@ -71,6 +75,29 @@ pub enum Action {
         metrics: MetricsSpec,
         /// How the detector's score is read (threshold, probability).
         reading: ScoreReading,
+    },
+    /// Simulate a continuous recording (a dataset of its own kind: its
+    /// truth follows QDs from frame to frame).
+    SimulateRecording { recording: RecordingSpec },
+    /// Link the predictions of step `predictions`, made on the recording of
+    /// step `recording`, into tracks: the tracking pipeline `pipeline`
+    /// (`DETECTOR+LINKER`).
+    Link {
+        pipeline: String,
+        linker: LinkerEntry,
+        /// Only predictions scoring at least this are linked.
+        min_score: Option<f64>,
+        recording: usize,
+        predictions: usize,
+    },
+    /// Score the tracks of step `tracks` against the truth of the recording
+    /// of step `recording`: tracking measures and D.
+    ScoreTracks {
+        pipeline: String,
+        recording_name: String,
+        recording: usize,
+        tracks: usize,
+        scoring: TrackScoring,
     },
 }
 
@@ -121,6 +148,15 @@ impl Step {
                 predictions,
                 ..
             } => vec![*dataset, *predictions],
+            Action::SimulateRecording { .. } => Vec::new(),
+            Action::Link {
+                recording,
+                predictions,
+                ..
+            } => vec![*recording, *predictions],
+            Action::ScoreTracks {
+                recording, tracks, ..
+            } => vec![*recording, *tracks],
         }
     }
 }
@@ -355,8 +391,158 @@ impl Plan {
         Ok(self.push(step))
     }
 
+    /// Adds the step that simulates `recording`.
+    pub fn add_recording(&mut self, recording: &RecordingSpec) -> anyhow::Result<usize> {
+        let code_version = format!("{RECORDING_VERSION}+{FORMAT_VERSION}");
+        let description = json!({
+            "kind": "dataset",
+            "code": code_version,
+            "recording": recording.params_json(),
+            "seed": recording.seed,
+        });
+        let step = make_step(
+            StepId::Dataset(recording.name.clone()),
+            code_version,
+            Some(recording.seed),
+            &description,
+            Action::SimulateRecording {
+                recording: recording.clone(),
+            },
+        )?;
+        Ok(self.push(step))
+    }
+
+    /// Adds the step that links the predictions of step `predictions` on
+    /// the recording of step `recording` with `linker`, keeping those that
+    /// score at least `min_score`; `detector` names the localiser.
+    pub fn add_link(
+        &mut self,
+        detector: &str,
+        linker: &LinkerEntry,
+        min_score: Option<f64>,
+        recording: usize,
+        predictions: usize,
+    ) -> anyhow::Result<usize> {
+        let code_version = format!("{LINK_VERSION}+{FORMAT_VERSION}");
+        let pipeline = format!("{detector}+{}", linker.name);
+        let description = json!({
+            "kind": "predictions",
+            "code": code_version,
+            "linker": linker.spec,
+            "min_score": min_score,
+            "recording": self.steps[recording].key,
+            "predictions": self.steps[predictions].key,
+        });
+        let id = StepId::Predictions {
+            detector: pipeline.clone(),
+            dataset: self.steps[recording].name(),
+        };
+        let step = make_step(
+            id,
+            code_version,
+            None,
+            &description,
+            Action::Link {
+                pipeline,
+                linker: linker.clone(),
+                min_score,
+                recording,
+                predictions,
+            },
+        )?;
+        Ok(self.push(step))
+    }
+
+    /// Adds the step that scores the tracks of step `tracks` (pipeline
+    /// `pipeline`) against the recording of step `recording`.
+    pub fn add_track_score(
+        &mut self,
+        pipeline: &str,
+        recording: usize,
+        tracks: usize,
+        scoring: &TrackScoring,
+    ) -> anyhow::Result<usize> {
+        let code_version = format!("{TRACK_METRIC_VERSION}+{FORMAT_VERSION}");
+        let description = json!({
+            "kind": "evaluation",
+            "code": code_version,
+            "recording": self.steps[recording].key,
+            "tracks": self.steps[tracks].key,
+            "scoring": scoring,
+        });
+        let recording_name = self.steps[recording].name();
+        let id = StepId::Evaluation {
+            detector: pipeline.to_string(),
+            dataset: recording_name.clone(),
+        };
+        let step = make_step(
+            id,
+            code_version,
+            None,
+            &description,
+            Action::ScoreTracks {
+                pipeline: pipeline.to_string(),
+                recording_name,
+                recording,
+                tracks,
+                scoring: *scoring,
+            },
+        )?;
+        Ok(self.push(step))
+    }
+
+    /// The steps of a manifest's tracking pipelines: each recording, the
+    /// training of each trained detector, locate, link and score.
+    fn add_tracking(&mut self, manifest: &Manifest) -> anyhow::Result<()> {
+        let Some(tracking) = &manifest.tracking else {
+            return Ok(());
+        };
+        for evaluation in &tracking.evaluations {
+            let detector = manifest
+                .detector(&evaluation.detector)
+                .expect("the manifest checked its references");
+            let linker = manifest
+                .linkers
+                .iter()
+                .find(|l| l.name == evaluation.linker)
+                .expect("the manifest checked its references");
+            let recording = manifest
+                .recordings
+                .iter()
+                .find(|r| r.name == evaluation.recording)
+                .expect("the manifest checked its references");
+            let model = match detector.spec.training_dataset() {
+                Some(training) => {
+                    let training = manifest
+                        .dataset(training)
+                        .expect("the manifest checked its references");
+                    let training = self.add_dataset(training)?;
+                    Some(self.add_training(detector, training, None)?)
+                }
+                None => None,
+            };
+            let recording_step = self.add_recording(recording)?;
+            let predictions = self.add_locate(detector, recording_step, model)?;
+            let tracks = self.add_link(
+                &detector.name,
+                linker,
+                evaluation.min_score,
+                recording_step,
+                predictions,
+            )?;
+            self.add_track_score(
+                &evaluation.pipeline(),
+                recording_step,
+                tracks,
+                &tracking.scoring,
+            )?;
+        }
+        Ok(())
+    }
+
     /// The plan of a manifest: every dataset, the training of every trained
-    /// detector that is evaluated, and every evaluation (locate + score).
+    /// detector that is evaluated, every evaluation (locate + score), and
+    /// every tracking pipeline (recording, locate, link, score).
     pub fn from_manifest(manifest: &Manifest) -> anyhow::Result<Self> {
         let mut plan = Plan::default();
         let mut dataset_steps = BTreeMap::new();
@@ -402,6 +588,7 @@ impl Plan {
                 manifest.metrics.score_reading(detector),
             )?;
         }
+        plan.add_tracking(manifest)?;
         Ok(plan)
     }
 

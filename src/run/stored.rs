@@ -129,7 +129,19 @@ pub(super) fn load_step_artefact(
 
 /// An artefact of kind `kind` from its blobs.
 fn decode(kind: ArtefactKind, blobs: Vec<(BlobRole, Vec<u8>)>) -> anyhow::Result<Artefact> {
+    // Recordings, tracks and tracking evaluations share the registry's
+    // kinds with datasets, predictions and evaluations; their formats tell
+    // them apart.
     Ok(match kind {
+        ArtefactKind::Dataset if artefacts::holds_recording(&blobs) => {
+            Artefact::Recording(Arc::new(artefacts::decode_recording(&blobs)?))
+        }
+        ArtefactKind::Predictions if artefacts::holds_tracks(&blobs) => {
+            Artefact::Tracks(Arc::new(artefacts::decode_tracks(&blobs)?))
+        }
+        ArtefactKind::Evaluation if artefacts::holds_track_evaluation(&blobs) => {
+            Artefact::TrackEvaluation(Arc::new(artefacts::decode_track_evaluation(&blobs)?))
+        }
         ArtefactKind::Dataset => Artefact::Dataset(Arc::new(artefacts::decode_dataset(&blobs)?)),
         ArtefactKind::Model => Artefact::Model(Arc::new(
             blobs.into_iter().next().map(|(_, b)| b).unwrap_or_default(),

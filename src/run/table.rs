@@ -6,7 +6,7 @@
 //! (its own row is the whole lists'). Sets with empty frames get a second
 //! table, of the false localisations per empty frame.
 
-use super::EmptyFramesRow;
+use super::{EmptyFramesRow, TrackingRow};
 use crate::limits::display_cell;
 use crate::manifest::Reference;
 use crate::registry::AucRow;
@@ -164,7 +164,17 @@ pub fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
             ]
         })
         .collect();
-    let widths: Vec<usize> = (0..headers.len())
+    render_cells(
+        "false localisations per empty frame (score at or above the threshold)",
+        &headers,
+        &cells,
+    )
+}
+
+/// A titled text table of `cells` under `headers`, columns left-aligned
+/// to their widest cell.
+fn render_cells<const N: usize>(title: &str, headers: &[&str; N], cells: &[[String; N]]) -> String {
+    let widths: Vec<usize> = (0..N)
         .map(|i| {
             cells
                 .iter()
@@ -182,13 +192,101 @@ pub fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
             .collect();
         text.join("  ").trim_end().to_string() + "\n"
     };
-    let mut out =
-        String::from("false localisations per empty frame (score at or above the threshold)\n");
-    out.push_str(&line(&headers));
-    for row in &cells {
+    let mut out = format!("{title}\n");
+    out.push_str(&line(headers));
+    for row in cells {
         let values: Vec<&str> = row.iter().map(String::as_str).collect();
         out.push_str(&line(&values));
     }
+    out
+}
+
+/// A ratio to three decimals, `-` when there was nothing to count.
+fn ratio(value: Option<f64>) -> String {
+    value.map_or("-".to_string(), |v| format!("{v:.3}"))
+}
+
+/// Renders the tracking pipelines' figures (docs/tracking.md, "The
+/// tracking experiment"): one table of the tracking measures and one of D
+/// per estimator; nothing without rows.
+pub fn render_tracking(rows: &[TrackingRow]) -> String {
+    if rows.is_empty() {
+        return String::new();
+    }
+    let gate = rows[0].tracking.gate_px;
+    let headers = [
+        "pipeline",
+        "recording",
+        "D",
+        "tracks (est/truth)",
+        "alpha",
+        "beta",
+        "JSC det",
+        "JSC tracks",
+        "link prec",
+        "link rec",
+    ];
+    let cells: Vec<[String; 10]> = rows
+        .iter()
+        .map(|row| {
+            let t = &row.tracking;
+            [
+                display_cell(&row.pipeline).into_owned(),
+                display_cell(&row.recording).into_owned(),
+                format!("{}", row.diffusion),
+                format!("{}/{}", t.estimated_tracks, t.truth_tracks),
+                ratio(t.alpha),
+                ratio(t.beta),
+                ratio(t.jaccard_detections),
+                ratio(t.jaccard_tracks),
+                ratio(t.link_precision),
+                ratio(t.link_recall),
+            ]
+        })
+        .collect();
+    let mut out = render_cells(
+        &format!("tracking measures (gate {gate} px; docs/tracking.md)"),
+        &headers,
+        &cells,
+    );
+    let headers = [
+        "pipeline",
+        "recording",
+        "D",
+        "estimator",
+        "ensemble D (SE)",
+        "error",
+        "tracks",
+        "track bias",
+        "track RMSE",
+        "coverage",
+    ];
+    let mut cells: Vec<[String; 10]> = Vec::new();
+    for row in rows {
+        for e in &row.estimators {
+            let per_track = e.per_track;
+            cells.push([
+                display_cell(&row.pipeline).into_owned(),
+                display_cell(&row.recording).into_owned(),
+                format!("{}", row.diffusion),
+                e.method.name().to_string(),
+                e.ensemble.map_or("-".to_string(), |d| {
+                    format!("{:.3} ({:.3})", d.d, d.standard_error)
+                }),
+                e.ensemble_relative_error
+                    .map_or("-".to_string(), |v| format!("{:+.1} %", 100.0 * v)),
+                per_track.map_or("0".to_string(), |p| p.count.to_string()),
+                per_track.map_or("-".to_string(), |p| format!("{:+.3}", p.relative_bias)),
+                per_track.map_or("-".to_string(), |p| format!("{:.3}", p.relative_rmse)),
+                per_track.map_or("-".to_string(), |p| format!("{:.3}", p.coverage)),
+            ]);
+        }
+    }
+    out.push_str(&render_cells(
+        "diffusion coefficient, µm²/s (per track: tracks whose estimator's condition holds; bias and RMSE relative to D; coverage of the 95 % intervals)",
+        &headers,
+        &cells,
+    ));
     out
 }
 

@@ -19,6 +19,7 @@
 
 pub mod diffusion;
 pub mod lap;
+pub mod pipeline;
 pub mod trackpy;
 
 use crate::io::localisation_table::LocalisationTable;

@@ -50,3 +50,4 @@ mod score_tracks;
 mod simulator;
 mod stress;
 mod sweep_cluster;
+mod tracking_runs;

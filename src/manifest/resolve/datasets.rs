@@ -14,12 +14,6 @@ pub(super) fn resolve_datasets(
     microscope: &SimParams,
     master_seed: u64,
 ) -> Result<Vec<DatasetSpec>, FieldError> {
-    if section.0.is_empty() {
-        return Err(FieldError::new(
-            "datasets",
-            "must declare at least one dataset",
-        ));
-    }
     section
         .0
         .iter()

@@ -17,6 +17,7 @@ mod evaluations;
 mod metrics;
 mod microscope;
 mod reference;
+mod tracking;
 
 use sha2::{Digest, Sha256};
 
@@ -31,7 +32,20 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
     }
     let microscope = microscope::resolve_microscope(&raw.microscope)?;
     let datasets = datasets::resolve_datasets(&raw.datasets, &microscope, raw.seed)?;
+    let recordings =
+        tracking::resolve_recordings(&raw.recordings, &microscope, raw.seed, &datasets)?;
+    if datasets.is_empty() && recordings.is_empty() {
+        return Err(FieldError::new(
+            "datasets",
+            "must declare at least one dataset (or recording)",
+        ));
+    }
     let detectors = detectors::resolve_detectors(raw.detectors, raw.seed, &datasets)?;
+    let linkers = tracking::resolve_linkers(raw.linkers)?;
+    let tracking = raw
+        .tracking
+        .map(|section| tracking::resolve_tracking(section, &detectors, &linkers, &recordings))
+        .transpose()?;
     metrics::check_metrics(&raw.metrics, &detectors)?;
     let evaluations = evaluations::resolve_evaluations(&raw.evaluations, &datasets, &detectors)?;
     if let Some(cross_validation) = &raw.cross_validation {
@@ -56,6 +70,9 @@ pub(super) fn resolve(raw: RawManifest, text: &str, source: &str) -> Result<Mani
         evaluations,
         cross_validation: raw.cross_validation,
         reference,
+        recordings,
+        linkers,
+        tracking,
         text: text.to_string(),
     };
     super::feasibility::check(&manifest)?;

@@ -105,8 +105,9 @@ impl Series {
     }
 }
 
-/// The estimators.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// The estimators (written as their [`Method::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Method {
     Cve,
     Msd,

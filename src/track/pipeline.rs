@@ -1,0 +1,575 @@
+//! A tracking pipeline as a manifest runs it (`docs/tracking.md`, "The
+//! tracking experiment"): a detector's localisations on a recording,
+//! linked by a [`LinkerSpec`] into tracks, scored against the recording's
+//! truth ([`evaluate`]): the tracking measures of
+//! [`metrics::tracking`](crate::metrics::tracking) and, per estimator, D
+//! for the ensemble and per track with the D metrics of
+//! [`metrics::diffusion`](crate::metrics::diffusion).
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::diffusion::{Estimate, Method, ScanGeometry, Series};
+use super::{Detection, Linking, lap, trackpy};
+use crate::error::input_error;
+use crate::metrics::diffusion::{DiffusionInterval, DiffusionScore, score_diffusion};
+use crate::metrics::tracking::{
+    DEFAULT_GATE_PX, TrackingScore, TruthPosition, TruthSelection, score_tracks, truth_tracks,
+};
+use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
+
+/// Version of the linking step (the linkers of [`super::trackpy`] and
+/// [`super::lap`] and the tracks table they make).
+pub const LINK_VERSION: &str = "scanloc-link/1";
+
+/// Version of the scoring of tracks ([`evaluate`] and its JSON).
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/1";
+
+/// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
+/// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
+/// {diffusion_um2_s: 1.75, max_gap: 2}}`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum LinkerSpec {
+    /// TrackPy 0.7's `link` ([`trackpy`]).
+    Trackpy(TrackpySettings),
+    /// Frame-to-frame LAP and gap closing ([`lap`]).
+    Lap(LapSettings),
+}
+
+/// `trackpy` linker settings, TrackPy's names.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackpySettings {
+    /// The largest displacement between frames, px.
+    pub search_range: f64,
+    /// Frames a particle may vanish for and still be linked.
+    #[serde(default)]
+    pub memory: usize,
+}
+
+/// `lap` linker settings: the step variance from a search range (3 standard
+/// deviations) or from a diffusion coefficient and the recording's frame
+/// period and pixel size (exactly one of the two).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LapSettings {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub search_range: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion_um2_s: Option<f64>,
+    /// The longest gap closed, in frames without the particle.
+    #[serde(default = "default_max_gap")]
+    pub max_gap: usize,
+}
+
+fn default_max_gap() -> usize {
+    2
+}
+
+impl LinkerSpec {
+    /// Checks the settings; the error names the field.
+    pub fn validate(&self) -> Result<(), crate::error::FieldError> {
+        use crate::error::FieldError;
+        let positive = |name: &str, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(())
+            } else {
+                Err(FieldError::new(
+                    name,
+                    format!("must be a finite number > 0, got {value}"),
+                ))
+            }
+        };
+        let frames = |name: &str, value: usize| {
+            if value <= crate::limits::MAX_FRAMES {
+                Ok(())
+            } else {
+                Err(FieldError::new(
+                    name,
+                    format!(
+                        "must be at most {} frames, got {value}",
+                        crate::limits::MAX_FRAMES
+                    ),
+                ))
+            }
+        };
+        match self {
+            LinkerSpec::Trackpy(s) => {
+                positive("search_range", s.search_range)?;
+                frames("memory", s.memory)
+            }
+            LinkerSpec::Lap(s) => {
+                match (s.search_range, s.diffusion_um2_s) {
+                    (Some(range), None) => positive("search_range", range)?,
+                    (None, Some(d)) => positive("diffusion_um2_s", d)?,
+                    _ => {
+                        return Err(FieldError::new(
+                            "search_range",
+                            "give exactly one of search_range (px) and diffusion_um2_s (µm²/s)",
+                        ));
+                    }
+                }
+                frames("max_gap", s.max_gap)
+            }
+        }
+    }
+
+    /// The linker's name as written (`trackpy`, `lap`).
+    pub fn kind_name(&self) -> &'static str {
+        match self {
+            LinkerSpec::Trackpy(_) => "trackpy",
+            LinkerSpec::Lap(_) => "lap",
+        }
+    }
+
+    /// Links `detections` of a recording with scan `geometry` (whose frame
+    /// period and pixel size turn a diffusion coefficient into a step).
+    pub fn link(
+        &self,
+        detections: &[Detection],
+        geometry: &ScanGeometry,
+    ) -> anyhow::Result<Linking> {
+        match self {
+            LinkerSpec::Trackpy(s) => trackpy::link(
+                detections,
+                &trackpy::TrackpyParams {
+                    search_range: s.search_range,
+                    memory: s.memory,
+                },
+            ),
+            LinkerSpec::Lap(s) => {
+                let params = match (s.search_range, s.diffusion_um2_s) {
+                    (Some(range), _) => lap::LapParams::from_search_range(range, s.max_gap),
+                    (None, Some(d)) => lap::LapParams::from_diffusion(
+                        d,
+                        geometry.frame_period_s() * 1e3,
+                        geometry.pixel_size_um,
+                        s.max_gap,
+                    ),
+                    (None, None) => {
+                        return Err(input_error(
+                            "the lap linker needs search_range or diffusion_um2_s",
+                        ));
+                    }
+                };
+                lap::link(detections, &params)
+            }
+        }
+    }
+}
+
+/// Links the predictions scoring at least `min_score` (all when `None`)
+/// into tracks: one per particle, labelled 0, 1, … in the linker's order,
+/// points in frame order with the predictions' uncertainty.
+pub fn link_predictions(
+    predictions: &[Prediction],
+    min_score: Option<f64>,
+    linker: &LinkerSpec,
+    geometry: &ScanGeometry,
+) -> anyhow::Result<Vec<Track>> {
+    let kept: Vec<&Prediction> = predictions
+        .iter()
+        .filter(|p| min_score.is_none_or(|least| p.score >= least))
+        .collect();
+    let detections: Vec<Detection> = kept
+        .iter()
+        .map(|p| Detection {
+            frame: p.frame,
+            x: p.x,
+            y: p.y,
+            sigma: p.sigma,
+        })
+        .collect();
+    let linking = linker.link(&detections, geometry)?;
+    let mut by_particle: BTreeMap<usize, Vec<TrackPoint>> = BTreeMap::new();
+    for (detection, &particle) in detections.iter().zip(&linking.particle) {
+        by_particle.entry(particle).or_default().push(TrackPoint {
+            frame: detection.frame,
+            x: detection.x,
+            y: detection.y,
+            sigma: detection.sigma.map(|s| (s.x, s.y)),
+            time_s: None,
+        });
+    }
+    Ok(by_particle
+        .into_iter()
+        .map(|(particle, mut points)| {
+            points.sort_by_key(|p| p.frame);
+            Track {
+                particle: i64::try_from(particle).unwrap_or(i64::MAX),
+                points,
+            }
+        })
+        .collect())
+}
+
+/// How tracks are scored: the truth they are scored against, the gate,
+/// and the shortest track whose D is estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackScoring {
+    /// The gate ε of the tracking measures, px.
+    #[serde(default = "default_gate_px")]
+    pub gate_px: f64,
+    /// Truth rows counted: `|z_mean| ≤` this, µm (all depths when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_depth_um: Option<f64>,
+    /// Truth rows counted: `on_fraction ≥` this (all when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_on_fraction: Option<f64>,
+    /// A truth track is split where its QD is missing for more than this
+    /// many frames (never when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split_gaps_over: Option<usize>,
+    /// Tracks with fewer localisations get no D of their own (they still
+    /// count in the ensemble).
+    #[serde(default = "default_min_points")]
+    pub min_points: usize,
+}
+
+fn default_gate_px() -> f64 {
+    DEFAULT_GATE_PX
+}
+
+fn default_min_points() -> usize {
+    3
+}
+
+impl Default for TrackScoring {
+    fn default() -> Self {
+        Self {
+            gate_px: default_gate_px(),
+            max_depth_um: None,
+            min_on_fraction: None,
+            split_gaps_over: None,
+            min_points: default_min_points(),
+        }
+    }
+}
+
+impl TrackScoring {
+    /// Checks the settings; the error names the field.
+    pub fn validate(&self) -> Result<(), crate::error::FieldError> {
+        use crate::error::FieldError;
+        if !(self.gate_px.is_finite() && self.gate_px > 0.0) {
+            return Err(FieldError::new(
+                "gate_px",
+                format!("must be a finite number > 0, got {}", self.gate_px),
+            ));
+        }
+        if let Some(depth) = self.max_depth_um
+            && !(depth.is_finite() && depth >= 0.0)
+        {
+            return Err(FieldError::new(
+                "max_depth_um",
+                format!("must be a finite number ≥ 0, got {depth}"),
+            ));
+        }
+        if let Some(share) = self.min_on_fraction
+            && !(0.0..=1.0).contains(&share)
+        {
+            return Err(FieldError::new(
+                "min_on_fraction",
+                format!("must be between 0 and 1, got {share}"),
+            ));
+        }
+        if self.min_points < 2 || self.min_points > crate::limits::MAX_FRAMES {
+            return Err(FieldError::new(
+                "min_points",
+                format!(
+                    "must be 2 to {}, got {}",
+                    crate::limits::MAX_FRAMES,
+                    self.min_points
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The truth rows these settings count (at the whole-frame centroid).
+    pub fn selection(&self) -> TruthSelection {
+        TruthSelection {
+            position: TruthPosition::Centroid,
+            max_depth_um: self.max_depth_um,
+            min_on_fraction: self.min_on_fraction,
+            split_gaps_over: self.split_gaps_over,
+        }
+    }
+}
+
+/// One estimate of D as stored: µm²/s and µm². A value that is not a
+/// finite number (the standard error of an unbounded interval) is stored
+/// as `null` and read back as NaN, and is NaN in memory from the start, so
+/// a stored evaluation reads back equal to the one computed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StoredEstimate {
+    #[serde(deserialize_with = "null_as_nan")]
+    pub d: f64,
+    #[serde(deserialize_with = "null_as_nan")]
+    pub standard_error: f64,
+    #[serde(deserialize_with = "null_as_nan")]
+    pub low: f64,
+    /// `None` for an unbounded interval (JSON has no infinity).
+    pub high: Option<f64>,
+    #[serde(deserialize_with = "null_as_nan")]
+    pub localisation_variance: f64,
+    pub steps: usize,
+    pub interval_valid: bool,
+}
+
+/// `null` (how JSON writes a number that is not finite) as NaN.
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
+}
+
+/// `value` if finite, else NaN (what it reads back as from JSON).
+fn finite_or_nan(value: f64) -> f64 {
+    if value.is_finite() { value } else { f64::NAN }
+}
+
+impl From<Estimate> for StoredEstimate {
+    fn from(e: Estimate) -> Self {
+        Self {
+            d: finite_or_nan(e.d),
+            standard_error: finite_or_nan(e.standard_error),
+            low: finite_or_nan(e.low),
+            high: e.high.is_finite().then_some(e.high),
+            localisation_variance: finite_or_nan(e.localisation_variance),
+            steps: e.steps,
+            interval_valid: e.interval_valid,
+        }
+    }
+}
+
+impl StoredEstimate {
+    fn interval(&self) -> DiffusionInterval {
+        DiffusionInterval {
+            d: self.d,
+            low: self.low,
+            high: self.high.unwrap_or(f64::INFINITY),
+        }
+    }
+}
+
+/// One track's estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TrackEstimate {
+    pub particle: i64,
+    pub points: usize,
+    pub estimate: StoredEstimate,
+}
+
+/// One estimator's D over a recording's tracks.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EstimatorScore {
+    pub method: Method,
+    /// The estimator over all tracks at once; `None` if it gave none.
+    pub ensemble: Option<StoredEstimate>,
+    /// `D̂/D − 1` of the ensemble estimate.
+    pub ensemble_relative_error: Option<f64>,
+    /// The D metrics over the tracks of at least `min_points` whose
+    /// estimate's stated condition holds; `None` when there is none.
+    pub per_track: Option<DiffusionScore>,
+    /// Every track of at least `min_points` localisations that got an
+    /// estimate, by particle.
+    pub tracks: Vec<TrackEstimate>,
+}
+
+/// A tracking pipeline's scores on one recording (`score.json` of a
+/// tracking evaluation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackEvaluation {
+    /// The tracking measures against the selected truth.
+    pub tracking: TrackingScore,
+    /// The recording's true D, µm²/s.
+    pub true_diffusion_um2_s: f64,
+    pub scoring: TrackScoring,
+    /// One entry per estimator (CVE, MSD fit, ML).
+    pub diffusion: Vec<EstimatorScore>,
+}
+
+impl TrackEvaluation {
+    /// The entry of estimator `method`.
+    pub fn estimator(&self, method: Method) -> Option<&EstimatorScore> {
+        self.diffusion.iter().find(|e| e.method == method)
+    }
+}
+
+/// Scores `tracks` against a recording's `truth` (true D `true_d`, scan
+/// `geometry`, the exposure [`ScanGeometry::auto_exposure`] picks).
+pub fn evaluate(
+    truth: &[RecordingTruthRow],
+    tracks: &[Track],
+    geometry: &ScanGeometry,
+    scoring: &TrackScoring,
+    true_d: f64,
+) -> anyhow::Result<TrackEvaluation> {
+    let truth_tracks = truth_tracks(truth, &scoring.selection());
+    let tracking = score_tracks(&truth_tracks, tracks, scoring.gate_px)?;
+    let exposure = geometry.auto_exposure();
+    let series: Vec<Series> = tracks
+        .iter()
+        .map(|track| Series::new(track, geometry, exposure))
+        .collect();
+    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
+    let diffusion = Method::ALL
+        .into_iter()
+        .map(|method| {
+            let ensemble = method.estimate(&all).map(StoredEstimate::from);
+            let per_track: Vec<TrackEstimate> = tracks
+                .iter()
+                .zip(&series)
+                .filter(|(_, s)| s.len() >= scoring.min_points)
+                .filter_map(|(track, s)| {
+                    method.estimate(&[s]).map(|e| TrackEstimate {
+                        particle: track.particle,
+                        points: s.len(),
+                        estimate: e.into(),
+                    })
+                })
+                .collect();
+            let valid: Vec<DiffusionInterval> = per_track
+                .iter()
+                .filter(|t| t.estimate.interval_valid)
+                .map(|t| t.estimate.interval())
+                .collect();
+            EstimatorScore {
+                method,
+                ensemble_relative_error: ensemble.map(|e| e.d / true_d - 1.0),
+                ensemble,
+                per_track: score_diffusion(&valid, true_d),
+                tracks: per_track,
+            }
+        })
+        .collect();
+    Ok(TrackEvaluation {
+        tracking,
+        true_diffusion_um2_s: true_d,
+        scoring: *scoring,
+        diffusion,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::SimParams;
+    use crate::sim::recording::{RecordingParams, simulate_recording};
+
+    fn geometry(params: &SimParams) -> ScanGeometry {
+        ScanGeometry {
+            height: params.height,
+            width: params.width,
+            pixel_size_um: params.pixel_size_um,
+            dwell_us: params.dwell_us,
+            retrace_ms: params.retrace_ms,
+            dead_time_ms: 0.0,
+            sigma_xy_um: params.sigma_xy_um,
+        }
+    }
+
+    #[test]
+    fn true_positions_linked_by_either_linker_give_good_tracks_and_d() {
+        // The truth positions of a recording (no detector): the pipeline
+        // must find nearly every link and an ensemble D within a few
+        // standard errors of the truth.
+        let params = RecordingParams {
+            microscope: SimParams {
+                diffusion_um2_s: 1.0.into(),
+                ..SimParams::default()
+            },
+            frames: 1500,
+            density_per_um3: 0.05,
+            lateral_margin_um: 0.3,
+            half_depth_um: 4.0,
+            blinking: None,
+            dead_time_ms: 0.0,
+        };
+        let recording = simulate_recording(&params, 5, false).unwrap();
+        let scoring = TrackScoring {
+            gate_px: 1.0,
+            max_depth_um: Some(1.36),
+            split_gaps_over: Some(2),
+            ..TrackScoring::default()
+        };
+        let predictions: Vec<Prediction> = recording
+            .truth
+            .iter()
+            .filter(|r| r.z_mean.abs() <= 1.36)
+            .map(|r| Prediction::new(r.frame, r.x, r.y, 1.0))
+            .collect();
+        let geometry = geometry(&params.microscope);
+        for linker in [
+            LinkerSpec::Trackpy(TrackpySettings {
+                search_range: 10.0,
+                memory: 2,
+            }),
+            LinkerSpec::Lap(LapSettings {
+                search_range: None,
+                diffusion_um2_s: Some(1.0),
+                max_gap: 2,
+            }),
+        ] {
+            let tracks = link_predictions(&predictions, None, &linker, &geometry).unwrap();
+            let scored = evaluate(&recording.truth, &tracks, &geometry, &scoring, 1.0).unwrap();
+            let recall = scored.tracking.link_recall.unwrap();
+            assert!(recall > 0.9, "{linker:?}: link recall {recall}");
+            let ml = scored.estimator(Method::Ml).unwrap();
+            let ensemble = ml.ensemble.unwrap();
+            let error = ml.ensemble_relative_error.unwrap();
+            // Tolerance: 4 standard errors of the ensemble estimate.
+            assert!(
+                error.abs() < 4.0 * ensemble.standard_error,
+                "{linker:?}: D {} (SE {})",
+                ensemble.d,
+                ensemble.standard_error
+            );
+            let per_track = ml.per_track.unwrap();
+            assert!(per_track.count >= 5, "{per_track:?}");
+            // Round trip through the stored JSON (NaN ≠ NaN, so compared
+            // as JSON).
+            let json = serde_json::to_vec(&scored).unwrap();
+            let back: TrackEvaluation = serde_json::from_slice(&json).unwrap();
+            assert_eq!(serde_json::to_vec(&back).unwrap(), json);
+        }
+    }
+
+    #[test]
+    fn a_score_threshold_drops_predictions_before_linking() {
+        let predictions = vec![
+            Prediction::new(0, 5.0, 5.0, 0.9),
+            Prediction::new(1, 5.5, 5.0, 0.9),
+            Prediction::new(1, 15.0, 15.0, 0.1),
+        ];
+        let geometry = geometry(&SimParams::default());
+        let linker = LinkerSpec::Trackpy(TrackpySettings {
+            search_range: 3.0,
+            memory: 0,
+        });
+        let all = link_predictions(&predictions, None, &linker, &geometry).unwrap();
+        assert_eq!(all.len(), 2);
+        let kept = link_predictions(&predictions, Some(0.5), &linker, &geometry).unwrap();
+        assert_eq!(kept.len(), 1);
+        assert_eq!(kept[0].points.len(), 2);
+    }
+
+    #[test]
+    fn linker_settings_are_checked() {
+        let bad = LinkerSpec::Lap(LapSettings {
+            search_range: Some(3.0),
+            diffusion_um2_s: Some(1.0),
+            max_gap: 2,
+        });
+        assert!(bad.validate().is_err());
+        let bad = LinkerSpec::Trackpy(TrackpySettings {
+            search_range: f64::NAN,
+            memory: 0,
+        });
+        assert!(bad.validate().is_err());
+        let good: LinkerSpec = serde_yaml::from_str("!lap {search_range: 10}").unwrap();
+        assert!(good.validate().is_ok());
+        assert!(serde_yaml::from_str::<LinkerSpec>("!lap {range: 10}").is_err());
+    }
+}
