@@ -5,7 +5,7 @@ CARGO   ?= cargo
 BIN     := target/release/scanloc
 MANIFEST ?= experiments/paper.yaml
 
-.PHONY: all build test lint fmt reproduce-paper bound cv calibrate bench bench-registry fuzz clean
+.PHONY: all build test lint fmt reproduce-paper bound tracking cv calibrate bench bench-registry fuzz clean
 
 all: build
 
@@ -44,6 +44,16 @@ bound: build
 	$(BIN) run experiments/bound.yaml
 	$(BIN) report latest --out reports/bound
 	@echo "report: reports/bound/report.md"
+
+# From localisations to trajectories and D (experiments/tracking.yaml,
+# docs/tracking.md): continuous recordings localised by crocker-grier and
+# by a CNN trained for recordings, linked, D estimated; prints the
+# tracking measures and the D table and writes the report. Cached in
+# registry/: a second run takes seconds.
+tracking: build
+	$(BIN) run experiments/tracking.yaml
+	$(BIN) report latest --out reports/tracking
+	@echo "report: reports/tracking/report.md"
 
 # Five-fold cross-validation of the paper's CNN (the manifest's
 # cross_validation block; five trainings of its network, each, like the
