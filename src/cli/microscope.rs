@@ -72,8 +72,10 @@ pub struct MicroscopeFlags {
     /// (per frame).
     #[arg(long, default_value = "0")]
     pub z_start: Distribution,
-    /// Start positions are uniform over the field shrunk by this many pixels.
-    #[arg(long, default_value_t = 0.0)]
+    /// Start positions are uniform over the field shrunk by this many pixels
+    /// (negative: grown, so QDs start up to that far outside the field;
+    /// write it as --margin-px=-3).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub margin_px: f64,
     /// PSF samples per pixel dwell (1 = the paper).
     #[arg(long, default_value_t = 1)]

@@ -741,6 +741,52 @@ mod tests {
     }
 
     #[test]
+    fn a_negative_margin_starts_qds_outside_the_field_by_at_most_that_much() {
+        // margin −4 on a 24 × 25 frame: starts uniform on [−4.5, 28.5] ×
+        // [−4.5, 27.5]; the share outside the field is 1 − 600/(33·32) = 0.43,
+        // so 400 starts all inside (or none beyond the grown field) would be
+        // a broken range.
+        let params = SimParams {
+            margin_px: -4.0,
+            diffusion_um2_s: Distribution::Fixed(0.0),
+            ..SimParams::default()
+        };
+        params.validate().unwrap();
+        let mut outside = 0;
+        for index in 0..400 {
+            let (_, truth) = expected_frame(&params, 3, index);
+            let (x, y) = (truth[0].x_start, truth[0].y_start);
+            assert!(
+                (-4.5..=28.5).contains(&x) && (-4.5..=27.5).contains(&y),
+                "{x}, {y}"
+            );
+            if !(-0.5..=24.5).contains(&x) || !(-0.5..=23.5).contains(&y) {
+                outside += 1;
+            }
+        }
+        // Binomial(400, 0.43): mean 172, sd 9.9; ±5 sd.
+        assert!((122..=222).contains(&outside), "{outside} of 400 outside");
+        // At most one frame side outside; non-finite refused.
+        for margin in [-24.5, f64::NAN] {
+            let error = SimParams {
+                margin_px: margin,
+                ..SimParams::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert_eq!(error.field(), "margin_px", "{margin}: {error}");
+        }
+        assert!(
+            SimParams {
+                margin_px: -24.0,
+                ..SimParams::default()
+            }
+            .validate()
+            .is_ok()
+        );
+    }
+
+    #[test]
     fn a_drawn_brightness_comes_after_the_count_and_scales_the_frame() {
         // A static, in-focus QD far from the border, no background and no
         // cut-off: a frame's expected signal is its N_qd times the image at

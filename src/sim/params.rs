@@ -267,7 +267,7 @@ pub struct SimParams {
     /// Start depth relative to focus in µm: fixed or per-frame distribution.
     pub z_start: Distribution,
     /// Start positions are uniform over the field shrunk by this many pixels
-    /// on every side.
+    /// on every side (negative: grown, QDs may start outside the field).
     pub margin_px: f64,
     /// PSF samples per pixel dwell (1 = the paper).
     pub substeps: u32,
@@ -330,8 +330,22 @@ impl SimParams {
         self.diffusion_um2_s.validate("diffusion_um2_s", true)?;
         self.check_motion()?;
         self.z_start.validate("z_start", false)?;
-        require_non_negative("margin_px", self.margin_px)?;
-        if 2.0 * self.margin_px >= self.width.min(self.height) as f64 {
+        // A negative margin starts QDs up to |margin| px outside the field
+        // (recordings' QDs enter and leave it); at most one frame side out,
+        // so every start is near the field.
+        let side = self.width.min(self.height) as f64;
+        require_finite("margin_px", self.margin_px)?;
+        if self.margin_px < -side {
+            return Err(FieldError::new(
+                "margin_px",
+                format!(
+                    "{} starts QDs more than the frame's smaller side ({side} px) outside it; \
+                     allowed: ≥ −{side}",
+                    self.margin_px
+                ),
+            ));
+        }
+        if 2.0 * self.margin_px >= side {
             return Err(FieldError::new(
                 "margin_px",
                 format!(

@@ -141,6 +141,7 @@ fn bad_input_gives_one_line_naming_the_parameter_and_exit_code_2() {
         (&["--sigma-xy-um", "0"], "sigma_xy_um"),
         (&["--substeps", "0"], "substeps"),
         (&["--margin-px", "13"], "margin_px"),
+        (&["--margin-px", "-30"], "margin_px"),
         (&["--detector-noise", "pmt:0.5"], "excess_noise_factor"),
         (&["--detector-noise", "gaussian"], "detector-noise"),
         (&["--psf-cutoff-sigma", "0"], "psf_cutoff_sigma"),
