@@ -62,6 +62,15 @@ pub struct LapSettings {
     /// The longest gap closed, in frames without the particle.
     #[serde(default = "default_max_gap")]
     pub max_gap: usize,
+    /// Link twice: the second time with the step of the D the first
+    /// pass's tracks give (ML, the ensemble), so the costs follow the
+    /// recording's own diffusion when D is not known beforehand.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub relink: bool,
+}
+
+fn is_false(value: &bool) -> bool {
+    !*value
 }
 
 fn default_max_gap() -> usize {
@@ -140,24 +149,92 @@ impl LinkerSpec {
                 },
             ),
             LinkerSpec::Lap(s) => {
-                let params = match (s.search_range, s.diffusion_um2_s) {
-                    (Some(range), _) => lap::LapParams::from_search_range(range, s.max_gap),
-                    (None, Some(d)) => lap::LapParams::from_diffusion(
+                let with_diffusion = |d: f64| {
+                    lap::LapParams::from_diffusion(
                         d,
                         geometry.frame_period_s() * 1e3,
                         geometry.pixel_size_um,
                         s.max_gap,
-                    ),
+                    )
+                };
+                let params = match (s.search_range, s.diffusion_um2_s) {
+                    (Some(range), _) => lap::LapParams::from_search_range(range, s.max_gap),
+                    (None, Some(d)) => with_diffusion(d),
                     (None, None) => {
                         return Err(input_error(
                             "the lap linker needs search_range or diffusion_um2_s",
                         ));
                     }
                 };
-                lap::link(detections, &params)
+                let first = lap::link(detections, &params)?;
+                if !s.relink {
+                    return Ok(first);
+                }
+                // The second pass, with the first pass's D; if it gives
+                // none (no step), the first pass stands.
+                let tracks = tracks_of(detections, &first.particle);
+                match ensemble_ml(&tracks, geometry) {
+                    Some(d) if d.is_finite() && d > 0.0 => lap::link(detections, &with_diffusion(d)),
+                    _ => Ok(first),
+                }
             }
         }
     }
+}
+
+/// The ML estimate of D (µm²/s) over all `tracks`, σ² profiled.
+fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
+    let series = series_of(tracks, geometry);
+    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
+    Method::Ml.estimate(&all).map(|e| e.d)
+}
+
+/// `tracks` prepared for the D estimators, with the exposure the scan
+/// implies, their localisations' own σ left out: σ² is profiled. A
+/// localiser that reports its posterior mean (the CNN) errs with its
+/// estimates rather than with the truth, which no given σ describes
+/// (docs/tracking.md, "The estimators").
+fn series_of(tracks: &[Track], geometry: &ScanGeometry) -> Vec<Series> {
+    let exposure = geometry.auto_exposure();
+    tracks
+        .iter()
+        .map(|track| {
+            let bare = Track {
+                particle: track.particle,
+                points: track
+                    .points
+                    .iter()
+                    .map(|p| TrackPoint { sigma: None, ..*p })
+                    .collect(),
+            };
+            Series::new(&bare, geometry, exposure)
+        })
+        .collect()
+}
+
+/// The tracks of `detections` labelled `particle`: one per label, in label
+/// order, points in frame order.
+fn tracks_of(detections: &[Detection], particle: &[usize]) -> Vec<Track> {
+    let mut by_particle: BTreeMap<usize, Vec<TrackPoint>> = BTreeMap::new();
+    for (detection, &label) in detections.iter().zip(particle) {
+        by_particle.entry(label).or_default().push(TrackPoint {
+            frame: detection.frame,
+            x: detection.x,
+            y: detection.y,
+            sigma: detection.sigma.map(|s| (s.x, s.y)),
+            time_s: None,
+        });
+    }
+    by_particle
+        .into_iter()
+        .map(|(label, mut points)| {
+            points.sort_by_key(|p| p.frame);
+            Track {
+                particle: i64::try_from(label).unwrap_or(i64::MAX),
+                points,
+            }
+        })
+        .collect()
 }
 
 /// Links the predictions scoring at least `min_score` (all when `None`)
@@ -183,26 +260,7 @@ pub fn link_predictions(
         })
         .collect();
     let linking = linker.link(&detections, geometry)?;
-    let mut by_particle: BTreeMap<usize, Vec<TrackPoint>> = BTreeMap::new();
-    for (detection, &particle) in detections.iter().zip(&linking.particle) {
-        by_particle.entry(particle).or_default().push(TrackPoint {
-            frame: detection.frame,
-            x: detection.x,
-            y: detection.y,
-            sigma: detection.sigma.map(|s| (s.x, s.y)),
-            time_s: None,
-        });
-    }
-    Ok(by_particle
-        .into_iter()
-        .map(|(particle, mut points)| {
-            points.sort_by_key(|p| p.frame);
-            Track {
-                particle: i64::try_from(particle).unwrap_or(i64::MAX),
-                points,
-            }
-        })
-        .collect())
+    Ok(tracks_of(&detections, &linking.particle))
 }
 
 /// How tracks are scored: the truth they are scored against, the gate,
@@ -398,7 +456,8 @@ impl TrackEvaluation {
 }
 
 /// Scores `tracks` against a recording's `truth` (true D `true_d`, scan
-/// `geometry`, the exposure [`ScanGeometry::auto_exposure`] picks).
+/// `geometry`, the exposure [`ScanGeometry::auto_exposure`] picks; σ²
+/// profiled by every estimator, see [`series_of`]).
 pub fn evaluate(
     truth: &[RecordingTruthRow],
     tracks: &[Track],
@@ -408,11 +467,7 @@ pub fn evaluate(
 ) -> anyhow::Result<TrackEvaluation> {
     let truth_tracks = truth_tracks(truth, &scoring.selection());
     let tracking = score_tracks(&truth_tracks, tracks, scoring.gate_px)?;
-    let exposure = geometry.auto_exposure();
-    let series: Vec<Series> = tracks
-        .iter()
-        .map(|track| Series::new(track, geometry, exposure))
-        .collect();
+    let series = series_of(tracks, geometry);
     let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
     let diffusion = Method::ALL
         .into_iter()
@@ -510,6 +565,13 @@ mod tests {
                 search_range: None,
                 diffusion_um2_s: Some(1.0),
                 max_gap: 2,
+                relink: false,
+            }),
+            LinkerSpec::Lap(LapSettings {
+                search_range: Some(10.0),
+                diffusion_um2_s: None,
+                max_gap: 2,
+                relink: true,
             }),
         ] {
             let tracks = link_predictions(&predictions, None, &linker, &geometry).unwrap();
@@ -561,6 +623,7 @@ mod tests {
             search_range: Some(3.0),
             diffusion_um2_s: Some(1.0),
             max_gap: 2,
+            relink: false,
         });
         assert!(bad.validate().is_err());
         let bad = LinkerSpec::Trackpy(TrackpySettings {

@@ -137,25 +137,38 @@ struct Problem<'a> {
     series: &'a [&'a Series],
     /// Upper end of the σ² search, µm² (0 when every variance is given).
     v_max: f64,
+    /// The least `(Δtᵢ − 2τᵢ − 2τᵢ₊₁)/2` over the steps, s: down to σ² =
+    /// `−D` times this, Σ stays diagonally dominant, so positive definite.
+    shortest_free_time: f64,
 }
 
 impl Problem<'_> {
     /// min over σ² of −2 log L at D = `d`, and the minimising σ².
+    ///
+    /// σ² may be negative: a localiser that reports its posterior mean (a
+    /// network trained on the true centroid) makes errors uncorrelated
+    /// with its estimates rather than with the truth, so its steps are
+    /// shorter than the particle's, which the step moments read as σ² < 0
+    /// (`docs/tracking.md`, "The estimators"). Held at σ² ≥ 0 such tracks
+    /// would read D low.
     fn profile(&self, d: f64) -> (f64, f64) {
         if self.v_max == 0.0 {
             return (cost(self.series, d, 0.0), 0.0);
         }
-        // √σ² is searched: the cost is closer to unimodal in it near 0.
+        // The signed square root of σ² is searched: the cost is closer to
+        // unimodal in it near 0.
+        let v_min = -0.999 * d * self.shortest_free_time.max(0.0);
+        let signed_square = |root: f64| root * root.abs();
         let (root, value) = golden(
-            |root| cost(self.series, d, root * root),
-            0.0,
+            |root| cost(self.series, d, signed_square(root)),
+            -(-v_min).sqrt(),
             self.v_max.sqrt(),
         );
         let at_zero = cost(self.series, d, 0.0);
         if at_zero <= value {
             (at_zero, 0.0)
         } else {
-            (value, root * root)
+            (value, signed_square(root))
         }
     }
 
@@ -182,6 +195,7 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
     let problem = Problem {
         series,
         v_max: if known { 0.0 } else { mean_sq },
+        shortest_free_time: shortest_free_time(series),
     };
     // A log-spaced grid brackets the optimum; golden section refines it.
     let guess = (mean_sq / (2.0 * mean_dt)).ln();
@@ -230,6 +244,19 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
         steps,
         interval_valid: steps >= MIN_STEPS,
     })
+}
+
+/// The least `(Δtᵢ − 2τᵢ − 2τᵢ₊₁)/2` over every step of `series`, s: with
+/// σ² > −D times this each row of Σ has `Σᵢᵢ > |Σᵢ,ᵢ₋₁| + |Σᵢ,ᵢ₊₁|`.
+fn shortest_free_time(series: &[&Series]) -> f64 {
+    series
+        .iter()
+        .flat_map(|s| {
+            (1..s.len()).map(move |i| {
+                0.5 * (s.times[i] - s.times[i - 1] - 2.0 * s.blur[i - 1] - 2.0 * s.blur[i])
+            })
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// The mean of the given localisation variances over both axes, µm².
@@ -301,7 +328,7 @@ mod tests {
             variances: None,
             field: [(-1e9, 1e9), (-1e9, 1e9)],
         };
-        for (d, v) in [(1.0, 0.001), (0.3, 0.0), (2.0, 0.01)] {
+        for (d, v) in [(1.0, 0.001), (0.3, 0.0), (2.0, 0.01), (1.0, -0.0015)] {
             let fast = axis_cost(&series, 0, d, v);
             let dense = dense_cost(&series, 0, d, v);
             assert!(
@@ -309,5 +336,83 @@ mod tests {
                 "{fast} vs {dense}"
             );
         }
+    }
+
+    /// Series whose steps are drawn from the model's Gaussian with D = `d`
+    /// and localisation variance `v` (which may be negative, down to where
+    /// Σ stops being positive definite): `count` tracks of `points`
+    /// localisations, Δt = 30 ms, a whole-frame blur τ = Δt/6.
+    fn model_series(d: f64, v: f64, count: usize, points: usize, seed: u64) -> Vec<Series> {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let (dt, tau) = (0.03, 0.005);
+        let n = points - 1;
+        // Cholesky of the tridiagonal Σ, as the dense test does.
+        let mut l = vec![vec![0.0; n]; n];
+        for i in 0..n {
+            for j in i.saturating_sub(1)..=i {
+                let sigma = if i == j {
+                    2.0 * d * (dt - 2.0 * tau) + 2.0 * v
+                } else {
+                    2.0 * d * tau - v
+                };
+                let sum: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+                l[i][j] = if i == j {
+                    (sigma - sum).sqrt()
+                } else {
+                    (sigma - sum) / l[j][j]
+                };
+            }
+        }
+        (0..count)
+            .map(|_| {
+                let mut axes = [vec![0.0; points], vec![0.0; points]];
+                for axis in &mut axes {
+                    let z: Vec<f64> = (0..n).map(|_| StandardNormal.sample(&mut rng)).collect();
+                    for i in 0..n {
+                        let step: f64 = (0..=i).map(|k| l[i][k] * z[k]).sum();
+                        axis[i + 1] = axis[i] + step;
+                    }
+                }
+                Series {
+                    frames: (0..points).collect(),
+                    axes,
+                    times: (0..points).map(|i| i as f64 * dt).collect(),
+                    blur: vec![tau; points],
+                    variances: None,
+                    field: [(-1e9, 1e9), (-1e9, 1e9)],
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn steps_shorter_than_the_particles_read_as_a_negative_variance_not_a_lower_d() {
+        // A posterior-mean localiser's steps: σ² half-way to the most
+        // negative value the model allows, −D (Δt − 4τ)/2.
+        let d = 1.0;
+        let v = -0.5 * d * (0.03 - 0.02) / 2.0;
+        let series = model_series(d, v, 400, 30, 11);
+        let refs: Vec<&Series> = series.iter().collect();
+        let shorter = estimate(&refs).unwrap();
+        // Tolerance: 3 standard errors (11,600 steps per axis: SE ≈ 2 %).
+        assert!(
+            (shorter.d - d).abs() < 3.0 * shorter.standard_error,
+            "D {} ± {}",
+            shorter.d,
+            shorter.standard_error
+        );
+        assert!(
+            shorter.localisation_variance < 0.5 * v,
+            "σ² {} (true {v})",
+            shorter.localisation_variance
+        );
+        // Positive σ² is still found where it is.
+        let series = model_series(d, 0.004, 400, 30, 12);
+        let refs: Vec<&Series> = series.iter().collect();
+        let noisy = estimate(&refs).unwrap();
+        assert!((noisy.d - d).abs() < 3.0 * noisy.standard_error);
+        assert!((noisy.localisation_variance - 0.004).abs() < 0.001);
     }
 }
