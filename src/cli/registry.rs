@@ -7,7 +7,7 @@ use std::process::ExitCode;
 use clap::{Args, Subcommand};
 use scanloc::error::{CheckFailed, input_error};
 use scanloc::registry::{Found, Registry, Table, diff, shard, sql};
-use scanloc::report::summary::run_summary;
+use scanloc::report::summary::{run_summary, run_summary_json};
 
 /// Query the registry: runs, datasets, models, evaluations, one run or
 /// artefact in full, the differences between two runs, blob verification,
@@ -36,9 +36,10 @@ enum RegistryCommand {
     Models,
     /// Every stored evaluation, one row per ε.
     Evaluations,
-    /// One run (status, manifest, code version, seeds, steps, AUC table;
-    /// with --json the whole record) or artefact (spec, blobs, runs that
-    /// used it) in full, by id or unique prefix.
+    /// One run (status, manifest, code version, seeds, steps, AUC table,
+    /// tracking tables; with --json the whole record and its `tracking`
+    /// rows as `scanloc run --json` gives them) or artefact (spec, blobs,
+    /// runs that used it) in full, by id or unique prefix.
     Show { id: String },
     /// What differs between two runs: code version, machine, manifest,
     /// parameters, seeds, artefact keys, AUC cells.
@@ -144,9 +145,9 @@ pub fn run(
             Found::Run(id) => {
                 let record = registry.run_record(&id)?;
                 if json {
-                    writeln!(stdout, "{}", serde_json::to_string(&record)?)?;
+                    writeln!(stdout, "{}", run_summary_json(&registry, &record)?)?;
                 } else {
-                    write!(stdout, "{}", run_summary(&record))?;
+                    write!(stdout, "{}", run_summary(&registry, &record))?;
                 }
             }
             Found::Artefact(key) => print_value(&registry.artefact_record(&key)?, json, stdout)?,

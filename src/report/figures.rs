@@ -15,6 +15,7 @@ use std::sync::OnceLock;
 use anyhow::Context;
 use plotters::coord::Shift;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 use crate::error::input_error;
@@ -246,42 +247,61 @@ fn plot_error<E: std::fmt::Debug>(error: E) -> anyhow::Error {
     anyhow::anyhow!("plotting failed: {error:?}")
 }
 
+/// The chart of one frame panel: its title, pixel axes (rows growing
+/// downwards, as in an image) and the frame's counts in grey scale.
+type FrameChart<'a, DB> = ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+fn draw_frame<'a, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, Shift>,
+    title: &str,
+    (height, width): (usize, usize),
+    counts: &[u32],
+) -> anyhow::Result<FrameChart<'a, DB>> {
+    let (w, h) = (width as f64, height as f64);
+    let mut chart = ChartBuilder::on(area)
+        .caption(title, ("sans-serif", 16))
+        .margin(8)
+        .x_label_area_size(22)
+        .y_label_area_size(28)
+        // Rows grow downwards, as in an image.
+        .build_cartesian_2d(-0.5..w - 0.5, h - 0.5..-0.5)
+        .map_err(plot_error)?;
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_labels(5)
+        .y_labels(5)
+        .label_style(("sans-serif", 11))
+        .draw()
+        .map_err(plot_error)?;
+    let max = counts.iter().copied().max().unwrap_or(1).max(1) as f64;
+    let min = counts.iter().copied().min().unwrap_or(0) as f64;
+    let span = (max - min).max(1.0);
+    chart
+        .draw_series(counts.iter().enumerate().map(|(i, &count)| {
+            let (row, column) = ((i / width) as f64, (i % width) as f64);
+            let level = (255.0 * (count as f64 - min) / span) as u8;
+            Rectangle::new(
+                [(column - 0.5, row - 0.5), (column + 0.5, row + 0.5)],
+                RGBColor(level, level, level).filled(),
+            )
+        }))
+        .map_err(plot_error)?;
+    Ok(chart)
+}
+
 fn draw_frame_panels<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     panels: &[FramePanel],
 ) -> anyhow::Result<()> {
     let areas = root.split_evenly((1, panels.len().max(1)));
     for (area, panel) in areas.iter().zip(panels) {
-        let (w, h) = (panel.width as f64, panel.height as f64);
-        let mut chart = ChartBuilder::on(area)
-            .caption(&panel.title, ("sans-serif", 16))
-            .margin(8)
-            .x_label_area_size(22)
-            .y_label_area_size(28)
-            // Rows grow downwards, as in an image.
-            .build_cartesian_2d(-0.5..w - 0.5, h - 0.5..-0.5)
-            .map_err(plot_error)?;
-        chart
-            .configure_mesh()
-            .disable_mesh()
-            .x_labels(5)
-            .y_labels(5)
-            .label_style(("sans-serif", 11))
-            .draw()
-            .map_err(plot_error)?;
-        let max = panel.counts.iter().copied().max().unwrap_or(1).max(1) as f64;
-        let min = panel.counts.iter().copied().min().unwrap_or(0) as f64;
-        let span = (max - min).max(1.0);
-        chart
-            .draw_series(panel.counts.iter().enumerate().map(|(i, &count)| {
-                let (row, column) = ((i / panel.width) as f64, (i % panel.width) as f64);
-                let level = (255.0 * (count as f64 - min) / span) as u8;
-                Rectangle::new(
-                    [(column - 0.5, row - 0.5), (column + 0.5, row + 0.5)],
-                    RGBColor(level, level, level).filled(),
-                )
-            }))
-            .map_err(plot_error)?;
+        let mut chart = draw_frame(
+            area,
+            &panel.title,
+            (panel.height, panel.width),
+            &panel.counts,
+        )?;
         if !panel.trajectory.is_empty() {
             chart
                 .draw_series(LineSeries::new(
@@ -306,6 +326,215 @@ fn draw_frame_panels<DB: DrawingBackend>(
             }
         }
     }
+    Ok(())
+}
+
+/// One frame of a recording with tracks over a window of frames around
+/// it, in TrackPy pixel coordinates: the truth's tracks as thick green
+/// lines, the estimated tracks as thin lines, one colour per track; where
+/// a track is in the shown frame, a circle (truth) or a cross (estimate).
+#[derive(Debug, Clone)]
+pub struct TrackPanel {
+    pub title: String,
+    pub height: usize,
+    pub width: usize,
+    pub counts: Vec<u32>,
+    /// Each truth track's points over the window, in frame order.
+    pub truth: Vec<Vec<(f64, f64)>>,
+    pub tracks: Vec<Vec<(f64, f64)>>,
+    /// The truth's and the tracks' points in the shown frame.
+    pub truth_now: Vec<(f64, f64)>,
+    pub tracks_now: Vec<(f64, f64)>,
+}
+
+/// Draws track panels side by side, as `base.png`/`base.svg`.
+pub fn track_panels(base: &Path, panels: &[TrackPanel]) -> anyhow::Result<()> {
+    let columns = panels.len().max(1) as u32;
+    write_figure(
+        base,
+        (360 * columns, 400),
+        |root| draw_track_panels(root, panels),
+        |root| draw_track_panels(root, panels),
+    )
+}
+
+/// The colour of estimated tracks (the palette without its green, the
+/// truth's colour).
+fn track_colour(index: usize) -> RGBColor {
+    const COLOURS: [RGBColor; 5] = [PALETTE[0], PALETTE[1], PALETTE[3], PALETTE[4], PALETTE[5]];
+    COLOURS[index % COLOURS.len()]
+}
+
+fn draw_track_panels<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    panels: &[TrackPanel],
+) -> anyhow::Result<()> {
+    let areas = root.split_evenly((1, panels.len().max(1)));
+    let green = MarkerKind::Truth.colour();
+    for (area, panel) in areas.iter().zip(panels) {
+        let mut chart = draw_frame(
+            area,
+            &panel.title,
+            (panel.height, panel.width),
+            &panel.counts,
+        )?;
+        for path in &panel.truth {
+            chart
+                .draw_series(LineSeries::new(
+                    path.iter().copied(),
+                    green.mix(0.8).stroke_width(3),
+                ))
+                .map_err(plot_error)?;
+        }
+        for (index, path) in panel.tracks.iter().enumerate() {
+            chart
+                .draw_series(LineSeries::new(
+                    path.iter().copied(),
+                    track_colour(index).stroke_width(2),
+                ))
+                .map_err(plot_error)?;
+        }
+        chart
+            .draw_series(
+                panel
+                    .truth_now
+                    .iter()
+                    .map(|&p| Circle::new(p, 6, green.stroke_width(2))),
+            )
+            .map_err(plot_error)?;
+        chart
+            .draw_series(
+                panel
+                    .tracks_now
+                    .iter()
+                    .map(|&p| Cross::new(p, 5, PALETTE[1].stroke_width(2))),
+            )
+            .map_err(plot_error)?;
+    }
+    Ok(())
+}
+
+/// Estimates with intervals against the true value, one series per
+/// estimator: each point a filled circle with its interval as a vertical
+/// bar, a series' `scatter` as light dots in its colour, and the identity
+/// line. Series are set slightly apart along x so that estimates of the
+/// same true value do not hide each other; what lies above the y range is
+/// left out (intervals are cut at its top).
+#[derive(Debug, Clone)]
+pub struct EstimateChart {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    /// Both axes run from 0 to this.
+    pub x_max: f64,
+    pub y_max: f64,
+    pub series: Vec<EstimateSeries>,
+}
+
+/// One estimator's estimates: (true value, estimate, low, high) and,
+/// lighter, single estimates as (true value, estimate).
+#[derive(Debug, Clone)]
+pub struct EstimateSeries {
+    pub label: String,
+    pub points: Vec<(f64, f64, f64, f64)>,
+    pub scatter: Vec<(f64, f64)>,
+}
+
+/// Draws `chart` as `base.png`/`base.svg`.
+pub fn estimate_chart(base: &Path, chart: &EstimateChart) -> anyhow::Result<()> {
+    write_figure(
+        base,
+        (640, 520),
+        |root| draw_estimate_chart(root, chart),
+        |root| draw_estimate_chart(root, chart),
+    )
+}
+
+fn draw_estimate_chart<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    chart: &EstimateChart,
+) -> anyhow::Result<()> {
+    let valid = |v: f64, max: f64| v.is_finite() && (0.0..=max).contains(&v);
+    let (x_max, y_max) = (chart.x_max.max(1e-9), chart.y_max.max(1e-9));
+    let mut plot = ChartBuilder::on(root)
+        .caption(&chart.title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(52)
+        .build_cartesian_2d(0.0..x_max, 0.0..y_max)
+        .map_err(plot_error)?;
+    plot.configure_mesh()
+        .x_desc(chart.x_label.as_str())
+        .y_desc(chart.y_label.as_str())
+        .x_label_formatter(&compact_number)
+        .y_label_formatter(&compact_number)
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(plot_error)?;
+    let grey = RGBColor(120, 120, 120);
+    let top = x_max.min(y_max);
+    plot.draw_series(LineSeries::new(
+        [(0.0, 0.0), (top, top)],
+        grey.stroke_width(1),
+    ))
+    .map_err(plot_error)?
+    .label("estimate = truth")
+    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], grey.stroke_width(1)));
+    let count = chart.series.len();
+    for (index, series) in chart.series.iter().enumerate() {
+        let colour = PALETTE[index % PALETTE.len()];
+        let shift = (index as f64 - (count as f64 - 1.0) / 2.0) * 0.012 * x_max;
+        plot.draw_series(
+            series
+                .scatter
+                .iter()
+                .filter(|&&(x, y)| valid(x + shift, x_max) && valid(y, y_max))
+                .map(|&(x, y)| Circle::new((x + shift, y), 2, colour.mix(0.3).filled())),
+        )
+        .map_err(plot_error)?;
+        let points: Vec<(f64, f64, f64, f64)> = series
+            .points
+            .iter()
+            .filter(|&&(x, y, _, _)| valid(x + shift, x_max) && valid(y, y_max))
+            .map(|&(x, y, low, high)| {
+                let cut = |v: f64| {
+                    if v.is_finite() {
+                        v.clamp(0.0, y_max)
+                    } else {
+                        y_max
+                    }
+                };
+                (x + shift, y, cut(low), cut(high))
+            })
+            .collect();
+        let cap = 0.008 * x_max;
+        for &(x, _, low, high) in &points {
+            plot.draw_series(std::iter::once(PathElement::new(
+                vec![(x, low), (x, high)],
+                colour.stroke_width(2),
+            )))
+            .map_err(plot_error)?;
+            plot.draw_series([low, high].map(|v| {
+                PathElement::new(vec![(x - cap, v), (x + cap, v)], colour.stroke_width(2))
+            }))
+            .map_err(plot_error)?;
+        }
+        plot.draw_series(
+            points
+                .iter()
+                .map(|&(x, y, _, _)| Circle::new((x, y), 5, colour.filled())),
+        )
+        .map_err(plot_error)?
+        .label(series.label.clone())
+        .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
+    }
+    plot.configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 12))
+        .draw()
+        .map_err(plot_error)?;
     Ok(())
 }
 

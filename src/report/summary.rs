@@ -1,23 +1,46 @@
 //! `registry show RUN`: a run record as a person reads it, top-down:
 //! status, manifest, code version, seeds, each step with its outcome and
-//! time, and the AUC table as the same grid `scanloc run` prints.
+//! time, and the AUC table and tracking tables as the same grids `scanloc
+//! run` prints.
 
 use std::fmt::Write as _;
 
 use super::recorded::RecordedManifest;
 use crate::limits::display_cell;
-use crate::registry::RunRecord;
 use crate::registry::dates::seconds_between;
-use crate::run::table;
+use crate::registry::{Registry, RunRecord};
+use crate::run::{TrackingRow, recorded_tracking, table};
 
-/// `record` as text, for people (programs read the record as JSON).
-pub fn run_summary(record: &RunRecord) -> String {
+/// `record` as text, for people (programs read the record as JSON); its
+/// tracking tables are rebuilt from the evaluations in `registry`.
+pub fn run_summary(registry: &Registry, record: &RunRecord) -> String {
+    let tracking =
+        recorded_tracking(registry, record).map(|found| found.into_iter().map(|t| t.row).collect());
     let mut out = String::new();
-    write_summary(&mut out, record).expect("writing to a String cannot fail");
+    write_summary(&mut out, record, tracking).expect("writing to a String cannot fail");
     out
 }
 
-fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
+/// `record` as JSON, for programs: the record with a `tracking` key, the
+/// rows of its tracking tables as `scanloc run --json` gives them.
+pub fn run_summary_json(
+    registry: &Registry,
+    record: &RunRecord,
+) -> anyhow::Result<serde_json::Value> {
+    let tracking: Vec<TrackingRow> = recorded_tracking(registry, record)?
+        .into_iter()
+        .map(|t| t.row)
+        .collect();
+    let mut value = serde_json::to_value(record)?;
+    value["tracking"] = serde_json::to_value(tracking)?;
+    Ok(value)
+}
+
+fn write_summary(
+    out: &mut String,
+    record: &RunRecord,
+    tracking: anyhow::Result<Vec<TrackingRow>>,
+) -> std::fmt::Result {
     writeln!(out, "run {}: {}", record.id, record.status)?;
     let field = |out: &mut String, label: &str, value: &str| writeln!(out, "  {label:<10} {value}");
     field(out, "kind", record.kind.as_str())?;
@@ -124,6 +147,14 @@ fn write_summary(out: &mut String, record: &RunRecord) -> std::fmt::Result {
             None
         }
     };
-    out.push_str(&table::render(&record.auc, reference.as_ref()));
+    let tracking = tracking.unwrap_or_else(|e| {
+        out.push_str(&format!("(tracking tables not shown: {e:#})\n"));
+        Vec::new()
+    });
+    // A run that scores only tracks has no AUC to show.
+    if !record.auc.is_empty() || tracking.is_empty() {
+        out.push_str(&table::render(&record.auc, reference.as_ref()));
+    }
+    out.push_str(&table::render_tracking(&tracking));
     Ok(())
 }

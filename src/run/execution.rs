@@ -92,9 +92,20 @@ impl TrackingRow {
         else {
             return None;
         };
-        Some(Self {
-            pipeline: pipeline.clone(),
-            recording: recording_name.clone(),
+        Some(Self::new(pipeline, recording_name, &step.key, evaluation))
+    }
+
+    /// The row of pipeline `pipeline` on recording `recording` whose
+    /// evaluation, stored under `evaluation_key`, is `evaluation`.
+    pub fn new(
+        pipeline: &str,
+        recording: &str,
+        evaluation_key: &str,
+        evaluation: &TrackEvaluation,
+    ) -> Self {
+        Self {
+            pipeline: pipeline.to_string(),
+            recording: recording.to_string(),
             diffusion: evaluation.true_diffusion_um2_s,
             tracking: evaluation.tracking.clone(),
             estimators: evaluation
@@ -107,8 +118,8 @@ impl TrackingRow {
                     per_track: e.per_track,
                 })
                 .collect(),
-            evaluation_key: step.key.clone(),
-        })
+            evaluation_key: evaluation_key.to_string(),
+        }
     }
 }
 

@@ -35,7 +35,7 @@ pub use artefacts::Artefact;
 pub use compute::subset;
 pub use execution::{EmptyFramesRow, EstimatorRow, TrackingRow, score_rows};
 pub use plan::{Action, Plan, Step};
-pub use stored::{load_artefact, read_blobs};
+pub use stored::{RecordedTracking, load_artefact, read_blobs, recorded_tracking};
 
 use crate::error::CheckFailed;
 use crate::manifest::Manifest;

@@ -8,8 +8,12 @@ use anyhow::Context;
 use rayon::prelude::*;
 
 use super::artefacts::{self, Artefact};
+use super::execution::TrackingRow;
 use super::plan::Plan;
-use crate::registry::{ArtefactKind, BlobRef, BlobRole, BlobState, BlobStore, Registry};
+use crate::registry::{
+    ArtefactKind, BlobRef, BlobRole, BlobState, BlobStore, Registry, RunRecord, StepId,
+};
+use crate::track::pipeline::TrackEvaluation;
 
 /// What a step's stored artefact looked like when its blobs were checked.
 pub(super) enum Stored {
@@ -110,6 +114,50 @@ pub fn load_artefact(registry: &Registry, key: &str) -> anyhow::Result<Artefact>
     let blobs = read_blobs(registry, &stored.blobs)
         .with_context(|| format!("reading {} {}", stored.kind.as_str(), stored.name))?;
     decode(stored.kind, blobs)
+}
+
+/// A tracking pipeline's evaluation in a recorded run: its row of the
+/// run's tracking tables and the whole evaluation (with the per-track
+/// estimates).
+#[derive(Debug, Clone)]
+pub struct RecordedTracking {
+    pub row: TrackingRow,
+    pub evaluation: Arc<TrackEvaluation>,
+}
+
+/// The tracking evaluations of recorded run `record`, in step order: every
+/// `evaluation/PIPELINE@RECORDING` step whose `score.json` is a
+/// [`TrackEvaluation`] (told apart by content, as a run tells it). For
+/// reports and `registry show`, which rebuild the tables `scanloc run`
+/// printed; an evaluation with AUC rows is no tracking evaluation and is
+/// not read.
+pub fn recorded_tracking(
+    registry: &Registry,
+    record: &RunRecord,
+) -> anyhow::Result<Vec<RecordedTracking>> {
+    let mut seen: Vec<&str> = record
+        .auc
+        .iter()
+        .map(|row| row.evaluation_key.as_str())
+        .collect();
+    let mut found = Vec::new();
+    for step in &record.steps {
+        let StepId::Evaluation { detector, dataset } = &step.step else {
+            continue;
+        };
+        if seen.contains(&step.artefact_key.as_str()) {
+            continue;
+        }
+        seen.push(&step.artefact_key);
+        if let Artefact::TrackEvaluation(evaluation) = load_artefact(registry, &step.artefact_key)?
+        {
+            found.push(RecordedTracking {
+                row: TrackingRow::new(detector, dataset, &step.artefact_key, &evaluation),
+                evaluation,
+            });
+        }
+    }
+    Ok(found)
 }
 
 /// The artefact of step `index` of `plan`, read from the registry.

@@ -206,61 +206,56 @@ fn ratio(value: Option<f64>) -> String {
     value.map_or("-".to_string(), |v| format!("{v:.3}"))
 }
 
-/// Renders the tracking pipelines' figures (docs/tracking.md, "The
-/// tracking experiment"): one table of the tracking measures and one of D
-/// per estimator; nothing without rows.
-pub fn render_tracking(rows: &[TrackingRow]) -> String {
+/// A titled table of cells, as [`tracking_tables`] gives them: printed as
+/// text by [`render_tracking`] and as Markdown by the report.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CellTable<const N: usize> {
+    pub title: String,
+    pub headers: [&'static str; N],
+    pub cells: Vec<[String; N]>,
+}
+
+/// The tracking pipelines' figures (docs/tracking.md, "The tracking
+/// experiment"): one table of the tracking measures and one of D per
+/// estimator; none without rows.
+pub fn tracking_tables(rows: &[TrackingRow]) -> Vec<CellTable<10>> {
     if rows.is_empty() {
-        return String::new();
+        return Vec::new();
     }
     let gate = rows[0].tracking.gate_px;
-    let headers = [
-        "pipeline",
-        "recording",
-        "D",
-        "tracks (est/truth)",
-        "alpha",
-        "beta",
-        "JSC det",
-        "JSC tracks",
-        "link prec",
-        "link rec",
-    ];
-    let cells: Vec<[String; 10]> = rows
-        .iter()
-        .map(|row| {
-            let t = &row.tracking;
-            [
-                display_cell(&row.pipeline).into_owned(),
-                display_cell(&row.recording).into_owned(),
-                format!("{}", row.diffusion),
-                format!("{}/{}", t.estimated_tracks, t.truth_tracks),
-                ratio(t.alpha),
-                ratio(t.beta),
-                ratio(t.jaccard_detections),
-                ratio(t.jaccard_tracks),
-                ratio(t.link_precision),
-                ratio(t.link_recall),
-            ]
-        })
-        .collect();
-    let mut out = render_cells(
-        &format!("tracking measures (gate {gate} px; docs/tracking.md)"),
-        &headers,
-        &cells,
-    );
-    let headers = [
-        "pipeline",
-        "recording",
-        "D",
-        "estimator",
-        "ensemble D (SE)",
-        "error",
-        "tracks",
-        "track bias",
-        "track RMSE",
-        "coverage",
-    ];
+    let measures = CellTable {
+        title: format!("tracking measures (gate {gate} px; docs/tracking.md)"),
+        headers: [
+            "pipeline",
+            "recording",
+            "D",
+            "tracks (est/truth)",
+            "alpha",
+            "beta",
+            "JSC det",
+            "JSC tracks",
+            "link prec",
+            "link rec",
+        ],
+        cells: rows
+            .iter()
+            .map(|row| {
+                let t = &row.tracking;
+                [
+                    display_cell(&row.pipeline).into_owned(),
+                    display_cell(&row.recording).into_owned(),
+                    format!("{}", row.diffusion),
+                    format!("{}/{}", t.estimated_tracks, t.truth_tracks),
+                    ratio(t.alpha),
+                    ratio(t.beta),
+                    ratio(t.jaccard_detections),
+                    ratio(t.jaccard_tracks),
+                    ratio(t.link_precision),
+                    ratio(t.link_recall),
+                ]
+            })
+            .collect(),
+    };
     let mut cells: Vec<[String; 10]> = Vec::new();
     for row in rows {
         for e in &row.estimators {
@@ -282,12 +277,31 @@ pub fn render_tracking(rows: &[TrackingRow]) -> String {
             ]);
         }
     }
-    out.push_str(&render_cells(
-        "diffusion coefficient, µm²/s (per track: tracks whose estimator's condition holds; bias and RMSE relative to D; coverage of the 95 % intervals)",
-        &headers,
-        &cells,
-    ));
-    out
+    let diffusion = CellTable {
+        title: "diffusion coefficient, µm²/s (per track: tracks whose estimator's condition holds; bias and RMSE relative to D; coverage of the 95 % intervals)".to_string(),
+        headers: [
+            "pipeline",
+            "recording",
+            "D",
+            "estimator",
+            "ensemble D (SE)",
+            "error",
+            "tracks",
+            "track bias",
+            "track RMSE",
+            "coverage",
+        ],
+        cells,
+    };
+    vec![measures, diffusion]
+}
+
+/// Renders the [`tracking_tables`] as text; nothing without rows.
+pub fn render_tracking(rows: &[TrackingRow]) -> String {
+    tracking_tables(rows)
+        .iter()
+        .map(|table| render_cells(&table.title, &table.headers, &table.cells))
+        .collect()
 }
 
 #[cfg(test)]

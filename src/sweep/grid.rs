@@ -26,9 +26,11 @@ use serde_yaml::{Mapping, Value};
 use super::SweepSpec;
 use super::front_end::{Finished, FrontEnd};
 use crate::error::input_error;
+use crate::limits::display_cell;
 use crate::manifest::{self, Manifest};
 use crate::registry::{Registry, RunKind};
-use crate::run::{Plan, RunOptions};
+use crate::run::{Plan, RunOptions, TrackingRow};
+use crate::track::diffusion::Method;
 
 /// One axis of the grid.
 #[derive(Debug, Clone, PartialEq)]
@@ -287,7 +289,9 @@ fn get_path_mut<'a>(document: &'a mut Value, path: &[String]) -> &'a mut Value {
 }
 
 /// `scanloc sweep run` as a sweep: a point per cell of the manifest's
-/// grid; the aggregation lists each finished point's AUC rows.
+/// grid; the aggregation lists each finished point's AUC rows and its
+/// tracking pipelines' figures (JSON: `tracking`, the rows of `scanloc run
+/// --json`).
 pub struct GridSweep;
 
 impl FrontEnd for GridSweep {
@@ -338,11 +342,16 @@ impl FrontEnd for GridSweep {
                     row.detector, row.dataset, row.eps_px, row.auc
                 ));
             }
+            let tracking = super::point_tracking(registry, point)?;
+            for row in &tracking {
+                text.push_str(&tracking_line(row));
+            }
             rows.push(json!({
                 "point": point.index,
                 "label": point.label,
                 "run": sweep.states[point.index].run,
                 "auc": auc,
+                "tracking": tracking,
             }));
         }
         Ok((
@@ -350,6 +359,29 @@ impl FrontEnd for GridSweep {
             json!({"sweep": file.id, "grid": rows, "points": sweep.states}),
         ))
     }
+}
+
+/// A tracking row in a grid's text: the pipeline and recording, the
+/// tracks' Jaccard index and the ML ensemble D against the true D.
+fn tracking_line(row: &TrackingRow) -> String {
+    let jaccard = row
+        .tracking
+        .jaccard_tracks
+        .map_or("-".to_string(), |j| format!("{j:.3}"));
+    let ml = row
+        .estimators
+        .iter()
+        .find(|e| e.method == Method::Ml)
+        .and_then(|e| e.ensemble)
+        .map_or("-".to_string(), |e| {
+            format!("{:.3} ({:.3})", e.d, e.standard_error)
+        });
+    format!(
+        "  {:<12} {:<16} JSC tracks {jaccard}  ML D {ml} (true D {})\n",
+        display_cell(&row.pipeline),
+        display_cell(&row.recording),
+        row.diffusion
+    )
 }
 
 #[cfg(test)]

@@ -43,7 +43,9 @@ use crate::manifest::{self, Manifest};
 use crate::registry::hashing::{canonical_json, sha256_hex};
 use crate::registry::shard::{self, Selection};
 use crate::registry::{AucRow, Registry, RunStatus, utc_now};
-use crate::run::{Action, Plan, RunOptions, RunOutcome, execute, load_artefact, score_rows};
+use crate::run::{
+    Action, Plan, RunOptions, RunOutcome, TrackingRow, execute, load_artefact, score_rows,
+};
 use front_end::Finished;
 pub use front_end::FrontEnd;
 pub use state::PointStatus;
@@ -150,6 +152,19 @@ pub fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRo
         if matches!(step.action, Action::Score { .. }) {
             let score = load_artefact(registry, &step.key)?;
             rows.extend(score_rows(&point.plan, step, score.evaluation()?));
+        }
+    }
+    Ok(rows)
+}
+
+/// The tracking rows of `point` (its tracking pipelines' figures, as its
+/// run prints them) read from the stored evaluations, in plan order.
+pub fn point_tracking(registry: &Registry, point: &Point) -> anyhow::Result<Vec<TrackingRow>> {
+    let mut rows = Vec::new();
+    for step in &point.plan.steps {
+        if matches!(step.action, Action::ScoreTracks { .. }) {
+            let evaluation = load_artefact(registry, &step.key)?;
+            rows.extend(TrackingRow::of(step, evaluation.track_evaluation()?));
         }
     }
     Ok(rows)

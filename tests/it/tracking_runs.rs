@@ -2,7 +2,9 @@
 //! experiment"): recordings as datasets, locate → link → score steps,
 //! the run's tracking tables, caching, reproduction, and bad sections.
 
-use crate::common::{run_json, scanloc, stderr, stdout, write_manifest};
+use crate::common::{
+    report_markdown, report_section, run_json, scanloc, stderr, stdout, write_manifest,
+};
 
 /// A recording bright enough for crocker-grier to find its in-focus QDs,
 /// linked by both linkers.
@@ -321,4 +323,259 @@ fn bad_tracking_sections_are_one_line_naming_the_field() {
         );
         assert!(!registry.exists(), "case {index}: the registry was touched");
     }
+}
+
+/// `scanloc ARGS`, asserting success: its output.
+fn ok(args: &[&str]) -> String {
+    let output = scanloc(args);
+    assert!(output.status.success(), "{args:?}: {}", stderr(&output));
+    stdout(&output)
+}
+
+/// The width and height of PNG file `path` (panics if it is not a PNG).
+fn png_size(path: &std::path::Path) -> (u32, u32) {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert_eq!(&bytes[1..4], b"PNG", "{} is not a PNG", path.display());
+    let width = u32::from_be_bytes(bytes[16..20].try_into().unwrap());
+    let height = u32::from_be_bytes(bytes[20..24].try_into().unwrap());
+    (width, height)
+}
+
+/// The text of SVG file `path` (panics if it is not an SVG).
+fn svg_text(path: &std::path::Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert!(
+        text.contains("<svg") && text.trim_end().ends_with("</svg>"),
+        "{} is not an SVG",
+        path.display()
+    );
+    text
+}
+
+/// The tracking tables of a text output: from the first table's title to
+/// the end of the last table.
+fn tracking_tables(text: &str) -> String {
+    let start = text
+        .find("tracking measures (gate")
+        .unwrap_or_else(|| panic!("no tracking tables: {text}"));
+    text[start..]
+        .lines()
+        .take_while(|l| !l.starts_with("run "))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Runs manifest `text` in a new folder's `registry` twice: `--json`, then
+/// as text (served from the registry). Returns the folder, the JSON and
+/// the text's tracking tables.
+fn run_twice(text: &str) -> (tempfile::TempDir, serde_json::Value, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = write_manifest(dir.path(), "manifest.yaml", text);
+    let registry = dir.path().join("registry");
+    let run = run_json(&manifest, &registry, &[]);
+    let text = ok(&[
+        "run",
+        manifest.to_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    (dir, run, tracking_tables(&text))
+}
+
+#[test]
+fn registry_show_report_and_shards_carry_a_tracking_only_run() {
+    let (dir, run, printed) = run_twice(MANIFEST);
+    let registry = dir.path().join("registry");
+    let registry_arg = registry.to_str().unwrap();
+    let id = run["run"].as_str().unwrap();
+
+    // `registry show` prints the tables the run printed, and no empty AUC
+    // table; with --json the rows of `run --json`.
+    let show = |registry: &str| {
+        let text = ok(&["registry", "show", id, "--registry", registry]);
+        assert!(!text.contains("no AUC"), "{text}");
+        assert!(text.contains("evaluation/cg+memory@rec-blink"), "{text}");
+        let json = ok(&["registry", "show", id, "--json", "--registry", registry]);
+        let json: serde_json::Value = serde_json::from_str(&json).unwrap();
+        assert_eq!(json["id"], id);
+        (tracking_tables(&text), json["tracking"].clone())
+    };
+    let (text, json) = show(registry_arg);
+    assert_eq!(text, printed);
+    assert_eq!(json, run["tracking"]);
+
+    // A shard of the run, imported into an empty registry, shows the same
+    // tables and reproduces bit for bit.
+    let shard = dir.path().join("shard");
+    ok(&[
+        "registry",
+        "export",
+        id,
+        "--out",
+        shard.to_str().unwrap(),
+        "--registry",
+        registry_arg,
+    ]);
+    let other = dir.path().join("other");
+    let other_arg = other.to_str().unwrap();
+    ok(&[
+        "registry",
+        "import",
+        shard.to_str().unwrap(),
+        "--registry",
+        other_arg,
+    ]);
+    assert_eq!(show(other_arg), (printed.clone(), run["tracking"].clone()));
+    let text = ok(&["reproduce", id, "--registry", other_arg]);
+    assert!(text.contains("IDENTICAL"), "{text}");
+
+    // The report: no AUC section, a Tracking section with both tables and
+    // both figures.
+    let out = dir.path().join("report");
+    let markdown = report_markdown(&registry, id, &out);
+    assert!(!markdown.contains("## AUC"), "{markdown}");
+    assert!(!markdown.contains("## Localisation quality"), "{markdown}");
+    let section = report_section(&markdown, "Tracking");
+    assert!(
+        section.contains("**tracking measures (gate 2 px"),
+        "{section}"
+    );
+    // The run's counts of tracks, in the run's row order.
+    let tracks = &run["tracking"][2]["tracking"];
+    assert!(
+        section.contains(&format!(
+            "| cg+memory | rec-blink | 1 | {}/{} |",
+            tracks["estimated_tracks"], tracks["truth_tracks"]
+        )),
+        "{section}"
+    );
+    let ml_rows = section
+        .lines()
+        .filter(|l| l.starts_with("| cg+") && l.contains(" | ml | "))
+        .count();
+    assert_eq!(ml_rows, 3, "{section}");
+    // One figure per recording, one panel per pipeline on it.
+    assert_eq!(png_size(&out.join("tracks_rec-1.00.png")), (360, 400));
+    assert_eq!(png_size(&out.join("tracks_rec-blink.png")), (720, 400));
+    let svg = svg_text(&out.join("tracks_rec-blink.svg"));
+    assert!(svg.contains("cg+lap: rec-blink, frame"), "{svg}");
+    assert!(svg.contains("cg+memory: rec-blink, frame"), "{svg}");
+    assert!(section.contains("![tracks over a frame](tracks_rec-blink.png)"));
+    assert_eq!(png_size(&out.join("diffusion_estimates.png")), (640, 520));
+    let svg = svg_text(&out.join("diffusion_estimates.svg"));
+    assert!(svg.contains("D estimated against true D"), "{svg}");
+    assert!(svg.contains("cg+lap, ML") && svg.contains("cg+memory, ML"));
+    assert!(section.contains("![D estimated against true D](diffusion_estimates.png)"));
+}
+
+/// A per-frame evaluation beside one tracking pipeline on recordings of two
+/// D values.
+const MIXED: &str = "\
+name: mixed
+seed: 11
+microscope: {brightness: 30}
+datasets:
+  test-1.00: {frames: 6, diffusion_um2_s: 1.0}
+recordings:
+  rec-0.50: {frames: 200, diffusion_um2_s: 0.5}
+  rec-1.50: {frames: 200, diffusion_um2_s: 1.5}
+linkers:
+  lap: {lap: {search_range: 10, max_gap: 2}}
+detectors:
+  cg:
+    crocker_grier: {diameter: 7, minmass: 40}
+evaluations:
+  - {detector: cg, datasets: [test-1.00]}
+tracking:
+  scoring: {gate_px: 2, max_depth_um: 1.36, split_gaps_over: 2}
+  evaluations:
+    - {detector: cg, linker: lap, recordings: [rec-0.50, rec-1.50]}
+";
+
+#[test]
+fn a_run_with_auc_and_tracking_reports_and_shows_both_and_a_sweep_lists_the_tracking() {
+    let (dir, run, printed) = run_twice(MIXED);
+    let registry = dir.path().join("registry");
+    let registry_arg = registry.to_str().unwrap();
+    let id = run["run"].as_str().unwrap();
+    assert_eq!(run["auc"][0]["detector"], "cg");
+    let diffusions: Vec<f64> = run["tracking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["diffusion"].as_f64().unwrap())
+        .collect();
+    assert_eq!(diffusions, [0.5, 1.5]);
+
+    let text = ok(&["registry", "show", id, "--registry", registry_arg]);
+    assert!(text.contains("test-1.00"), "the AUC grid: {text}");
+    assert!(!text.contains("no AUC"), "{text}");
+    assert_eq!(tracking_tables(&text), printed);
+
+    // The report keeps its AUC and quality tables for the per-frame
+    // evaluation alone, and adds the Tracking section.
+    let out = dir.path().join("report");
+    let markdown = report_markdown(&registry, id, &out);
+    assert!(markdown.contains("## AUC"), "{markdown}");
+    let quality = report_section(&markdown, "Localisation quality");
+    assert!(quality.contains("| cg | test-1.00 |"), "{quality}");
+    assert!(!quality.contains("cg+lap"), "{quality}");
+    let section = report_section(&markdown, "Tracking");
+    for row in [
+        "| cg+lap | rec-0.50 | 0.5 | ml |",
+        "| cg+lap | rec-1.50 | 1.5 | ml |",
+    ] {
+        assert!(section.contains(row), "{row}: {section}");
+    }
+    for recording in ["rec-0.50", "rec-1.50"] {
+        assert_eq!(
+            png_size(&out.join(format!("tracks_{recording}.png"))),
+            (360, 400)
+        );
+        let svg = svg_text(&out.join(format!("tracks_{recording}.svg")));
+        assert!(
+            svg.contains(&format!("cg+lap: {recording}, frame")),
+            "{svg}"
+        );
+    }
+    let svg = svg_text(&out.join("diffusion_estimates.svg"));
+    assert!(
+        svg.contains("true D (µm²/s)") && svg.contains("cg+lap, ML"),
+        "{svg}"
+    );
+
+    // A grid over the linker's search range lists each point's tracking
+    // rows; the point of the manifest's own value is the run's.
+    let grid = format!(
+        "{MIXED}sweep:\n  range:\n    path: linkers.lap.lap.search_range\n    values: [5, 10]\n"
+    );
+    let manifest = write_manifest(dir.path(), "grid.yaml", &grid);
+    let json = ok(&[
+        "sweep",
+        "run",
+        manifest.to_str().unwrap(),
+        "--json",
+        "--registry",
+        registry_arg,
+    ]);
+    let sweep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let points = sweep["grid"].as_array().unwrap();
+    assert_eq!(points.len(), 2);
+    assert_eq!(points[0]["tracking"].as_array().unwrap().len(), 2);
+    assert_eq!(points[1]["tracking"], run["tracking"]);
+    assert_eq!(points[1]["auc"], run["auc"]);
+    let text = ok(&[
+        "sweep",
+        "run",
+        manifest.to_str().unwrap(),
+        "--registry",
+        registry_arg,
+    ]);
+    assert!(
+        text.lines()
+            .filter(|l| l.contains("cg+lap") && l.contains("ML D"))
+            .count()
+            == 4,
+        "{text}"
+    );
 }

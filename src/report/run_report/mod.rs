@@ -5,7 +5,8 @@
 //! the attainable bound with its bootstrap uncertainty, the scene figures at the
 //! score threshold, the calibration of probability scores, precision–recall
 //! curves, reliability diagrams, example frames, localisation panels and
-//! error histograms.
+//! error histograms; and, for runs with tracking pipelines, their tables,
+//! tracks over a frame and D estimated against the true D (`tracking`).
 //!
 //! The tables are [`tables`]'s, the figures [`figures`]'s; this module
 //! reads the run's evaluations and writes `report.md` from them.
@@ -18,11 +19,12 @@ use std::sync::Arc;
 use super::recorded::RecordedManifest;
 use crate::metrics::Score;
 use crate::registry::{Registry, RunRecord};
-use crate::run::load_artefact;
+use crate::run::{load_artefact, recorded_tracking};
 use crate::types::{Dataset, DetectorKind, Prediction};
 
 mod figures;
 mod tables;
+mod tracking;
 
 use figures::{
     error_histograms, example_frames, localisation_panels, precision_recall_curves,
@@ -66,7 +68,12 @@ pub fn write_report(
     let resolved = RecordedManifest::of(&record)?;
     let out = folder.path();
     let reference = resolved.reference.as_ref();
-    let evaluations = load_evaluations(registry, &record, &resolved)?;
+    let tracking = recorded_tracking(registry, &record)?;
+    let tracking_keys: Vec<&str> = tracking
+        .iter()
+        .map(|t| t.row.evaluation_key.as_str())
+        .collect();
+    let evaluations = load_evaluations(registry, &record, &resolved, &tracking_keys)?;
     let mut markdown = String::new();
     writeln!(
         markdown,
@@ -92,17 +99,23 @@ pub fn write_report(
         record.counts.cached, record.counts.computed
     )?;
 
-    write_auc_table(&mut markdown, &evaluations, reference)?;
-    if let Some(reference) = reference {
-        write_reference_note(
-            &mut markdown,
-            &evaluations,
-            reference,
-            &resolved.microscope.brightness,
-        )?;
+    // A run that scores only tracks has no AUC and no localisation table.
+    let per_frame = !evaluations.is_empty() || tracking.is_empty();
+    if per_frame {
+        write_auc_table(&mut markdown, &evaluations, reference)?;
+        if let Some(reference) = reference {
+            write_reference_note(
+                &mut markdown,
+                &evaluations,
+                reference,
+                &resolved.microscope.brightness,
+            )?;
+        }
     }
     write_cross_validation_table(&mut markdown, &record, &resolved)?;
-    write_quality_table(&mut markdown, &evaluations)?;
+    if per_frame {
+        write_quality_table(&mut markdown, &evaluations)?;
+    }
     write_headroom_table(&mut markdown, &evaluations)?;
     let mut artefacts = Artefacts::new(registry);
     if let Some(reference) = reference {
@@ -138,6 +151,7 @@ pub fn write_report(
     for file in error_histograms(registry, out, &evaluations)? {
         writeln!(markdown, "![errors]({file}.png)\n")?;
     }
+    tracking::write_tracking_section(registry, out, &mut markdown, &tracking)?;
     crate::io::write_bytes_atomically(&folder.file(REPORT_FILE), markdown.as_bytes())?;
     folder.commit()?;
     Ok(destination.join(REPORT_FILE))
@@ -156,6 +170,7 @@ fn load_evaluations(
     registry: &Registry,
     record: &RunRecord,
     resolved: &RecordedManifest,
+    tracking_keys: &[&str],
 ) -> anyhow::Result<Vec<Evaluation>> {
     let mut keys: Vec<&str> = Vec::new();
     for row in &record.auc {
@@ -163,10 +178,12 @@ fn load_evaluations(
             keys.push(&row.evaluation_key);
         }
     }
-    // Evaluations of sets without ground truth have no AUC row.
+    // Evaluations of sets without ground truth have no AUC row; those of
+    // tracking pipelines are the Tracking section's.
     for step in &record.steps {
         if step.kind == crate::registry::ArtefactKind::Evaluation
             && !keys.contains(&step.artefact_key.as_str())
+            && !tracking_keys.contains(&step.artefact_key.as_str())
         {
             keys.push(&step.artefact_key);
         }
