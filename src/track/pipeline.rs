@@ -174,7 +174,9 @@ impl LinkerSpec {
                 // none (no step), the first pass stands.
                 let tracks = tracks_of(detections, &first.particle);
                 match ensemble_ml(&tracks, geometry) {
-                    Some(d) if d.is_finite() && d > 0.0 => lap::link(detections, &with_diffusion(d)),
+                    Some(d) if d.is_finite() && d > 0.0 => {
+                        lap::link(detections, &with_diffusion(d))
+                    }
                     _ => Ok(first),
                 }
             }

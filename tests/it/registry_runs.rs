@@ -790,30 +790,6 @@ fn the_paper_manifests_content_keys_are_stable() {
             "5275339bc82dc51ddc3881cf273529cdaa7b0573311af9f7338c28e79ae5c4f9",
         ),
         (
-            "predictions/bound-list-marginal-d@test-0.75+first300",
-            "cc561cfdef3e3c9bff37bbfa6a716ccaa54bb5a56aec392eac21fd2928983684",
-        ),
-        (
-            "evaluation/bound-list-marginal-d@test-0.75+first300",
-            "9fd009e942cb9dd0fc049ea1bc4880a2406ec0c12b45da604d2f5b726fe358cc",
-        ),
-        (
-            "predictions/bound-list-marginal-d@test-1.00+first300",
-            "39a093fea8d0097151637888c9bfd159bfcde9bcd83225e6d88be80efcb14528",
-        ),
-        (
-            "evaluation/bound-list-marginal-d@test-1.00+first300",
-            "62a06930e53ba684c50b3256cfbc181dc513cfdb45b2482112d0155e81439e37",
-        ),
-        (
-            "predictions/bound-list-marginal-d@test-1.75+first300",
-            "cfb3dc96508194acab0c1a0ff0ac22acb842cab09fff8a6609ebd6b7a590b724",
-        ),
-        (
-            "evaluation/bound-list-marginal-d@test-1.75+first300",
-            "d61003e7ef093f702c01d8b53aacf06316ab46872ca99e0f689b6f4806301a94",
-        ),
-        (
             "predictions/cnn@test-0.75+first300",
             "e4c4546d5772d206b51fc14fa615d33c06b99b3c30b712475578de7ca6341747",
         ),
@@ -836,6 +812,66 @@ fn the_paper_manifests_content_keys_are_stable() {
         (
             "evaluation/cnn@test-1.75+first300",
             "8809f043741d9f2e353b236b409f1baf249075c491354aa06beb519a14d82e9b",
+        ),
+        (
+            "dataset/test-0.75+first1000",
+            "bde9b4bd52b692840162952130d16263796697afc0a395b5f0fa476b74673da3",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-0.75+first1000",
+            "d7b0ce52f3da73b13aaedb85601a8f1d5f6ab12149dd205b9d561cd1363a3569",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-0.75+first1000",
+            "1d32e806a91d666c32c701340c2557e53f9104fc8fb2ed717a778cc53b01c7dd",
+        ),
+        (
+            "dataset/test-1.00+first1000",
+            "824b22fdc724355e60bc9e6e948ef7cf64847da6df1cc98f801649b8c880803e",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-1.00+first1000",
+            "b7a15dae334e3b2286b4fa9b83d7665a8522993183feb55d00dbfcccc24ca4f5",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-1.00+first1000",
+            "925045cadab27fac400b7afce8029069890504cd10011ea81acf7cfa5af68f59",
+        ),
+        (
+            "dataset/test-1.75+first1000",
+            "aa23f991c23be38c1865b863eb833f0cbddb48fe751896ae84c015a86a6d851d",
+        ),
+        (
+            "predictions/bound-list-marginal-d@test-1.75+first1000",
+            "5e50b11aa3cba2b465e4fabe29132d17a693fa454f9031691420401b795e0d77",
+        ),
+        (
+            "evaluation/bound-list-marginal-d@test-1.75+first1000",
+            "4263dbbc0993a8d0a110a1f631f04ed49348598ff71ae724b3410762eb7c6411",
+        ),
+        (
+            "predictions/cnn@test-0.75+first1000",
+            "7d8dbff1e83979bc2c7c0fe5c939a04bec8de6e64031b4a8e191fdabbee96648",
+        ),
+        (
+            "evaluation/cnn@test-0.75+first1000",
+            "c0e9703d794970850483e3b75296442634d86c1078594e8f1d5dcee1ca93fcc7",
+        ),
+        (
+            "predictions/cnn@test-1.00+first1000",
+            "51357fdec4feda69ffefa9988bca05fb088161dc91aca4e12f9914280fce9bc5",
+        ),
+        (
+            "evaluation/cnn@test-1.00+first1000",
+            "05b31c4f3f7608dff5a649bee6b236545292b742af689d59acd3710e3b0bf03a",
+        ),
+        (
+            "predictions/cnn@test-1.75+first1000",
+            "6dceb905af1009ec8f9c8cefa049de84c0264dd5e0947b40c73e47641ec9f512",
+        ),
+        (
+            "evaluation/cnn@test-1.75+first1000",
+            "9cd5e3cce9b0ad0f726a8379082edb8a005e1300bdab935667a8d86fb0a34112",
         ),
     ];
     assert_eq!(planned, recorded.map(|(id, key)| (id.to_string(), key)));
