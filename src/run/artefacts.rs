@@ -160,14 +160,19 @@ fn blob(blobs: &[(BlobRole, Vec<u8>)], role: BlobRole) -> anyhow::Result<&[u8]> 
         .with_context(|| format!("the artefact has no {role} blob"))
 }
 
-/// Decodes a dataset from its `frames.npy` and `truth.csv` blobs.
-pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> {
+/// The frames of a dataset or a recording, from its `frames.npy` blob.
+fn decode_frames(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<FrameStack> {
     let frames_npy = blob(blobs, BlobRole::Frames)?;
-    let frames = npy::read_frames_from(
+    npy::read_frames_from(
         frames_npy,
         frames_npy.len() as u64,
         BlobRole::Frames.as_str(),
-    )?;
+    )
+}
+
+/// Decodes a dataset from its `frames.npy` and `truth.csv` blobs.
+pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> {
+    let frames = decode_frames(blobs)?;
     let truth =
         csv_tables::read_truth_from(blob(blobs, BlobRole::Truth)?, BlobRole::Truth.as_str())?;
     Ok(Dataset { frames, truth })
@@ -204,12 +209,7 @@ fn header_has(blobs: &[(BlobRole, Vec<u8>)], role: BlobRole, column: &str) -> bo
 
 /// Decodes a recording from its `frames.npy` and `truth.csv` blobs.
 pub fn decode_recording(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<RecordingData> {
-    let frames_npy = blob(blobs, BlobRole::Frames)?;
-    let frames = npy::read_frames_from(
-        frames_npy,
-        frames_npy.len() as u64,
-        BlobRole::Frames.as_str(),
-    )?;
+    let frames = decode_frames(blobs)?;
     let truth = crate::io::tracks::read_recording_truth_from(
         blob(blobs, BlobRole::Truth)?,
         BlobRole::Truth.as_str(),

@@ -303,13 +303,19 @@ fn score(
     Ok(Artefact::Evaluation(Arc::new(score)))
 }
 
-/// The simulated dataset step `index` comes from (itself, or the source of
-/// a subset).
-pub(super) fn root_dataset(plan: &Plan, mut index: usize) -> Option<&DatasetSpec> {
+/// The step that simulated the frames of step `index`: itself, or the
+/// source of a subset.
+fn root_step(plan: &Plan, mut index: usize) -> &Action {
     while let Action::Subset { source, .. } = &plan.steps[index].action {
         index = *source;
     }
-    match &plan.steps[index].action {
+    &plan.steps[index].action
+}
+
+/// The simulated dataset step `index` comes from (itself, or the source of
+/// a subset).
+pub(super) fn root_dataset(plan: &Plan, index: usize) -> Option<&DatasetSpec> {
+    match root_step(plan, index) {
         Action::Simulate { dataset } => Some(dataset),
         _ => None,
     }
@@ -317,11 +323,8 @@ pub(super) fn root_dataset(plan: &Plan, mut index: usize) -> Option<&DatasetSpec
 
 /// The microscope of the frames step `index` makes: a dataset's (or its
 /// source's) or a recording's.
-fn root_microscope(plan: &Plan, mut index: usize) -> Option<&crate::sim::SimParams> {
-    while let Action::Subset { source, .. } = &plan.steps[index].action {
-        index = *source;
-    }
-    match &plan.steps[index].action {
+fn root_microscope(plan: &Plan, index: usize) -> Option<&crate::sim::SimParams> {
+    match root_step(plan, index) {
         Action::Simulate { dataset } => Some(&dataset.params),
         Action::SimulateRecording { recording } => Some(&recording.params.microscope),
         _ => None,

@@ -3,15 +3,16 @@
 //! stored one); the AUC rows and empty-frame figures of evaluations
 //! collected; every step recorded.
 
-use std::sync::Arc;
 use std::time::Instant;
 
-use super::artefacts::{self, Artefact};
+use super::artefacts::Artefact;
 use super::compute::{LoadedArtefacts, compute};
 use super::details::details;
 use super::log;
 use super::plan::{Action, Plan, Step};
-use super::stored::{Stored, check_stored_artefact, check_stored_artefacts, read_blobs};
+use super::stored::{
+    Stored, check_stored_artefact, check_stored_artefacts, decode_step, read_blobs,
+};
 use crate::metrics::Score;
 use crate::metrics::scenes::EmptyFrames;
 use crate::registry::hashing::sha256_hex;
@@ -195,12 +196,15 @@ impl Execution {
                 }
                 (stored, _) => self.make(registry, plan, index, stored, &mut loaded, clock)?,
             };
-            if let Some(score) = evaluation(registry, step, &done)? {
-                auc.extend(score_rows(plan, step, &score));
-                self.empty_frames.extend(empty_frames_row(step, &score));
-            }
-            if let Some(evaluation) = track_evaluation(registry, step, &done)? {
-                self.tracking.extend(TrackingRow::of(step, &evaluation));
+            match scored(registry, step, &done)? {
+                Some(Artefact::Evaluation(score)) => {
+                    auc.extend(score_rows(plan, step, &score));
+                    self.empty_frames.extend(empty_frames_row(step, &score));
+                }
+                Some(Artefact::TrackEvaluation(evaluation)) => {
+                    self.tracking.extend(TrackingRow::of(step, &evaluation));
+                }
+                _ => {}
             }
             if let Some(artefact) = &done.artefact {
                 loaded.keep_if_read_later(index, artefact.clone());
@@ -379,44 +383,20 @@ fn blob_refs(encoded: &[(BlobRole, Vec<u8>)]) -> Vec<BlobRef> {
         .collect()
 }
 
-/// The evaluation of a scoring step, `None` for other steps. A cached
-/// evaluation is read from its `score.json` blob.
-fn evaluation(
-    registry: &Registry,
-    step: &Step,
-    done: &StepDone,
-) -> anyhow::Result<Option<Arc<Score>>> {
-    if !matches!(step.action, Action::Score { .. }) {
+/// The evaluation a scoring step made (of the AUC, or of tracks), `None`
+/// for other steps. A cached evaluation is read from its `score.json` blob.
+fn scored(registry: &Registry, step: &Step, done: &StepDone) -> anyhow::Result<Option<Artefact>> {
+    if !matches!(
+        step.action,
+        Action::Score { .. } | Action::ScoreTracks { .. }
+    ) {
         return Ok(None);
     }
-    let score = match &done.artefact {
-        Some(artefact) => artefact.evaluation()?.clone(),
-        None => Arc::new(artefacts::decode_score(&read_blobs(
-            registry,
-            &done.blobs,
-        )?)?),
+    let artefact = match &done.artefact {
+        Some(artefact) => artefact.clone(),
+        None => decode_step(step, read_blobs(registry, &done.blobs)?)?,
     };
-    Ok(Some(score))
-}
-
-/// The evaluation of a tracks-scoring step, `None` for other steps. A
-/// cached evaluation is read from its `score.json` blob.
-fn track_evaluation(
-    registry: &Registry,
-    step: &Step,
-    done: &StepDone,
-) -> anyhow::Result<Option<Arc<TrackEvaluation>>> {
-    if !matches!(step.action, Action::ScoreTracks { .. }) {
-        return Ok(None);
-    }
-    let evaluation = match &done.artefact {
-        Some(artefact) => artefact.track_evaluation()?.clone(),
-        None => Arc::new(artefacts::decode_track_evaluation(&read_blobs(
-            registry,
-            &done.blobs,
-        )?)?),
-    };
-    Ok(Some(evaluation))
+    Ok(Some(artefact))
 }
 
 /// The empty-frame figures of scoring step `step` whose evaluation is

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::artefacts::{self, Artefact};
 use super::execution::TrackingRow;
-use super::plan::Plan;
+use super::plan::{Action, Plan, Step};
 use crate::registry::{
     ArtefactKind, BlobRef, BlobRole, BlobState, BlobStore, Registry, RunRecord, StepId,
 };
@@ -172,14 +172,32 @@ pub(super) fn load_step_artefact(
         .with_context(|| format!("{} ({}) is not in the registry", step.id, step.key))?;
     let blobs =
         read_blobs(registry, &stored.blobs).with_context(|| format!("reading {}", step.id))?;
-    decode(step.kind(), blobs)
+    decode_step(step, blobs)
 }
 
-/// An artefact of kind `kind` from its blobs.
+/// The artefact of `step` from its blobs: the step's action says which of
+/// the formats sharing its registry kind they hold.
+pub(super) fn decode_step(
+    step: &Step,
+    blobs: Vec<(BlobRole, Vec<u8>)>,
+) -> anyhow::Result<Artefact> {
+    Ok(match step.action {
+        Action::SimulateRecording { .. } => {
+            Artefact::Recording(Arc::new(artefacts::decode_recording(&blobs)?))
+        }
+        Action::Link { .. } => Artefact::Tracks(Arc::new(artefacts::decode_tracks(&blobs)?)),
+        Action::ScoreTracks { .. } => {
+            Artefact::TrackEvaluation(Arc::new(artefacts::decode_track_evaluation(&blobs)?))
+        }
+        _ => decode_plain(step.kind(), blobs)?,
+    })
+}
+
+/// An artefact of kind `kind` from its blobs, known by its key alone.
 fn decode(kind: ArtefactKind, blobs: Vec<(BlobRole, Vec<u8>)>) -> anyhow::Result<Artefact> {
     // Recordings, tracks and tracking evaluations share the registry's
-    // kinds with datasets, predictions and evaluations; their formats tell
-    // them apart.
+    // kinds with datasets, predictions and evaluations; without the step
+    // that made them, their formats tell them apart.
     Ok(match kind {
         ArtefactKind::Dataset if artefacts::holds_recording(&blobs) => {
             Artefact::Recording(Arc::new(artefacts::decode_recording(&blobs)?))
@@ -190,6 +208,13 @@ fn decode(kind: ArtefactKind, blobs: Vec<(BlobRole, Vec<u8>)>) -> anyhow::Result
         ArtefactKind::Evaluation if artefacts::holds_track_evaluation(&blobs) => {
             Artefact::TrackEvaluation(Arc::new(artefacts::decode_track_evaluation(&blobs)?))
         }
+        _ => decode_plain(kind, blobs)?,
+    })
+}
+
+/// A dataset, model, predictions or evaluation (of the AUC) from its blobs.
+fn decode_plain(kind: ArtefactKind, blobs: Vec<(BlobRole, Vec<u8>)>) -> anyhow::Result<Artefact> {
+    Ok(match kind {
         ArtefactKind::Dataset => Artefact::Dataset(Arc::new(artefacts::decode_dataset(&blobs)?)),
         ArtefactKind::Model => Artefact::Model(Arc::new(
             blobs.into_iter().next().map(|(_, b)| b).unwrap_or_default(),
