@@ -7,7 +7,10 @@ use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
 use scanloc::error::input_error;
-use scanloc::track::diffusion::{Estimate, Exposure, Method, Series};
+use scanloc::track::diffusion::{
+    Estimate, Exposure, Method, RecordingEstimates, Series, attach_detection_profile,
+    estimate_recording,
+};
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -31,8 +34,13 @@ enum ExposureArg {
 ///
 /// Time stamps and motion blur come from the scan (the flags below, in the
 /// units of the manifest's microscope section), or the table's `time`
-/// column (s) where present. Output: CSV on stdout, one row per track and
-/// method, then the ensemble rows (particle `ensemble`).
+/// column (s) where present. Without sigma_x, sigma_y, ml estimates each
+/// track with the ensemble's localisation variance; with 1,000
+/// localisations or more, ml conditions on where the localiser finds
+/// particles, read off their density near the field's edges
+/// (docs/tracking.md, "The field selects the steps"). Output: CSV on
+/// stdout, one row per track and method, then the ensemble rows (particle
+/// `ensemble`).
 #[derive(Debug, Args)]
 pub struct DiffusionArgs {
     /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s).
@@ -80,7 +88,7 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
         ExposureArg::UniformFrame => Exposure::UniformFrame,
     };
     let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
-    let series: Vec<Series> = tracks
+    let mut series: Vec<Series> = tracks
         .iter()
         .map(|track| Series::new(track, &geometry, exposure))
         .collect();
@@ -90,31 +98,34 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
             args.tracks.display()
         )));
     }
+    attach_detection_profile(&mut series, geometry.pixel_size_um);
     writeln!(
         stdout,
         "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
     )?;
-    for (track, s) in tracks.iter().zip(&series) {
-        if s.len() < args.min_points.max(2) {
-            continue;
-        }
-        for method in Method::ALL {
-            if let Some(estimate) = method.estimate(&[s]) {
-                row(
-                    stdout,
-                    &track.particle.to_string(),
-                    s.len(),
-                    method,
-                    &estimate,
-                )?;
-            }
-        }
+    let estimates: Vec<(Method, RecordingEstimates)> = Method::ALL
+        .into_iter()
+        .map(|method| (method, estimate_recording(&series, method, args.min_points)))
+        .collect();
+    // One row per track and method, tracks in table order.
+    let mut rows: Vec<(usize, Method, &Estimate)> = estimates
+        .iter()
+        .flat_map(|(method, e)| e.per_track.iter().map(move |(i, est)| (*i, *method, est)))
+        .collect();
+    rows.sort_by_key(|&(index, method, _)| (index, Method::ALL.iter().position(|&m| m == method)));
+    for (index, method, estimate) in rows {
+        row(
+            stdout,
+            &tracks[index].particle.to_string(),
+            series[index].len(),
+            method,
+            estimate,
+        )?;
     }
-    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
-    let points: usize = all.iter().map(|s| s.len()).sum();
-    for method in Method::ALL {
-        if let Some(estimate) = method.estimate(&all) {
-            row(stdout, "ensemble", points, method, &estimate)?;
+    let points: usize = series.iter().filter(|s| s.len() > 1).map(Series::len).sum();
+    for (method, e) in &estimates {
+        if let Some(estimate) = &e.ensemble {
+            row(stdout, "ensemble", points, *method, estimate)?;
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -10,7 +10,9 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use super::diffusion::{Estimate, Method, ScanGeometry, Series};
+use super::diffusion::{
+    Estimate, Method, ScanGeometry, Series, attach_detection_profile, estimate_recording,
+};
 use super::{Detection, Linking, lap, trackpy};
 use crate::error::input_error;
 use crate::metrics::diffusion::{DiffusionInterval, DiffusionScore, score_diffusion};
@@ -21,10 +23,10 @@ use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
 
 /// Version of the linking step (the linkers of [`super::trackpy`] and
 /// [`super::lap`] and the tracks table they make).
-pub const LINK_VERSION: &str = "scanloc-link/1";
+pub const LINK_VERSION: &str = "scanloc-link/2";
 
 /// Version of the scoring of tracks ([`evaluate`] and its JSON).
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/1";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/2";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
@@ -184,7 +186,8 @@ impl LinkerSpec {
     }
 }
 
-/// The ML estimate of D (µm²/s) over all `tracks`, σ² profiled.
+/// The ML estimate of D (µm²/s) over all `tracks`, σ² profiled, with
+/// the tracks' detection profile.
 fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
     let series = series_of(tracks, geometry);
     let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
@@ -195,10 +198,11 @@ fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
 /// implies, their localisations' own σ left out: σ² is profiled. A
 /// localiser that reports its posterior mean (the CNN) errs with its
 /// estimates rather than with the truth, which no given σ describes
-/// (docs/tracking.md, "The estimators").
+/// (docs/tracking.md, "The estimators"). Each series carries the
+/// detection profile of all the tracks' localisations.
 fn series_of(tracks: &[Track], geometry: &ScanGeometry) -> Vec<Series> {
     let exposure = geometry.auto_exposure();
-    tracks
+    let mut series: Vec<Series> = tracks
         .iter()
         .map(|track| {
             let bare = Track {
@@ -211,7 +215,9 @@ fn series_of(tracks: &[Track], geometry: &ScanGeometry) -> Vec<Series> {
             };
             Series::new(&bare, geometry, exposure)
         })
-        .collect()
+        .collect();
+    attach_detection_profile(&mut series, geometry.pixel_size_um);
+    series
 }
 
 /// The tracks of `detections` labelled `particle`: one per label, in label
@@ -470,21 +476,18 @@ pub fn evaluate(
     let truth_tracks = truth_tracks(truth, &scoring.selection());
     let tracking = score_tracks(&truth_tracks, tracks, scoring.gate_px)?;
     let series = series_of(tracks, geometry);
-    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
     let diffusion = Method::ALL
         .into_iter()
         .map(|method| {
-            let ensemble = method.estimate(&all).map(StoredEstimate::from);
-            let per_track: Vec<TrackEstimate> = tracks
-                .iter()
-                .zip(&series)
-                .filter(|(_, s)| s.len() >= scoring.min_points)
-                .filter_map(|(track, s)| {
-                    method.estimate(&[s]).map(|e| TrackEstimate {
-                        particle: track.particle,
-                        points: s.len(),
-                        estimate: e.into(),
-                    })
+            let estimates = estimate_recording(&series, method, scoring.min_points);
+            let ensemble = estimates.ensemble.map(StoredEstimate::from);
+            let per_track: Vec<TrackEstimate> = estimates
+                .per_track
+                .into_iter()
+                .map(|(index, e)| TrackEstimate {
+                    particle: tracks[index].particle,
+                    points: series[index].len(),
+                    estimate: e.into(),
                 })
                 .collect();
             let valid: Vec<DiffusionInterval> = per_track

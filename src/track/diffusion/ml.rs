@@ -7,7 +7,8 @@
 //! `Σᵢᵢ = 2D(Δtᵢ − τᵢ − τᵢ₊₁) + vᵢ + vᵢ₊₁`, `Σᵢ,ᵢ₊₁ = 2Dτᵢ₊₁ − vᵢ₊₁`, with
 //! `v` the localisation variances: the given ones when every localisation
 //! has one, else one unknown σ² shared by all localisations (of the track,
-//! or of the ensemble), profiled out (σ² ≥ 0). −2 log L is evaluated in
+//! or of the ensemble), profiled out (it may be negative, see
+//! `Problem::profile`). −2 log L is evaluated in
 //! O(N) by the LDLᵀ factorisation of Σ, as the sum over steps of the
 //! innovations' Gaussian terms.
 //!
@@ -17,9 +18,11 @@
 //! predictive distribution (given the earlier ones) falls in the field,
 //! `Φ((hi − μ)/√p) − Φ((lo − μ)/√p)` per axis. Without it, the fast
 //! particles' early exits bias D low (by −11 % at D = 1 µm²/s in the
-//! paper's field; [`super::fit_weight`]). The conditioned score still has
-//! zero mean, because whether a step is seen is decided by exactly the
-//! event each factor is conditioned on.
+//! paper's field; [`super::fit_weight`]). With a [`super::DetectionProfile`]
+//! the condition is the localisation's being found: the edges' bins
+//! weigh the field's probability by their detection efficiency. The
+//! conditioned score still has zero mean, because whether a step is seen
+//! is decided by exactly the event each factor is conditioned on.
 //!
 //! The 95 % interval is the likelihood-ratio interval of D (−2 log of the
 //! profile likelihood within 3.84 of its minimum); the standard error
@@ -71,7 +74,15 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64) -> f64 {
         // predictive distribution is N(previous + (Δ − z), p).
         let predicted = values[i - 1] + (delta - z);
         let sd = p.sqrt();
-        let inside = normal_cdf((high - predicted) / sd) - normal_cdf((low - predicted) / sd);
+        let mass = |from: f64, to: f64| {
+            normal_cdf((to - predicted) / sd) - normal_cdf((from - predicted) / sd)
+        };
+        let mut inside = mass(low, high);
+        if let Some(profile) = &series.detection {
+            for &(from, to, shortfall) in &profile.shortfalls[axis] {
+                inside -= shortfall * mass(from, to);
+            }
+        }
         cost += p.ln() + z * z / p + 2.0 * inside.max(1e-300).ln();
         pivot = p;
         carry = z;
@@ -327,6 +338,7 @@ mod tests {
             blur: vec![0.004, 0.005, 0.004, 0.006, 0.005],
             variances: None,
             field: [(-1e9, 1e9), (-1e9, 1e9)],
+            detection: None,
         };
         for (d, v) in [(1.0, 0.001), (0.3, 0.0), (2.0, 0.01), (1.0, -0.0015)] {
             let fast = axis_cost(&series, 0, d, v);
@@ -382,6 +394,7 @@ mod tests {
                     blur: vec![tau; points],
                     variances: None,
                     field: [(-1e9, 1e9), (-1e9, 1e9)],
+                    detection: None,
                 }
             })
             .collect()
