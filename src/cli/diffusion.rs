@@ -56,6 +56,12 @@ pub struct DiffusionArgs {
     /// count in the ensemble).
     #[arg(long, default_value_t = 3)]
     min_points: usize,
+    /// Condition ml on the field alone, not on where the localiser finds
+    /// particles: for samples whose particles are not spread uniformly
+    /// over the field (the detection profile reads their density as the
+    /// localiser's efficiency).
+    #[arg(long)]
+    no_detection_profile: bool,
 }
 
 fn row(
@@ -98,7 +104,9 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
             args.tracks.display()
         )));
     }
-    attach_detection_profile(&mut series, geometry.pixel_size_um);
+    if !args.no_detection_profile {
+        attach_detection_profile(&mut series, geometry.pixel_size_um);
+    }
     writeln!(
         stdout,
         "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"

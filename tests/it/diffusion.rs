@@ -545,6 +545,67 @@ fn a_long_recording_holds_its_set_density() {
     );
 }
 
+/// The ensemble ML row of `scanloc diffusion`'s output.
+fn ensemble_ml_row(out: &str) -> f64 {
+    let row = out
+        .lines()
+        .find(|l| l.starts_with("ensemble,") && l.contains(",ml,"))
+        .expect("an ensemble ml row");
+    row.split(',').nth(3).unwrap().parse().unwrap()
+}
+
+#[test]
+fn the_diffusion_command_reads_the_detection_profile_unless_told_not_to() {
+    // Walks spread over the paper's field, their localisations within 3 px
+    // of an edge dropped (a track ends there): ML told the profile reads
+    // D higher than ML conditioned on the field alone; the flag turns the
+    // profile off.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tracks.csv");
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut text = String::from("frame,x,y,particle\n");
+    let mut particle = 0;
+    let inside = |x: f64, y: f64| (2.5..21.5).contains(&x) && (2.5..20.5).contains(&y);
+    for walk in 0..600 {
+        let start: [f64; 2] = [
+            rng.random::<f64>() * 25.0 - 0.5,
+            rng.random::<f64>() * 24.0 - 0.5,
+        ];
+        let (mut x, mut y) = (start[0], start[1]);
+        let mut open = false;
+        for step in 0..8 {
+            let frame = walk * 10 + step;
+            if inside(x, y) {
+                text.push_str(&format!("{frame},{x},{y},{particle}\n"));
+                open = true;
+            } else if open {
+                particle += 1;
+                open = false;
+            }
+            let nx: f64 = StandardNormal.sample(&mut rng);
+            let ny: f64 = StandardNormal.sample(&mut rng);
+            x += 3.0 * nx;
+            y += 3.0 * ny;
+            if !(-0.5..24.5).contains(&x) || !(-0.5..23.5).contains(&y) {
+                break;
+            }
+        }
+        particle += 1;
+    }
+    std::fs::write(&path, &text).unwrap();
+    let tracks = path.to_str().unwrap();
+    let (code, told, err) = crate::common::cli_in_process(&["diffusion", "--tracks", tracks]);
+    assert_eq!(code, 0, "{err}");
+    let (code, blind, err) =
+        crate::common::cli_in_process(&["diffusion", "--tracks", tracks, "--no-detection-profile"]);
+    assert_eq!(code, 0, "{err}");
+    let (told, blind) = (ensemble_ml_row(&told), ensemble_ml_row(&blind));
+    assert!(
+        told > 1.03 * blind,
+        "with the profile {told}, without {blind}"
+    );
+}
+
 #[test]
 fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables() {
     let dir = tempfile::tempdir().unwrap();
