@@ -116,19 +116,18 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
         .map(|method| (method, estimate_recording(&series, method, args.min_points)))
         .collect();
     // One row per track and method, tracks in table order.
-    let mut rows: Vec<(usize, Method, &Estimate)> = estimates
-        .iter()
-        .flat_map(|(method, e)| e.per_track.iter().map(move |(i, est)| (*i, *method, est)))
-        .collect();
-    rows.sort_by_key(|&(index, method, _)| (index, Method::ALL.iter().position(|&m| m == method)));
-    for (index, method, estimate) in rows {
-        row(
-            stdout,
-            &tracks[index].particle.to_string(),
-            series[index].len(),
-            method,
-            estimate,
-        )?;
+    for (index, track) in tracks.iter().enumerate() {
+        for (method, e) in &estimates {
+            if let Some(estimate) = &e.per_track[index] {
+                row(
+                    stdout,
+                    &track.particle.to_string(),
+                    series[index].len(),
+                    *method,
+                    estimate,
+                )?;
+            }
+        }
     }
     let points: usize = series.iter().filter(|s| s.len() > 1).map(Series::len).sum();
     for (method, e) in &estimates {

@@ -484,10 +484,13 @@ pub fn evaluate(
             let per_track: Vec<TrackEstimate> = estimates
                 .per_track
                 .into_iter()
-                .map(|(index, e)| TrackEstimate {
-                    particle: tracks[index].particle,
-                    points: series[index].len(),
-                    estimate: e.into(),
+                .enumerate()
+                .filter_map(|(index, e)| {
+                    e.map(|e| TrackEstimate {
+                        particle: tracks[index].particle,
+                        points: series[index].len(),
+                        estimate: e.into(),
+                    })
                 })
                 .collect();
             let valid: Vec<DiffusionInterval> = per_track
