@@ -54,6 +54,38 @@ pub fn run_json(manifest: &Path, registry: &Path, extra: &[&str]) -> serde_json:
     serde_json::from_str(&text).expect("run --json prints JSON")
 }
 
+/// Runs `scanloc run MANIFEST --registry DIR` (text), asserts success, and
+/// returns what it printed and the run id from its last line.
+pub fn run_text(manifest: &Path, registry: &Path) -> (String, String) {
+    let output = scanloc(&[
+        "run",
+        manifest.to_str().unwrap(),
+        "--registry",
+        registry.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let text = stdout(&output);
+    let id = text
+        .lines()
+        .last()
+        .and_then(|l| l.strip_prefix("run "))
+        .and_then(|l| l.split(':').next())
+        .unwrap_or_else(|| panic!("no run id in {text}"))
+        .to_string();
+    (text, id)
+}
+
+/// The tracking measures, as `scanloc score-tracks`, a tracking
+/// evaluation's `score.json` and a run's `tracking` rows name them.
+pub const TRACKING_MEASURES: [&str; 6] = [
+    "alpha",
+    "beta",
+    "jaccard_detections",
+    "jaccard_tracks",
+    "link_precision",
+    "link_recall",
+];
+
 /// Runs `scanloc report RUN --registry DIR --out OUT`, asserts success,
 /// and returns the Markdown it wrote.
 pub fn report_markdown(registry: &Path, run: &str, out: &Path) -> String {

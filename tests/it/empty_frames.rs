@@ -7,7 +7,7 @@ use std::collections::BTreeSet;
 use scanloc::registry::Registry;
 use scanloc::run::load_artefact;
 
-use crate::common::{report_markdown, run_json, scanloc, stderr, stdout, write_manifest};
+use crate::common::{report_markdown, run_json, run_text, scanloc, stderr, write_manifest};
 
 /// Smoke-sized: a CNN trained briefly on frames of 0–2 QDs, and test sets
 /// of one QD, of empty frames, and of 0 or 1 QD per frame.
@@ -156,14 +156,7 @@ fn sets_of_empty_frames_are_scored_by_their_false_localisations() {
 
     // The printed table (now all cached): the AUC grid without the empty
     // set, then the false localisations.
-    let out = scanloc(&[
-        "run",
-        manifest.to_str().unwrap(),
-        "--registry",
-        registry_dir.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let text = stdout(&out);
+    let (text, _) = run_text(&manifest, &registry_dir);
     let lines: Vec<&str> = text.lines().collect();
     // Columns are labelled by D: test 0.75, empty 1, mixed 1.75.
     assert!(

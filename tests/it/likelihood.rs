@@ -148,27 +148,6 @@ evaluations:
   - {detector: trackpy, datasets: [test]}
 ";
 
-/// `scanloc run MANIFEST --registry DIR` (text), asserting success:
-/// (its output, the run id from its last line).
-fn run_text(manifest: &std::path::Path, registry: &std::path::Path) -> (String, String) {
-    let output = scanloc(&[
-        "run",
-        manifest.to_str().unwrap(),
-        "--registry",
-        registry.to_str().unwrap(),
-    ]);
-    assert!(output.status.success(), "{}", stderr(&output));
-    let text = stdout(&output);
-    let id = text
-        .lines()
-        .last()
-        .and_then(|l| l.strip_prefix("run "))
-        .and_then(|l| l.split(':').next())
-        .unwrap_or_else(|| panic!("no run id in {text}"))
-        .to_string();
-    (text, id)
-}
-
 /// The AUC grid of a run's text: from its `AUC` heading to the last row.
 fn auc_grid(text: &str) -> Vec<&str> {
     text.lines()

@@ -75,14 +75,7 @@ fn linked_truth_positions_score_as_their_links_say() {
     let perfect = dir.path().join("perfect.csv");
     std::fs::write(&perfect, &truth_tracks_text).unwrap();
     let s = score_json(&perfect, &truth, &[]);
-    for measure in [
-        "alpha",
-        "beta",
-        "jaccard_detections",
-        "jaccard_tracks",
-        "link_precision",
-        "link_recall",
-    ] {
+    for measure in crate::common::TRACKING_MEASURES {
         assert_eq!(s[measure], 1.0, "{measure}: {s}");
     }
 

@@ -3,7 +3,8 @@
 //! the run's tracking tables, caching, reproduction, and bad sections.
 
 use crate::common::{
-    report_markdown, report_section, run_json, scanloc, stderr, stdout, write_manifest,
+    TRACKING_MEASURES, report_markdown, report_section, run_json, run_text, scanloc, stderr,
+    stdout, write_manifest,
 };
 
 /// A recording bright enough for crocker-grier to find its in-focus QDs,
@@ -81,14 +82,7 @@ fn a_manifest_runs_its_tracking_pipelines_and_a_second_run_is_served_from_the_re
     assert_eq!(second["tracking"], first["tracking"]);
 
     // The text output has both tables and no empty AUC table.
-    let output = scanloc(&[
-        "run",
-        manifest.to_str().unwrap(),
-        "--registry",
-        registry.to_str().unwrap(),
-    ]);
-    assert!(output.status.success(), "{}", stderr(&output));
-    let text = stdout(&output);
+    let (text, _) = run_text(&manifest, &registry);
     assert!(text.contains("tracking measures (gate 2 px"), "{text}");
     assert!(text.contains("cg+memory  rec-blink"), "{text}");
     assert!(text.contains("diffusion coefficient"), "{text}");
@@ -183,14 +177,7 @@ fn a_pipeline_in_a_run_gives_what_the_commands_give_by_hand() {
     let run = run_json(&manifest, &dir.path().join("registry"), &[]);
     let row = &run["tracking"][0];
     assert_eq!(row["pipeline"], "cg+lap");
-    for measure in [
-        "alpha",
-        "beta",
-        "jaccard_detections",
-        "jaccard_tracks",
-        "link_precision",
-        "link_recall",
-    ] {
+    for measure in TRACKING_MEASURES {
         assert_eq!(row["tracking"][measure], scored[measure], "{measure}");
     }
     let output = scanloc(&["diffusion", "--tracks", &path("tracks.csv")]);
@@ -373,12 +360,7 @@ fn run_twice(text: &str) -> (tempfile::TempDir, serde_json::Value, String) {
     let manifest = write_manifest(dir.path(), "manifest.yaml", text);
     let registry = dir.path().join("registry");
     let run = run_json(&manifest, &registry, &[]);
-    let text = ok(&[
-        "run",
-        manifest.to_str().unwrap(),
-        "--registry",
-        registry.to_str().unwrap(),
-    ]);
+    let (text, _) = run_text(&manifest, &registry);
     (dir, run, tracking_tables(&text))
 }
 
