@@ -8,8 +8,8 @@ use std::process::ExitCode;
 use clap::{Args, ValueEnum};
 use scanloc::error::input_error;
 use scanloc::track::diffusion::{
-    Estimate, Exposure, Method, RecordingEstimates, Series, attach_detection_profile,
-    estimate_recording,
+    ENSEMBLE_GATE, Estimate, Exposure, Method, RecordingEstimates, Series,
+    attach_detection_profile, estimate_recording,
 };
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
@@ -62,6 +62,15 @@ pub struct DiffusionArgs {
     /// localiser's efficiency).
     #[arg(long)]
     no_detection_profile: bool,
+    /// The share of each link's gate (the table's gate_x, gate_y, as `scanloc
+    /// link --linker lap` writes them) within which the ml ensemble takes
+    /// its steps, conditioned on it: steps between two particles a linker
+    /// joined where they are dense fall outside far more often than the
+    /// particle's own (docs/tracking.md, "Wrong links"). At most 0.707 (the
+    /// box inside the elliptic gate), or 1 for every step. Tables without
+    /// gates are used whole.
+    #[arg(long, default_value_t = ENSEMBLE_GATE)]
+    ensemble_gate: f64,
 }
 
 fn row(
@@ -93,6 +102,12 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
         ExposureArg::FrameIndex => Exposure::FrameIndex,
         ExposureArg::UniformFrame => Exposure::UniformFrame,
     };
+    if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
+        return Err(input_error(format!(
+            "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
+            args.ensemble_gate
+        )));
+    }
     let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
     let mut series: Vec<Series> = tracks
         .iter()
@@ -113,7 +128,12 @@ pub fn run(args: DiffusionArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCo
     )?;
     let estimates: Vec<(Method, RecordingEstimates)> = Method::ALL
         .into_iter()
-        .map(|method| (method, estimate_recording(&series, method, args.min_points)))
+        .map(|method| {
+            (
+                method,
+                estimate_recording(&series, method, args.min_points, args.ensemble_gate),
+            )
+        })
         .collect();
     // One row per track and method, tracks in table order.
     for (index, track) in tracks.iter().enumerate() {

@@ -15,8 +15,10 @@ use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
 /// pixel coordinates; sigma_x, sigma_y used by --linker lap when present;
 /// any other columns are copied) and writes the same rows and columns plus
 /// `particle`, the trajectory label, sorted by frame (rows of one frame in
-/// input order), as TrackPy's `link` returns its table. Unsorted input is
-/// sorted the same way. Prints one summary line.
+/// input order), as TrackPy's `link` returns its table; --linker lap adds
+/// gate_x, gate_y, the extent (px) of the gate that admitted each row's link
+/// (`scanloc diffusion` reads them). Unsorted input is sorted the same way.
+/// Prints one summary line.
 ///
 /// --linker trackpy (the default) gives TrackPy 0.7's `link` trajectories
 /// (search range, memory), checked against TrackPy itself on committed
@@ -30,7 +32,8 @@ pub struct LinkArgs {
     /// Localisation table (CSV with frame, x, y; optionally sigma_x, sigma_y).
     #[arg(long)]
     locs: PathBuf,
-    /// Output track table: the input columns plus `particle`.
+    /// Output track table: the input columns plus `particle` (and, from lap,
+    /// gate_x, gate_y).
     #[arg(long)]
     out: PathBuf,
     /// The linker (see above).
@@ -59,6 +62,11 @@ pub struct LinkArgs {
     /// lap: pixel size, µm.
     #[arg(long)]
     pixel_size_um: Option<f64>,
+    /// lap: the gate, the largest Mahalanobis distance of a link's
+    /// displacement [default: 3]. Each link's gate is written as its extent
+    /// along x and y (gate_x, gate_y, px), which `scanloc diffusion` uses.
+    #[arg(long)]
+    gate: Option<f64>,
 }
 
 /// --max-gap's default: blinks of up to 2 frames are closed.
@@ -85,7 +93,13 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     }
     .map_err(|e| e.context(format!("{}: linking", args.locs.display())))?;
     let order = track::frame_order(&detections);
-    localisation_table::fill_track_table(&mut pending, &table, &order, &linking.particle)?;
+    localisation_table::fill_track_table(
+        &mut pending,
+        &table,
+        &order,
+        &linking.particle,
+        linking.gates.as_deref(),
+    )?;
     pending.commit()?;
     let trajectories = linking.particle.iter().max().map_or(0, |&m| m + 1);
     writeln!(
@@ -121,9 +135,10 @@ impl Configured {
         };
         match args.linker {
             Linker::Trackpy => {
-                if args.diffusion.is_some() || args.max_gap.is_some() {
+                if args.diffusion.is_some() || args.max_gap.is_some() || args.gate.is_some() {
                     return Err(input_error(
-                        "--diffusion and --max-gap are for --linker lap (trackpy uses --memory)",
+                        "--diffusion, --max-gap and --gate are for --linker lap (trackpy uses \
+                         --search-range and --memory)",
                     ));
                 }
                 let Some(search_range) = args.search_range else {
@@ -141,7 +156,7 @@ impl Configured {
                     ));
                 }
                 let max_gap = args.max_gap.unwrap_or(DEFAULT_MAX_GAP);
-                let params = match (args.diffusion, args.search_range) {
+                let mut params = match (args.diffusion, args.search_range) {
                     (Some(d), _) => LapParams::from_diffusion(
                         positive("--diffusion", d)?,
                         positive("--frame-time-ms", args.frame_time_ms.unwrap_or(f64::NAN))?,
@@ -158,6 +173,9 @@ impl Configured {
                         ));
                     }
                 };
+                if let Some(gate) = args.gate {
+                    params.gate_sigmas = positive("--gate", gate)?;
+                }
                 params.validate()?;
                 Ok(Self::Lap(params))
             }
@@ -171,8 +189,8 @@ impl Configured {
                 p.search_range, p.memory
             ),
             Self::Lap(p) => format!(
-                "lap, step variance {:.4} px², max gap {}",
-                p.step_variance, p.max_gap
+                "lap, step variance {:.4} px², gate {} σ, max gap {}",
+                p.step_variance, p.gate_sigmas, p.max_gap
             ),
         }
     }

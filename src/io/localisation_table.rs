@@ -9,7 +9,8 @@
 //! finite numbers.
 //!
 //! Output: the input's columns plus `particle` (last; a `particle` column
-//! already in the input is overwritten in place, as TrackPy does), one row
+//! already in the input is overwritten in place, as TrackPy does) and,
+//! from the `lap` linker, `gate_x,gate_y` before it (likewise), one row
 //! per input row, rows in the order the linker saw them (sorted by frame,
 //! ties in input order).
 
@@ -22,6 +23,11 @@ use crate::types::LocalisationSigma;
 
 /// The name of the column of trajectory labels.
 pub const PARTICLE_COLUMN: &str = "particle";
+
+/// The columns of the extent along x and y (px) of the gate that
+/// admitted a row's link from its predecessor (the `lap` linker).
+pub const GATE_X_COLUMN: &str = "gate_x";
+pub const GATE_Y_COLUMN: &str = "gate_y";
 
 /// A localisation table: its header and rows as text, and the columns the
 /// linkers use, parsed (one entry per row).
@@ -133,45 +139,62 @@ pub fn read_localisation_table_from<R: Read>(
 
 /// Fills `pending` with the track table of `table`: the rows `order`
 /// (indices into the table) with their trajectory labels `particles`
-/// (indexed like the table's rows).
+/// (indexed like the table's rows) and, when the linker gives them,
+/// `gates`: the extent along x and y (px) of the gate that admitted
+/// each row's link from its predecessor, as `gate_x,gate_y` (empty for a
+/// trajectory's first row).
 pub fn fill_track_table(
     pending: &mut PendingFile,
     table: &LocalisationTable,
     order: &[usize],
     particles: &[usize],
+    gates: Option<&[Option<[f64; 2]>]>,
 ) -> anyhow::Result<()> {
-    pending.fill(|writer| write_track_table_to(writer, table, order, particles))
+    pending.fill(|writer| write_track_table_to(writer, table, order, particles, gates))
 }
 
 /// Writes the track table (see [`fill_track_table`]) to any writer, `\n`
-/// line ends.
+/// line ends. Columns the linker writes replace the table's own of the
+/// same name.
 pub fn write_track_table_to<W: Write>(
     writer: W,
     table: &LocalisationTable,
     order: &[usize],
     particles: &[usize],
+    gates: Option<&[Option<[f64; 2]>]>,
 ) -> anyhow::Result<()> {
     let mut csv = csv::WriterBuilder::new().from_writer(writer);
-    let existing = table
-        .header
-        .iter()
-        .position(|h| h.trim() == PARTICLE_COLUMN);
-    let mut header = table.header.clone();
-    if existing.is_none() {
-        header.push_field(PARTICLE_COLUMN);
+    let mut written: Vec<&str> = Vec::new();
+    if gates.is_some() {
+        written.extend([GATE_X_COLUMN, GATE_Y_COLUMN]);
+    }
+    written.push(PARTICLE_COLUMN);
+    // Each written column in the table's own place, else appended.
+    let mut header: Vec<&str> = table.header.iter().collect();
+    for name in &written {
+        if !header.iter().any(|h| h.trim() == *name) {
+            header.push(name);
+        }
     }
     csv.write_record(&header)?;
     for &row in order {
-        let label = particles[row].to_string();
         let record = &table.records[row];
-        let fields = (0..table.header.len()).map(|at| match existing {
-            Some(particle_at) if particle_at == at => label.as_str(),
-            _ => record.get(at).unwrap_or(""),
-        });
-        match existing {
-            Some(_) => csv.write_record(fields)?,
-            None => csv.write_record(fields.chain([label.as_str()]))?,
-        }
+        let gate = gates.and_then(|g| g[row]);
+        let fields: Vec<String> = header
+            .iter()
+            .enumerate()
+            .map(|(at, name)| match name.trim() {
+                PARTICLE_COLUMN => particles[row].to_string(),
+                GATE_X_COLUMN if gates.is_some() => {
+                    gate.map_or(String::new(), |g| g[0].to_string())
+                }
+                GATE_Y_COLUMN if gates.is_some() => {
+                    gate.map_or(String::new(), |g| g[1].to_string())
+                }
+                _ => record.get(at).unwrap_or("").to_string(),
+            })
+            .collect();
+        csv.write_record(&fields)?;
     }
     csv.flush()?;
     Ok(())
@@ -188,7 +211,7 @@ mod tests {
         assert_eq!(table.frames, [1, 0]);
         let mut bytes = Vec::new();
         // Labels are indexed by table row; rows are written in `order`.
-        write_track_table_to(&mut bytes, &table, &[1, 0], &[7, 3]).unwrap();
+        write_track_table_to(&mut bytes, &table, &[1, 0], &[7, 3], None).unwrap();
         assert_eq!(
             String::from_utf8(bytes).unwrap(),
             "x,y,frame,mass,particle\n3,4,0.0,20,3\n1.50,2,1,10,7\n"
@@ -200,7 +223,7 @@ mod tests {
         let text = "frame,particle,x,y\n0,9,1,1\n";
         let table = read_localisation_table_from(text.as_bytes(), "t.csv").unwrap();
         let mut bytes = Vec::new();
-        write_track_table_to(&mut bytes, &table, &[0], &[0]).unwrap();
+        write_track_table_to(&mut bytes, &table, &[0], &[0], None).unwrap();
         assert_eq!(
             String::from_utf8(bytes).unwrap(),
             "frame,particle,x,y\n0,0,1,1\n"

@@ -2,7 +2,9 @@
 //!
 //! - Tracks: CSV with at least `frame,x,y,particle` (TrackPy's `link`
 //!   output; other columns are ignored), optionally `sigma_x,sigma_y`
-//!   (px) and `time` (s). Rows may come in any order; they are grouped by
+//!   (px), `gate_x,gate_y` (px: the extent of the linker's gate that
+//!   admitted the step to the row from the particle's previous row, as
+//!   the `lap` linker writes them) and `time` (s). Rows may come in any order; they are grouped by
 //!   particle and sorted by frame. Refused, with one line naming the file,
 //!   row and column: a missing column, a value that is not a finite number,
 //!   a frame that is not a whole number ≥ 0, a negative `sigma`, and a
@@ -151,26 +153,36 @@ pub fn write_tracks_to<W: Write>(writer: W, tracks: &[Track]) -> anyhow::Result<
     let with_sigma = tracks
         .iter()
         .any(|t| t.points.iter().any(|p| p.sigma.is_some()));
+    let with_gate = tracks
+        .iter()
+        .any(|t| t.points.iter().any(|p| p.gate.is_some()));
     let mut rows: Vec<(usize, i64, &TrackPoint)> = tracks
         .iter()
         .flat_map(|t| t.points.iter().map(move |p| (p.frame, t.particle, p)))
         .collect();
     rows.sort_by_key(|&(frame, particle, _)| (frame, particle));
     let mut csv = csv::Writer::from_writer(writer);
+    let mut header = vec!["frame", "x", "y"];
     if with_sigma {
-        csv.write_record(["frame", "x", "y", "sigma_x", "sigma_y", "particle"])?;
-    } else {
-        csv.write_record(["frame", "x", "y", "particle"])?;
+        header.extend(["sigma_x", "sigma_y"]);
     }
+    if with_gate {
+        header.extend(["gate_x", "gate_y"]);
+    }
+    header.push("particle");
+    csv.write_record(&header)?;
+    let pair = |value: Option<(f64, f64)>| {
+        value.map_or([String::new(), String::new()], |(a, b)| {
+            [a.to_string(), b.to_string()]
+        })
+    };
     for (frame, particle, point) in rows {
         let mut record = vec![frame.to_string(), point.x.to_string(), point.y.to_string()];
         if with_sigma {
-            let (sx, sy) = point
-                .sigma
-                .map_or((String::new(), String::new()), |(sx, sy)| {
-                    (sx.to_string(), sy.to_string())
-                });
-            record.extend([sx, sy]);
+            record.extend(pair(point.sigma));
+        }
+        if with_gate {
+            record.extend(pair(point.gate));
         }
         record.push(particle.to_string());
         csv.write_record(&record)?;
@@ -191,6 +203,7 @@ struct Columns {
     y: usize,
     particle: usize,
     sigma: Option<(usize, usize)>,
+    gate: Option<(usize, usize)>,
     time: Option<usize>,
 }
 
@@ -205,21 +218,22 @@ impl Columns {
                 missing.join(", ")
             )));
         }
-        let sigma = match (at("sigma_x"), at("sigma_y")) {
-            (Some(sx), Some(sy)) => Some((sx, sy)),
-            (None, None) => None,
-            _ => {
-                return Err(input_error(format!(
-                    "{source}: sigma_x and sigma_y come together; only one is present"
-                )));
-            }
+        let together = |x: &str, y: &str| match (at(x), at(y)) {
+            (Some(a), Some(b)) => Ok(Some((a, b))),
+            (None, None) => Ok(None),
+            _ => Err(input_error(format!(
+                "{source}: {x} and {y} come together; only one is present"
+            ))),
         };
+        let sigma = together("sigma_x", "sigma_y")?;
+        let gate = together("gate_x", "gate_y")?;
         Ok(Self {
             frame: at("frame").unwrap_or(0),
             x: at("x").unwrap_or(0),
             y: at("y").unwrap_or(0),
             particle: at("particle").unwrap_or(0),
             sigma,
+            gate,
             time: at("time"),
         })
     }
@@ -298,6 +312,16 @@ fn parse_row(record: &csv::StringRecord, columns: &Columns) -> Result<(i64, Trac
         }
         _ => None,
     };
+    let gate = match columns.gate {
+        Some((gx, gy)) if !cell(gx, "gate_x")?.is_empty() || !cell(gy, "gate_y")?.is_empty() => {
+            let (gx, gy) = (finite(gx, "gate_x")?, finite(gy, "gate_y")?);
+            if gx <= 0.0 || gy <= 0.0 {
+                return Err(format!("gate_x, gate_y must be > 0, got {gx}, {gy}"));
+            }
+            Some((gx, gy))
+        }
+        _ => None,
+    };
     let time_s = match columns.time {
         Some(at) if !cell(at, "time")?.is_empty() => Some(finite(at, "time")?),
         _ => None,
@@ -310,6 +334,7 @@ fn parse_row(record: &csv::StringRecord, columns: &Columns) -> Result<(i64, Trac
             y: finite(columns.y, "y")?,
             sigma,
             time_s,
+            gate,
         },
     ))
 }

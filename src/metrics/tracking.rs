@@ -104,6 +104,7 @@ pub fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> V
             y,
             sigma: None,
             time_s: Some(row.t_mid),
+            gate: None,
         });
     }
     let mut tracks = Vec::new();
@@ -600,6 +601,7 @@ mod tests {
                     y,
                     sigma: None,
                     time_s: None,
+                    gate: None,
                 })
                 .collect(),
         }

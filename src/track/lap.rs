@@ -23,8 +23,11 @@
 //! the log-likelihood of the displacement up to a constant,
 //! c = dx²/v_x + dy²/v_y + ln(v_x v_y / q²) (≥ 0; the log term makes long
 //! gaps and imprecise localisations cost more); the gate admits pairs with
-//! dx²/v_x + dy²/v_y ≤ 9 (98.9 % of true steps in 2-D; with σ = 0 and
-//! q = (R/3)², exactly the displacements within R·√k). Birth and death
+//! dx²/v_x + dy²/v_y ≤ g², g = 3 by default (98.9 % of true steps in 2-D;
+//! with σ = 0 and q = (R/3)², exactly the displacements within R·√k). Each
+//! link records its gate's extent along x and y, g·√v_x and g·√v_y
+//! ([`Linking::gates`](super::Linking::gates)), which the ML ensemble
+//! narrows and conditions on (docs/tracking.md, "Wrong links"). Birth and death
 //! cost, as in Jaqaman et al., 1.05 × the largest cost among the problem's
 //! candidate links, so any gated link beats leaving both ends unlinked and
 //! the choice is only among competing links.
@@ -40,9 +43,9 @@ use rstar::primitives::GeomWithData;
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
 use crate::error::input_error;
 
-/// The gate on the squared Mahalanobis distance of a link (2 degrees of
+/// The default gate on a link's Mahalanobis distance: 3 (2 degrees of
 /// freedom: 1 − e^(−9/2) = 98.9 % of true links inside).
-pub const GATE: f64 = 9.0;
+pub const GATE_SIGMAS: f64 = 3.0;
 
 /// Birth and death cost as a multiple of the largest candidate link cost
 /// (Jaqaman et al. 2008).
@@ -56,6 +59,9 @@ pub struct LapParams {
     /// The longest gap closed, in frames without the particle (0: no gap
     /// closing).
     pub max_gap: usize,
+    /// The gate: the largest Mahalanobis distance of a link
+    /// ([`GATE_SIGMAS`] by default).
+    pub gate_sigmas: f64,
 }
 
 impl LapParams {
@@ -65,6 +71,7 @@ impl LapParams {
         Self {
             step_variance: (search_range / 3.0).powi(2),
             max_gap,
+            gate_sigmas: GATE_SIGMAS,
         }
     }
 
@@ -80,6 +87,7 @@ impl LapParams {
             step_variance: 2.0 * diffusion_um2_s * frame_time_ms * 1e-3
                 / (pixel_size_um * pixel_size_um),
             max_gap,
+            gate_sigmas: GATE_SIGMAS,
         }
     }
 
@@ -91,6 +99,12 @@ impl LapParams {
                 "step variance: must be a finite number > 0 px² (check the search range, \
                  diffusion, frame time and pixel size), got {}",
                 self.step_variance
+            )));
+        }
+        if !(self.gate_sigmas.is_finite() && self.gate_sigmas > 0.0) {
+            return Err(input_error(format!(
+                "gate: must be a finite number > 0 standard deviations, got {}",
+                self.gate_sigmas
             )));
         }
         if self.max_gap > crate::limits::MAX_FRAMES {
@@ -146,6 +160,15 @@ pub fn link(detections: &[Detection], params: &LapParams) -> anyhow::Result<Link
             stats.gap_links += 1;
         }
     }
+    // The gate that admitted each link, for estimators that condition on it.
+    let gates = previous
+        .iter()
+        .enumerate()
+        .map(|(j, p)| {
+            let (a, b) = (&detections[(*p)?], &detections[j]);
+            linker.cost(a, b, b.frame - a.frame).map(|(_, gate)| gate)
+        })
+        .collect();
     let mut particle = vec![0; detections.len()];
     let mut labels = 0;
     for &i in &order {
@@ -157,13 +180,18 @@ pub fn link(detections: &[Detection], params: &LapParams) -> anyhow::Result<Link
             }
         };
     }
-    Ok(Linking { particle, stats })
+    Ok(Linking {
+        particle,
+        stats,
+        gates: Some(gates),
+    })
 }
 
 /// The cost model over one table.
 struct Lap<'a> {
     detections: &'a [Detection],
     step_variance: f64,
+    gate_sigmas: f64,
     /// The largest σ² of any detection on either axis (bounds the search).
     largest_sigma2: f64,
 }
@@ -178,13 +206,15 @@ impl<'a> Lap<'a> {
         Self {
             detections,
             step_variance: params.step_variance,
+            gate_sigmas: params.gate_sigmas,
             largest_sigma2,
         }
     }
 
-    /// The cost of linking `a` to `b` over `frames` frames, if within the
-    /// gate (see the module's formula).
-    fn cost(&self, a: &Detection, b: &Detection, frames: usize) -> Option<f64> {
+    /// The cost of linking `a` to `b` over `frames` frames and the gate's
+    /// extent along x and y, if within the gate (see the module's
+    /// formula).
+    fn cost(&self, a: &Detection, b: &Detection, frames: usize) -> Option<(f64, [f64; 2])> {
         let q = self.step_variance;
         let sigma2 = |d: &Detection| d.sigma.map_or((0.0, 0.0), |s| (s.x * s.x, s.y * s.y));
         let ((ax, ay), (bx, by)) = (sigma2(a), sigma2(b));
@@ -192,7 +222,12 @@ impl<'a> Lap<'a> {
         let (vx, vy) = (steps + ax + bx, steps + ay + by);
         let (dx, dy) = (b.x - a.x, b.y - a.y);
         let mahalanobis2 = dx * dx / vx + dy * dy / vy;
-        (mahalanobis2 <= GATE).then(|| mahalanobis2 + (vx * vy / (q * q)).ln())
+        (mahalanobis2 <= self.gate_sigmas * self.gate_sigmas).then(|| {
+            (
+                mahalanobis2 + (vx * vy / (q * q)).ln(),
+                [self.gate_sigmas * vx.sqrt(), self.gate_sigmas * vy.sqrt()],
+            )
+        })
     }
 
     /// Gated candidates from `sources` to `destinations` (detection
@@ -215,7 +250,9 @@ impl<'a> Lap<'a> {
             .collect();
         let tree = RTree::bulk_load(points);
         // No gated pair is farther apart than this.
-        let reach2 = GATE * (longest as f64 * self.step_variance + 2.0 * self.largest_sigma2);
+        let reach2 = self.gate_sigmas
+            * self.gate_sigmas
+            * (longest as f64 * self.step_variance + 2.0 * self.largest_sigma2);
         let mut candidates = Vec::new();
         for (to, &j) in destinations.iter().enumerate() {
             let b = &self.detections[j];
@@ -228,7 +265,7 @@ impl<'a> Lap<'a> {
                 if !(shortest..=longest).contains(&frames) {
                     continue;
                 }
-                if let Some(cost) = self.cost(a, b, frames) {
+                if let Some((cost, _)) = self.cost(a, b, frames) {
                     candidates.push(Candidate { from, to, cost });
                 }
             }
@@ -333,8 +370,8 @@ mod tests {
         let detections = [Detection::new(0, 0.0, 0.0), Detection::new(2, 1.0, 0.0)];
         let params = LapParams::from_search_range(3.0, 2);
         let lap = Lap::new(&detections, &params);
-        let one = lap.cost(&detections[0], &detections[1], 1).unwrap();
-        let two = lap.cost(&detections[0], &detections[1], 2).unwrap();
+        let one = lap.cost(&detections[0], &detections[1], 1).unwrap().0;
+        let two = lap.cost(&detections[0], &detections[1], 2).unwrap().0;
         assert_eq!(one, 1.0);
         assert!((two - (0.5 + 4f64.ln())).abs() < 1e-12, "{two}");
         // Beyond R·√k with σ = 0: outside the gate.

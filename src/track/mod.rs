@@ -67,6 +67,12 @@ pub struct Linking {
     pub particle: Vec<usize>,
     /// What the linker had to decide.
     pub stats: LinkStats,
+    /// Per detection, the extent along x and y (px) of the gate that
+    /// admitted the link from its predecessor in the trajectory (`None`
+    /// for a trajectory's first detection): every displacement the gate
+    /// admits is within it on each axis, and every displacement within
+    /// 1/√2 of it on both axes is admitted. `None` from TrackPy's linker.
+    pub gates: Option<Vec<Option<[f64; 2]>>>,
 }
 
 /// Counts that show what a linking had to resolve (and that a test's input

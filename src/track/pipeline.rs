@@ -11,7 +11,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use super::diffusion::{
-    Estimate, Method, ScanGeometry, Series, attach_detection_profile, estimate_recording,
+    ENSEMBLE_GATE, Estimate, MAX_ENSEMBLE_GATE, Method, ScanGeometry, Series,
+    attach_detection_profile, estimate_recording, within_gates,
 };
 use super::{Detection, Linking, lap, trackpy};
 use crate::error::input_error;
@@ -23,10 +24,10 @@ use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
 
 /// Version of the linking step (the linkers of [`super::trackpy`] and
 /// [`super::lap`] and the tracks table they make).
-pub const LINK_VERSION: &str = "scanloc-link/2";
+pub const LINK_VERSION: &str = "scanloc-link/3";
 
 /// Version of the scoring of tracks ([`evaluate`] and its JSON).
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/2";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/3";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
@@ -64,6 +65,10 @@ pub struct LapSettings {
     /// The longest gap closed, in frames without the particle.
     #[serde(default = "default_max_gap")]
     pub max_gap: usize,
+    /// The gate: the largest Mahalanobis distance of a link's displacement
+    /// (3 when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gate_sigmas: Option<f64>,
     /// Link twice: the second time with the step of the D the first
     /// pass's tracks give (ML, the ensemble), so the costs follow the
     /// recording's own diffusion when D is not known beforehand.
@@ -122,6 +127,9 @@ impl LinkerSpec {
                         ));
                     }
                 }
+                if let Some(gate) = s.gate_sigmas {
+                    positive("gate_sigmas", gate)?;
+                }
                 frames("max_gap", s.max_gap)
             }
         }
@@ -151,16 +159,20 @@ impl LinkerSpec {
                 },
             ),
             LinkerSpec::Lap(s) => {
+                let gated = |params: lap::LapParams| lap::LapParams {
+                    gate_sigmas: s.gate_sigmas.unwrap_or(lap::GATE_SIGMAS),
+                    ..params
+                };
                 let with_diffusion = |d: f64| {
-                    lap::LapParams::from_diffusion(
+                    gated(lap::LapParams::from_diffusion(
                         d,
                         geometry.frame_period_s() * 1e3,
                         geometry.pixel_size_um,
                         s.max_gap,
-                    )
+                    ))
                 };
                 let params = match (s.search_range, s.diffusion_um2_s) {
-                    (Some(range), _) => lap::LapParams::from_search_range(range, s.max_gap),
+                    (Some(range), _) => gated(lap::LapParams::from_search_range(range, s.max_gap)),
                     (None, Some(d)) => with_diffusion(d),
                     (None, None) => {
                         return Err(input_error(
@@ -174,7 +186,7 @@ impl LinkerSpec {
                 }
                 // The second pass, with the first pass's D; if it gives
                 // none (no step), the first pass stands.
-                let tracks = tracks_of(detections, &first.particle);
+                let tracks = tracks_of(detections, &first);
                 match ensemble_ml(&tracks, geometry) {
                     Some(d) if d.is_finite() && d > 0.0 => {
                         lap::link(detections, &with_diffusion(d))
@@ -189,7 +201,7 @@ impl LinkerSpec {
 /// The ML estimate of D (µm²/s) over all `tracks`, σ² profiled, with
 /// the tracks' detection profile.
 fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
-    let series = series_of(tracks, geometry);
+    let series = within_gates(&series_of(tracks, geometry), ENSEMBLE_GATE);
     let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
     Method::Ml.estimate(&all).map(|e| e.d)
 }
@@ -220,17 +232,20 @@ fn series_of(tracks: &[Track], geometry: &ScanGeometry) -> Vec<Series> {
     series
 }
 
-/// The tracks of `detections` labelled `particle`: one per label, in label
-/// order, points in frame order.
-fn tracks_of(detections: &[Detection], particle: &[usize]) -> Vec<Track> {
+/// The tracks of `detections` as `linking` labelled them: one per label,
+/// in label order, points in frame order, with the gates that admitted
+/// their steps.
+fn tracks_of(detections: &[Detection], linking: &Linking) -> Vec<Track> {
     let mut by_particle: BTreeMap<usize, Vec<TrackPoint>> = BTreeMap::new();
-    for (detection, &label) in detections.iter().zip(particle) {
+    for (i, (detection, &label)) in detections.iter().zip(&linking.particle).enumerate() {
+        let gate = linking.gates.as_ref().and_then(|gates| gates[i]);
         by_particle.entry(label).or_default().push(TrackPoint {
             frame: detection.frame,
             x: detection.x,
             y: detection.y,
             sigma: detection.sigma.map(|s| (s.x, s.y)),
             time_s: None,
+            gate: gate.map(|[x, y]| (x, y)),
         });
     }
     by_particle
@@ -268,7 +283,7 @@ pub fn link_predictions(
         })
         .collect();
     let linking = linker.link(&detections, geometry)?;
-    Ok(tracks_of(&detections, &linking.particle))
+    Ok(tracks_of(&detections, &linking))
 }
 
 /// How tracks are scored: the truth they are scored against, the gate,
@@ -293,6 +308,20 @@ pub struct TrackScoring {
     /// count in the ensemble).
     #[serde(default = "default_min_points")]
     pub min_points: usize,
+    /// The share of each link's gate within which the ML ensemble takes
+    /// its steps ([`within_gates`](super::diffusion::within_gates)): at
+    /// most 1/√2, or 1 for every step.
+    #[serde(default = "default_ensemble_gate")]
+    pub ensemble_gate: f64,
+}
+
+fn default_ensemble_gate() -> f64 {
+    ENSEMBLE_GATE
+}
+
+/// A share in (0, 1/√2], or 1.
+pub fn valid_ensemble_gate(share: f64) -> bool {
+    (share > 0.0 && share <= MAX_ENSEMBLE_GATE) || share == 1.0
 }
 
 fn default_gate_px() -> f64 {
@@ -311,6 +340,7 @@ impl Default for TrackScoring {
             min_on_fraction: None,
             split_gaps_over: None,
             min_points: default_min_points(),
+            ensemble_gate: default_ensemble_gate(),
         }
     }
 }
@@ -348,6 +378,15 @@ impl TrackScoring {
                     "must be 2 to {}, got {}",
                     crate::limits::MAX_FRAMES,
                     self.min_points
+                ),
+            ));
+        }
+        if !valid_ensemble_gate(self.ensemble_gate) {
+            return Err(FieldError::new(
+                "ensemble_gate",
+                format!(
+                    "must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
+                    self.ensemble_gate
                 ),
             ));
         }
@@ -479,7 +518,8 @@ pub fn evaluate(
     let diffusion = Method::ALL
         .into_iter()
         .map(|method| {
-            let estimates = estimate_recording(&series, method, scoring.min_points);
+            let estimates =
+                estimate_recording(&series, method, scoring.min_points, scoring.ensemble_gate);
             let ensemble = estimates.ensemble.map(StoredEstimate::from);
             let per_track: Vec<TrackEstimate> = estimates
                 .per_track
@@ -570,12 +610,14 @@ mod tests {
                 memory: 2,
             }),
             LinkerSpec::Lap(LapSettings {
+                gate_sigmas: None,
                 search_range: None,
                 diffusion_um2_s: Some(1.0),
                 max_gap: 2,
                 relink: false,
             }),
             LinkerSpec::Lap(LapSettings {
+                gate_sigmas: None,
                 search_range: Some(10.0),
                 diffusion_um2_s: None,
                 max_gap: 2,
@@ -628,6 +670,7 @@ mod tests {
     #[test]
     fn linker_settings_are_checked() {
         let bad = LinkerSpec::Lap(LapSettings {
+            gate_sigmas: None,
             search_range: Some(3.0),
             diffusion_um2_s: Some(1.0),
             max_gap: 2,

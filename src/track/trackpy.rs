@@ -219,6 +219,7 @@ impl<'a> State<'a> {
         Linking {
             particle,
             stats: self.stats,
+            gates: None,
         }
     }
 

@@ -15,6 +15,12 @@ pub struct TrackPoint {
     pub sigma: Option<(f64, f64)>,
     /// The localisation's time stamp, s, when the table gave one.
     pub time_s: Option<f64>,
+    /// The extent along x and y, px, of the linker's gate that admitted
+    /// the step from the track's previous point (the `lap` linker's
+    /// gate_x, gate_y; docs/tracking.md, "Wrong links"); the ML ensemble
+    /// narrows it and conditions on it. `None`: no gate is known (a
+    /// track's first point; TrackPy's linker).
+    pub gate: Option<(f64, f64)>,
 }
 
 /// One particle's localisations, ordered by frame, one per frame at most.

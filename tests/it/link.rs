@@ -194,6 +194,68 @@ fn the_lap_linker_uses_the_localisation_uncertainty() {
     assert_eq!(weighted.particle[0], weighted.particle[2]);
 }
 
+#[test]
+fn the_lap_command_writes_each_links_gate_and_diffusion_uses_it() {
+    // Two particles' rows; each link's gate is g·√v per axis with v = q
+    // (no σ): 3 × (R/3) = R for a one-frame link, R·√2 over one missing
+    // frame; a trajectory's first row has none.
+    let dir = tempfile::tempdir().unwrap();
+    let (locs, out) = (dir.path().join("locs.csv"), dir.path().join("tracks.csv"));
+    std::fs::write(&locs, "frame,x,y\n0,1,1\n0,20,20\n1,2,1\n1,20,21\n3,3,2\n").unwrap();
+    let run = scanloc(&[
+        "link",
+        "--linker",
+        "lap",
+        "--locs",
+        &locs.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+        "--search-range",
+        "6",
+    ]);
+    assert!(run.status.success(), "{}", stderr(&run));
+    let text = std::fs::read_to_string(&out).unwrap();
+    let r2 = (6.0f64 * 2f64.sqrt()).to_string();
+    let expected = format!(
+        "frame,x,y,gate_x,gate_y,particle\n0,1,1,,,0\n0,20,20,,,1\n1,2,1,6,6,0\n1,20,21,6,6,1\n3,3,2,{r2},{r2},0\n"
+    );
+    assert_eq!(text, expected);
+    // The tracks table reads back with its gates; a gate ≤ 0 is refused.
+    let tracks = scanloc::io::tracks::read_tracks(&out).unwrap();
+    assert_eq!(tracks[0].points[0].gate, None);
+    assert_eq!(tracks[0].points[1].gate, Some((6.0, 6.0)));
+    let bad = dir.path().join("bad.csv");
+    std::fs::write(
+        &bad,
+        "frame,x,y,gate_x,gate_y,particle\n0,1,1,,,0\n1,2,1,0,6,0\n",
+    )
+    .unwrap();
+    let err = scanloc::io::tracks::read_tracks(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("bad.csv") && err.contains("row 2") && err.contains("gate_x"),
+        "{err}"
+    );
+    // `scanloc diffusion` takes a share of the gate up to 1/√2, or 1.
+    for (share, code) in [("0.5", 0), ("1", 0), ("0.8", 2), ("0", 2)] {
+        let (got, _, err) = crate::common::cli_in_process(&[
+            "diffusion",
+            "--tracks",
+            out.to_str().unwrap(),
+            "--ensemble-gate",
+            share,
+        ]);
+        assert_eq!(got, code, "--ensemble-gate {share}: {err}");
+        if code == 2 {
+            assert!(
+                err.contains("--ensemble-gate") && err.trim().lines().count() == 1,
+                "{err}"
+            );
+        }
+    }
+}
+
 /// Runs `scanloc link` on a table with `text`, expecting a one-line refusal
 /// (exit 2) that names the file and contains `expected`, and no output.
 fn refused(text: &[u8], expected: &str) {

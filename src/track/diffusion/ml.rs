@@ -74,7 +74,18 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64) -> f64 {
         // predictive distribution is N(previous + (Δ − z), p).
         let predicted = values[i - 1] + (delta - z);
         let sd = p.sqrt();
+        // Seen only inside the field and the linker's gate around the
+        // previous localisation.
+        let gate = series.gates[axis][i];
+        let (low, high) = (
+            low.max(values[i - 1] - gate),
+            high.min(values[i - 1] + gate),
+        );
         let mass = |from: f64, to: f64| {
+            let (from, to) = (from.max(low), to.min(high));
+            if from >= to {
+                return 0.0;
+            }
             normal_cdf((to - predicted) / sd) - normal_cdf((from - predicted) / sd)
         };
         let mut inside = mass(low, high);
@@ -339,6 +350,7 @@ mod tests {
             variances: None,
             field: [(-1e9, 1e9), (-1e9, 1e9)],
             detection: None,
+            gates: [vec![f64::INFINITY; 5], vec![f64::INFINITY; 5]],
         };
         for (d, v) in [(1.0, 0.001), (0.3, 0.0), (2.0, 0.01), (1.0, -0.0015)] {
             let fast = axis_cost(&series, 0, d, v);
@@ -395,6 +407,7 @@ mod tests {
                     variances: None,
                     field: [(-1e9, 1e9), (-1e9, 1e9)],
                     detection: None,
+                    gates: [vec![f64::INFINITY; points], vec![f64::INFINITY; points]],
                 }
             })
             .collect()

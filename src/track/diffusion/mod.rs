@@ -57,6 +57,11 @@ pub struct Series {
     /// Where within the field the localiser misses particles, per axis
     /// ([`DetectionProfile`]); `None`: it finds them equally everywhere.
     pub detection: Option<std::sync::Arc<DetectionProfile>>,
+    /// Per localisation, the extent along x and y (µm) of the
+    /// linker's gate that admitted the step to it from the previous one
+    /// (+∞ for the first, and where no gate is known): a step is seen only
+    /// inside its gate, and ML conditions on that as on the field.
+    pub gates: [Vec<f64>; 2],
 }
 
 /// How a localiser's chance of finding a particle falls off towards the
@@ -156,9 +161,77 @@ pub fn attach_detection_profile(series: &mut [Series], pixel_size_um: f64) {
     }
 }
 
+/// The share of a link's gate within which the ML ensemble takes its
+/// steps ([`within_gates`]): 2/3, i.e. 2 standard deviations of the
+/// displacement on each axis under the `lap` linker's default gate of 3.
+pub const ENSEMBLE_GATE: f64 = 2.0 / 3.0;
+
+/// The largest share of a link's gate [`within_gates`] takes: up to
+/// 1/√2 of the gate's extent on both axes, a displacement is inside the
+/// (elliptic) gate, so the narrowed box is all the ensemble is conditioned
+/// on.
+pub const MAX_ENSEMBLE_GATE: f64 = std::f64::consts::FRAC_1_SQRT_2;
+
+/// `series` cut where a step leaves `fraction` (at most
+/// [`MAX_ENSEMBLE_GATE`]) of the extent of the gate that admitted it, on
+/// either axis, each step's gate narrowed to that box (series without
+/// gates are kept whole).
+///
+/// A linker links whatever falls in its gate, so where particles are
+/// dense a track that lost its particle takes up another one close by:
+/// such a step is the two particles' offset plus a step, and inflates D.
+/// Such steps are spread far more widely than the particle's own, so a
+/// narrower gate keeps a smaller share of them than of true steps
+/// (2 σ: 91 % of a true step's displacements per axis), and ML, conditioned
+/// on each step's gate as on the field, reads D from the rest without
+/// the truncation's bias (docs/tracking.md, "Wrong links").
+pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
+    let mut pieces = Vec::new();
+    for s in series {
+        let mut start = 0;
+        let mut piece = |from: usize, to: usize| {
+            let mut p = Series {
+                frames: s.frames[from..to].to_vec(),
+                axes: [s.axes[0][from..to].to_vec(), s.axes[1][from..to].to_vec()],
+                times: s.times[from..to].to_vec(),
+                blur: s.blur[from..to].to_vec(),
+                variances: s
+                    .variances
+                    .as_ref()
+                    .map(|v| [v[0][from..to].to_vec(), v[1][from..to].to_vec()]),
+                field: s.field,
+                detection: s.detection.clone(),
+                gates: [
+                    s.gates[0][from..to].iter().map(|g| g * fraction).collect(),
+                    s.gates[1][from..to].iter().map(|g| g * fraction).collect(),
+                ],
+            };
+            p.gates[0][0] = f64::INFINITY;
+            p.gates[1][0] = f64::INFINITY;
+            pieces.push(p);
+        };
+        for i in 1..s.len() {
+            let outside = (0..2).any(|axis| {
+                (s.axes[axis][i] - s.axes[axis][i - 1]).abs() > fraction * s.gates[axis][i]
+            });
+            if outside {
+                piece(start, i);
+                start = i;
+            }
+        }
+        if start < s.len() {
+            piece(start, s.len());
+        }
+    }
+    pieces
+}
+
 /// A recording's D by `method`: the ensemble estimate over all `series`
 /// of two localisations or more, and one per series of at least
-/// `min_points`.
+/// `min_points`. The ML ensemble takes its steps within `ensemble_gate`
+/// (≤ [`MAX_ENSEMBLE_GATE`]) of their links' gates, conditioned on them
+/// ([`within_gates`]; 1: every step); each track's own estimate, and the
+/// moment estimators, use every step as it is.
 ///
 /// Maximum likelihood estimates a series without given variances with the
 /// ensemble's localisation variance rather than its own: one localiser on
@@ -170,16 +243,36 @@ pub fn estimate_recording(
     series: &[Series],
     method: Method,
     min_points: usize,
+    ensemble_gate: f64,
 ) -> RecordingEstimates {
-    let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
-    let ensemble = method.estimate(&all);
-    let shared_variance = match (method, &ensemble) {
+    // A track's own estimate and the moment estimators use every step as
+    // it is: the linker's full gate truncates a step's distribution too
+    // little to matter (0.5 % per axis at 3 σ), and conditioned on it a
+    // short track's likelihood is nearly flat towards large D.
+    let whole: Vec<Series> = series
+        .iter()
+        .map(|s| Series {
+            gates: [vec![f64::INFINITY; s.len()], vec![f64::INFINITY; s.len()]],
+            ..s.clone()
+        })
+        .collect();
+    let of = |series: &[Series]| -> Option<Estimate> {
+        let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
+        method.estimate(&all)
+    };
+    let whole_ensemble = of(&whole);
+    let ensemble = if method == Method::Ml && ensemble_gate <= MAX_ENSEMBLE_GATE {
+        of(&within_gates(series, ensemble_gate))
+    } else {
+        whole_ensemble
+    };
+    let shared_variance = match (method, &whole_ensemble) {
         (Method::Ml, Some(e)) if e.localisation_variance.is_finite() => {
             Some(e.localisation_variance)
         }
         _ => None,
     };
-    let per_track = series
+    let per_track = whole
         .iter()
         .map(|s| {
             if s.len() < min_points.max(2) {
@@ -219,6 +312,7 @@ impl Series {
                 (-0.5 * a, (geometry.height as f64 - 0.5) * a),
             ],
             detection: None,
+            gates: [Vec::with_capacity(n), Vec::with_capacity(n)],
         };
         let all_sigma = track.points.iter().all(|p| p.sigma.is_some());
         let mut variances = [Vec::new(), Vec::new()];
@@ -229,6 +323,13 @@ impl Series {
             series.axes[1].push(point.y * a);
             series.times.push(point.time_s.unwrap_or(time));
             series.blur.push(blur);
+            let first = series.frames.len() == 1;
+            let (gx, gy) = match point.gate {
+                Some((gx, gy)) if !first => (gx * a, gy * a),
+                _ => (f64::INFINITY, f64::INFINITY),
+            };
+            series.gates[0].push(gx);
+            series.gates[1].push(gy);
             if let (true, Some((sx, sy))) = (all_sigma, point.sigma) {
                 variances[0].push((sx * a).powi(2));
                 variances[1].push((sy * a).powi(2));
@@ -393,7 +494,34 @@ mod tests {
             variances: None,
             field: [(0.0, counts.len() as f64); 2],
             detection: None,
+            gates: [vec![f64::INFINITY; n], vec![f64::INFINITY; n]],
         }
+    }
+
+    #[test]
+    fn within_gates_cuts_where_a_step_leaves_the_narrowed_gate() {
+        // Steps of 1, 3 and 1 along x, each admitted by a gate of extent 4:
+        // 2/3 of it (2.67) keeps the first and last steps, in two pieces,
+        // each conditioned on its narrowed gate; a series without gates
+        // stays whole.
+        let mut series = series_with_counts(&[1, 1, 1, 1]);
+        series.axes[0] = vec![0.0, 1.0, 4.0, 5.0];
+        series.gates = [
+            vec![f64::INFINITY, 4.0, 4.0, 4.0],
+            vec![f64::INFINITY, 4.0, 4.0, 4.0],
+        ];
+        let pieces = within_gates(std::slice::from_ref(&series), 2.0 / 3.0);
+        assert_eq!(pieces.len(), 2);
+        assert_eq!(pieces[0].axes[0], [0.0, 1.0]);
+        assert_eq!(pieces[1].axes[0], [4.0, 5.0]);
+        assert_eq!(pieces[1].frames, [2, 3]);
+        for piece in &pieces {
+            assert_eq!(piece.gates[0][0], f64::INFINITY);
+            assert!((piece.gates[0][1] - 8.0 / 3.0).abs() < 1e-12);
+        }
+        let ungated = series_with_counts(&[1, 1, 1, 1]);
+        let whole = within_gates(std::slice::from_ref(&ungated), 2.0 / 3.0);
+        assert_eq!(whole, [ungated]);
     }
 
     #[test]
