@@ -148,7 +148,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Sweep(args) => sweep::run(args, stdout),
         Command::Link(args) => link::run(args, stdout),
         Command::SimulateRecording(args) => simulate_recording::run(args),
-        Command::Diffusion(args) => diffusion::run(args, stdout),
+        Command::Diffusion(args) => diffusion::run(args, stdout, stderr),
         Command::ScoreTracks(args) => score_tracks::run(args, stdout),
     }
 }

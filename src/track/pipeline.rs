@@ -27,7 +27,7 @@ use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
 pub const LINK_VERSION: &str = "scanloc-link/3";
 
 /// Version of the scoring of tracks ([`evaluate`] and its JSON).
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/3";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/4";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
@@ -480,6 +480,12 @@ pub struct EstimatorScore {
     /// Every track of at least `min_points` localisations that got an
     /// estimate, by particle.
     pub tracks: Vec<TrackEstimate>,
+    /// ML: how much more the tracks' estimates scatter than the likelihood
+    /// says (each track's interval is widened by it where it exceeds 1;
+    /// docs/tracking.md, "The estimators"). Absent for the other methods,
+    /// and in evaluations made before `scanloc-track-metric/4`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dispersion: Option<f64>,
 }
 
 /// A tracking pipeline's scores on one recording (`score.json` of a
@@ -544,6 +550,7 @@ pub fn evaluate(
                 ensemble,
                 per_track: score_diffusion(&valid, true_d),
                 tracks: per_track,
+                dispersion: estimates.dispersion,
             }
         })
         .collect();

@@ -212,6 +212,13 @@ impl Problem<'_> {
 /// The maximum-likelihood estimate over `series` jointly; `None` without a
 /// step of non-zero length.
 pub fn estimate(series: &[&Series]) -> Option<Estimate> {
+    estimate_with_dispersion(series, 1.0)
+}
+
+/// [`estimate`] with the interval widened for a dispersion `phi` (≥ 1):
+/// the D whose −2 log L is within `phi` × 3.84 of its minimum (the
+/// quasi-likelihood interval; [`dispersion`]).
+pub fn estimate_with_dispersion(series: &[&Series], phi: f64) -> Option<Estimate> {
     let (mean_sq, mean_dt, steps) = scales(series)?;
     let known = series.iter().all(|s| s.variances.is_some());
     let problem = Problem {
@@ -240,7 +247,7 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
     } else {
         (log_d, minimum)
     };
-    let level = minimum + CHI2_95;
+    let level = minimum + CHI2_95 * phi.max(1.0);
     let low = if problem.profile(lowest.exp()).0 <= level {
         0.0
     } else {
@@ -266,6 +273,49 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
         steps,
         interval_valid: steps >= MIN_STEPS,
     })
+}
+
+/// Fewest tracks [`dispersion`] is measured on.
+pub const MIN_DISPERSION_TRACKS: usize = 20;
+
+/// How much more the tracks' estimates scatter than the likelihood says:
+/// `φ̂ = n/(n − 1) · Σₖ Uₖ² / I`, with `Uₖ` the score (∂ log L/∂D) of
+/// track k and `I` the observed information (−∂² log L/∂D²) of all
+/// tracks, both at their joint estimate D̃. Each track is one independent
+/// contribution, so under the model `Σ Uₖ²` estimates `I` and φ̂ ≈ 1 (to
+/// about `√(2/n)`); wrong links, a localiser's heavy-tailed errors or a
+/// selection the model leaves out spread the tracks' D more, and φ̂ > 1
+/// says by how much (the dispersion of quasi-likelihood, McCullagh &
+/// Nelder 1989, §9.2). `series` must all have given variances (each
+/// track's σ² told, so D is the one parameter); `None` with fewer than
+/// [`MIN_DISPERSION_TRACKS`] series of a step or more, or where the
+/// information is not positive.
+pub fn dispersion(series: &[&Series]) -> Option<f64> {
+    let series: Vec<&Series> = series.iter().copied().filter(|s| s.len() > 1).collect();
+    if series.len() < MIN_DISPERSION_TRACKS || series.iter().any(|s| s.variances.is_none()) {
+        return None;
+    }
+    let joint = estimate(&series)?.d;
+    // Central differences in D, a step far above the search's precision
+    // and far below an estimate's standard error.
+    let h = 1e-3 * joint;
+    let (below, above) = (joint - h, joint + h);
+    let track_cost = |s: &Series, d: f64| axis_cost(s, 0, d, 0.0) + axis_cost(s, 1, d, 0.0);
+    let (mut sum_scores_sq, mut curvature) = (0.0, 0.0);
+    for s in &series {
+        let (low, middle, high) = (
+            track_cost(s, below),
+            track_cost(s, joint),
+            track_cost(s, above),
+        );
+        // cost = −2 log L: U = −½ ∂cost/∂D, I = ½ ∂²cost/∂D².
+        let score = -0.5 * (high - low) / (2.0 * h);
+        sum_scores_sq += score * score;
+        curvature += 0.5 * (high - 2.0 * middle + low) / (h * h);
+    }
+    let n = series.len() as f64;
+    let phi = n / (n - 1.0) * sum_scores_sq / curvature;
+    (curvature > 0.0 && phi.is_finite()).then_some(phi)
 }
 
 /// The least `(Δtᵢ − 2τᵢ − 2τᵢ₊₁)/2` over every step of `series`, s: with
@@ -440,5 +490,56 @@ mod tests {
         let noisy = estimate(&refs).unwrap();
         assert!((noisy.d - d).abs() < 3.0 * noisy.standard_error);
         assert!((noisy.localisation_variance - 0.004).abs() < 0.001);
+    }
+
+    /// `series` with every localisation's variance told as `v`.
+    fn told(mut series: Vec<Series>, v: f64) -> Vec<Series> {
+        for s in &mut series {
+            s.variances = Some([vec![v; s.len()], vec![v; s.len()]]);
+        }
+        series
+    }
+
+    /// The share of `series` whose own interval at dispersion `phi` holds
+    /// `d`.
+    fn coverage(series: &[Series], phi: f64, d: f64) -> f64 {
+        let covered = series
+            .iter()
+            .filter(|s| estimate_with_dispersion(&[s], phi).unwrap().covers(d))
+            .count();
+        covered as f64 / series.len() as f64
+    }
+
+    #[test]
+    fn the_dispersion_is_one_for_the_model_and_widens_intervals_to_cover_a_wider_scatter() {
+        // 300 tracks of 15 localisations drawn from the model itself: φ̂
+        // is 1 to within √(2/300) ≈ 0.08 (tolerance 3 of those).
+        let v = 0.004;
+        let model = told(model_series(1.0, v, 300, 15, 21), v);
+        let refs: Vec<&Series> = model.iter().collect();
+        let phi = dispersion(&refs).unwrap();
+        assert!((phi - 1.0).abs() < 0.25, "φ̂ = {phi}");
+        // Tracks whose D scatters around 1 (a third at 0.6, a third at
+        // 1.6: what wrong links or an unmodelled selection do to a
+        // recording's tracks) spread more than one D's likelihood says.
+        let mut scattered = told(model_series(0.6, v, 100, 15, 22), v);
+        scattered.extend(told(model_series(1.0, v, 100, 15, 23), v));
+        scattered.extend(told(model_series(1.6, v, 100, 15, 24), v));
+        let refs: Vec<&Series> = scattered.iter().collect();
+        let phi = dispersion(&refs).unwrap();
+        assert!(phi > 1.5, "φ̂ = {phi}");
+        // Against the mean D the plain intervals of those tracks cover
+        // far less than 95 % (binomial SE ≈ 1.3 % on 300 tracks); widened
+        // by φ̂ they cover about as many as they state. The model's own
+        // tracks keep theirs.
+        let plain = coverage(&scattered, 1.0, 16.0 / 15.0);
+        let widened = coverage(&scattered, phi, 16.0 / 15.0);
+        assert!(plain < 0.9, "plain {plain}");
+        assert!(widened > 0.93, "widened {widened}, plain {plain}");
+        let phi_model = dispersion(&model.iter().collect::<Vec<_>>()).unwrap();
+        let kept = coverage(&model, phi_model, 1.0);
+        assert!((kept - 0.95).abs() < 0.04, "{kept}");
+        // Too few tracks to measure it: none.
+        assert_eq!(dispersion(&refs[..MIN_DISPERSION_TRACKS - 1]), None);
     }
 }

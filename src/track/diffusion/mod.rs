@@ -144,6 +144,10 @@ pub struct RecordingEstimates {
     /// One entry per series, in series order: its estimate, `None` when it
     /// has fewer than `min_points` localisations or got none.
     pub per_track: Vec<Option<Estimate>>,
+    /// ML: the tracks' dispersion [`ml::dispersion`] (each track's
+    /// interval is widened by it where it exceeds 1); `None` for the
+    /// other methods, or where it could not be measured.
+    pub dispersion: Option<f64>,
 }
 
 /// Prepares a recording's `series` for estimation: each is told where the
@@ -272,25 +276,40 @@ pub fn estimate_recording(
         }
         _ => None,
     };
-    let per_track = whole
+    // Each track as its own estimate sees it: σ² told where the ensemble
+    // gave it.
+    let tracks: Vec<Option<Series>> = whole
         .iter()
         .map(|s| {
-            if s.len() < min_points.max(2) {
-                return None;
-            }
-            match (shared_variance, &s.variances) {
-                (Some(v), None) => {
-                    let mut told = s.clone();
-                    told.variances = Some([vec![v; s.len()], vec![v; s.len()]]);
-                    method.estimate(&[&told])
-                }
-                _ => method.estimate(&[s]),
+            (s.len() >= min_points.max(2)).then(|| match (shared_variance, &s.variances) {
+                (Some(v), None) => Series {
+                    variances: Some([vec![v; s.len()], vec![v; s.len()]]),
+                    ..s.clone()
+                },
+                _ => s.clone(),
+            })
+        })
+        .collect();
+    let dispersion = (method == Method::Ml)
+        .then(|| {
+            let told: Vec<&Series> = tracks.iter().flatten().collect();
+            ml::dispersion(&told)
+        })
+        .flatten();
+    let per_track = tracks
+        .iter()
+        .map(|track| {
+            let track = track.as_ref()?;
+            match (method, dispersion) {
+                (Method::Ml, Some(phi)) => ml::estimate_with_dispersion(&[track], phi),
+                _ => method.estimate(&[track]),
             }
         })
         .collect();
     RecordingEstimates {
         ensemble,
         per_track,
+        dispersion,
     }
 }
 
