@@ -801,3 +801,53 @@ fn simulate_recording_writes_frames_and_truth() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("blink_on_ms"), "{err}");
 }
+
+#[test]
+fn the_diffusion_command_widens_track_intervals_when_tracks_scatter_more_than_one_d() {
+    // 200 walks of 15 frames in the middle of a 200 × 200 field, half with
+    // steps of σ = 2 px and half of σ = 4 px per axis: the tracks' ML
+    // estimates scatter far more than one D's likelihood allows (φ̂ ≈ 3
+    // for a fourfold spread of D), which the command names on stderr.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tracks.csv");
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut text = String::from("frame,x,y,particle\n");
+    for particle in 0..200 {
+        let sigma = if particle % 2 == 0 { 2.0 } else { 4.0 };
+        let (mut x, mut y) = (100.0, 100.0);
+        for frame in 0..15 {
+            text.push_str(&format!("{frame},{x},{y},{particle}\n"));
+            let (nx, ny): (f64, f64) = (
+                StandardNormal.sample(&mut rng),
+                StandardNormal.sample(&mut rng),
+            );
+            x += sigma * nx;
+            y += sigma * ny;
+        }
+    }
+    std::fs::write(&path, &text).unwrap();
+    let args = [
+        "diffusion",
+        "--tracks",
+        path.to_str().unwrap(),
+        "--height",
+        "200",
+        "--width",
+        "200",
+        // The walks all start in the middle, not spread over the field.
+        "--no-detection-profile",
+    ];
+    let (code, out, err) = crate::common::cli_in_process(&args);
+    assert_eq!(code, 0, "{err}");
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("ml: the tracks' estimates scatter"))
+        .unwrap_or_else(|| panic!("no dispersion line on stderr: {err}"));
+    let phi: f64 = line
+        .split_whitespace()
+        .nth(5)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(phi > 1.5, "{line}");
+    assert!(out.lines().any(|l| l.starts_with("ensemble,")), "{out}");
+}
