@@ -123,7 +123,14 @@ impl DetectionProfile {
             edge_bins.dedup();
             for b in edge_bins {
                 let from = low + b as f64 * bin;
-                shortfall.push((from, from + bin, 1.0 - efficiency(b)));
+                let missed = 1.0 - efficiency(b);
+                // Neighbouring bins alike (e.g. the empty ones of a field
+                // the particles never reach) are one interval: ML pays for
+                // each interval at every step.
+                match shortfall.last_mut() {
+                    Some((_, to, last)) if *to == from && *last == missed => *to = from + bin,
+                    _ => shortfall.push((from, from + bin, missed)),
+                }
             }
         }
         Some(Self { shortfalls })
@@ -559,6 +566,16 @@ mod tests {
                 .collect();
             assert_eq!(got, [(0.0, 1.0, 0.8), (1.0, 2.0, 0.4), (10.0, 11.0, 0.6)]);
         }
+        // Neighbouring edge bins alike are one interval.
+        let mut empty_edges = [series_with_counts(&[
+            0, 0, 0, 100, 400, 400, 400, 400, 0, 0,
+        ])];
+        attach_detection_profile(&mut empty_edges, 1.0);
+        let profile = empty_edges[0].detection.clone().expect("a profile");
+        assert_eq!(
+            profile.shortfalls[0],
+            [(0.0, 3.0, 1.0), (3.0, 4.0, 0.75), (8.0, 10.0, 1.0)]
+        );
         // Too few localisations: no profile.
         let mut sparse = [series_with_counts(&[1, 2, 3, 4])];
         attach_detection_profile(&mut sparse, 1.0);
