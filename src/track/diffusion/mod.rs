@@ -249,7 +249,8 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
 /// one recording errs alike in every track, and a short track cannot tell
 /// σ² from D (on the CNN's tracks of `make tracking` at D = 1, a relative
 /// RMSE of 0.47 against 0.64 profiled per track; docs/tracking.md, "The
-/// estimators").
+/// estimators"), and widens each track's interval by the tracks'
+/// [`ml::dispersion`] where it exceeds 1.
 pub fn estimate_recording(
     series: &[Series],
     method: Method,
