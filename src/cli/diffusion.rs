@@ -74,6 +74,14 @@ pub struct DiffusionArgs {
     /// gates are used whole.
     #[arg(long, default_value_t = ENSEMBLE_GATE)]
     ensemble_gate: f64,
+    /// The ml ensemble takes its steps within the box this many pixels
+    /// inside the field's edges, each run of localisations inside it a
+    /// series conditioned on the box: for a localiser whose chance of
+    /// finding a particle near an edge depends on how it moved, at the
+    /// cost of the steps near the edges (docs/tracking.md, "The tracking
+    /// experiment"). 0: the whole field.
+    #[arg(long, default_value_t = 0.0)]
+    ensemble_margin_px: f64,
 }
 
 fn row(
@@ -109,6 +117,12 @@ pub fn run(
         ExposureArg::FrameIndex => Exposure::FrameIndex,
         ExposureArg::UniformFrame => Exposure::UniformFrame,
     };
+    if !(args.ensemble_margin_px.is_finite() && args.ensemble_margin_px >= 0.0) {
+        return Err(input_error(format!(
+            "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
+            args.ensemble_margin_px
+        )));
+    }
     if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
         return Err(input_error(format!(
             "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
@@ -138,7 +152,13 @@ pub fn run(
         .map(|method| {
             (
                 method,
-                estimate_recording(&series, method, args.min_points, args.ensemble_gate),
+                estimate_recording(
+                    &series,
+                    method,
+                    args.min_points,
+                    args.ensemble_gate,
+                    args.ensemble_margin_px * geometry.pixel_size_um,
+                ),
             )
         })
         .collect();

@@ -313,6 +313,15 @@ pub struct TrackScoring {
     /// most 1/√2, or 1 for every step.
     #[serde(default = "default_ensemble_gate")]
     pub ensemble_gate: f64,
+    /// The ML ensemble takes its steps within the box this far inside the
+    /// field's edges, px ([`within_margin`](super::diffusion::within_margin));
+    /// 0 (the default, left out of the JSON): the whole field.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ensemble_margin_px: f64,
+}
+
+fn is_zero(value: &f64) -> bool {
+    *value == 0.0
 }
 
 fn default_ensemble_gate() -> f64 {
@@ -341,6 +350,7 @@ impl Default for TrackScoring {
             split_gaps_over: None,
             min_points: default_min_points(),
             ensemble_gate: default_ensemble_gate(),
+            ensemble_margin_px: 0.0,
         }
     }
 }
@@ -378,6 +388,15 @@ impl TrackScoring {
                     "must be 2 to {}, got {}",
                     crate::limits::MAX_FRAMES,
                     self.min_points
+                ),
+            ));
+        }
+        if !(self.ensemble_margin_px.is_finite() && self.ensemble_margin_px >= 0.0) {
+            return Err(FieldError::new(
+                "ensemble_margin_px",
+                format!(
+                    "must be a finite number ≥ 0, got {}",
+                    self.ensemble_margin_px
                 ),
             ));
         }
@@ -524,8 +543,13 @@ pub fn evaluate(
     let diffusion = Method::ALL
         .into_iter()
         .map(|method| {
-            let estimates =
-                estimate_recording(&series, method, scoring.min_points, scoring.ensemble_gate);
+            let estimates = estimate_recording(
+                &series,
+                method,
+                scoring.min_points,
+                scoring.ensemble_gate,
+                scoring.ensemble_margin_px * geometry.pixel_size_um,
+            );
             let ensemble = estimates.ensemble.map(StoredEstimate::from);
             let per_track: Vec<TrackEstimate> = estimates
                 .per_track

@@ -263,7 +263,7 @@ fn per_track_ml_intervals_cover_the_truth_95_percent_of_the_time() {
         // without given σ, each track with the ensemble's σ², its interval
         // widened by the tracks' dispersion, which for the model's own
         // tracks is 1 to within √(2/n) ≈ 0.07 (tolerance 3 of those).
-        let estimates = estimate_recording(&series, Method::Ml, 11, 1.0);
+        let estimates = estimate_recording(&series, Method::Ml, 11, 1.0, 0.0);
         let phi = estimates.dispersion.expect("a dispersion");
         eprintln!("dispersion of the tracks (sigma given: {sigma}): {phi:.3}");
         assert!((phi - 1.0).abs() < 0.2, "dispersion {phi}");
@@ -476,10 +476,10 @@ fn the_ml_ensemble_within_narrower_gates_is_not_inflated_by_links_between_partic
         .map(|t| Series::new(t, &geometry(&params), Exposure::WholeFrame))
         .collect();
     attach_detection_profile(&mut series, 0.07);
-    let whole = estimate_recording(&series, Method::Ml, 11, 1.0)
+    let whole = estimate_recording(&series, Method::Ml, 11, 1.0, 0.0)
         .ensemble
         .unwrap();
-    let gated = estimate_recording(&series, Method::Ml, 11, ENSEMBLE_GATE)
+    let gated = estimate_recording(&series, Method::Ml, 11, ENSEMBLE_GATE, 0.0)
         .ensemble
         .unwrap();
     eprintln!(
@@ -506,7 +506,7 @@ fn per_track_ml_takes_the_ensembles_localisation_variance() {
     let keep = |r: &RecordingTruthRow| in_field(r, false, 24, 25);
     let tracks = truth_tracks(&truth, false, false, keep, 19);
     let series = series_of(&tracks, &geometry(&params), Exposure::WholeFrame);
-    let shared = estimate_recording(&series, Method::Ml, 11, 1.0);
+    let shared = estimate_recording(&series, Method::Ml, 11, 1.0, 0.0);
     let ensemble_variance = shared.ensemble.expect("an ensemble").localisation_variance;
     let rmse = |estimates: &[Estimate]| {
         (estimates
@@ -850,4 +850,97 @@ fn the_diffusion_command_widens_track_intervals_when_tracks_scatter_more_than_on
         .unwrap_or_else(|| panic!("{line}"));
     assert!(phi > 1.5, "{line}");
     assert!(out.lines().any(|l| l.starts_with("ensemble,")), "{out}");
+}
+
+#[test]
+fn an_ensemble_margin_removes_a_selection_on_motion_near_the_edges() {
+    // Walks of σ = 3 px per axis and frame over the paper's field, a
+    // localisation within 4 px of an edge kept only when the step into it
+    // was shorter than 3 px (a localiser that finds a particle there less
+    // often when it moved far; the track ends where one is lost). The
+    // detection profile, a function of position, cannot tell: the
+    // ensemble ML reads D low. Within the box 4 px inside the edges the
+    // selection is gone and ML reads the truth, D = 9 px²·a²/(2T).
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let near_edge = |x: f64, y: f64| !((3.5..20.5).contains(&x) && (3.5..19.5).contains(&y));
+    let mut tracks = Vec::new();
+    for walk in 0..1500 {
+        let (mut x, mut y) = (
+            rng.random::<f64>() * 25.0 - 0.5,
+            rng.random::<f64>() * 24.0 - 0.5,
+        );
+        let mut step = 0.0f64;
+        let mut points = Vec::new();
+        for frame in 0..10 {
+            let inside = (-0.5..24.5).contains(&x) && (-0.5..23.5).contains(&y);
+            if !inside || (frame > 0 && near_edge(x, y) && step >= 3.0) {
+                break;
+            }
+            points.push(TrackPoint {
+                frame: walk * 20 + frame,
+                x,
+                y,
+                sigma: None,
+                time_s: None,
+                gate: None,
+            });
+            let (nx, ny): (f64, f64) = (
+                StandardNormal.sample(&mut rng),
+                StandardNormal.sample(&mut rng),
+            );
+            x += 3.0 * nx;
+            y += 3.0 * ny;
+            step = (9.0 * (nx * nx + ny * ny)).sqrt();
+        }
+        tracks.push(Track {
+            particle: walk as i64,
+            points,
+        });
+    }
+    let geometry = ScanGeometry {
+        height: 24,
+        width: 25,
+        pixel_size_um: 0.07,
+        dwell_us: 2.0,
+        retrace_ms: 1.1,
+        dead_time_ms: 0.0,
+        sigma_xy_um: 0.21,
+    };
+    let mut series = series_of(&tracks, &geometry, Exposure::WholeFrame);
+    attach_detection_profile(&mut series, geometry.pixel_size_um);
+    let ml = |margin_px: f64| {
+        estimate_recording(&series, Method::Ml, usize::MAX, 1.0, margin_px * 0.07)
+            .ensemble
+            .expect("an ensemble estimate")
+    };
+    let truth = 9.0 * 0.07f64.powi(2) / (2.0 * geometry.frame_period_s());
+    let (whole, inner) = (ml(0.0), ml(4.0));
+    eprintln!(
+        "D true {truth:.4}: whole field {:.4} ± {:.4}, margin 4 px {:.4} ± {:.4}",
+        whole.d, whole.standard_error, inner.d, inner.standard_error
+    );
+    // Tolerance: 3 standard errors.
+    assert!(
+        (inner.d - truth).abs() < 3.0 * inner.standard_error,
+        "margin: {inner:?}"
+    );
+    assert!(
+        whole.d < truth - 3.0 * whole.standard_error,
+        "whole field: {whole:?}"
+    );
+    // `scanloc diffusion --ensemble-margin-px` must be a number ≥ 0.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tracks.csv");
+    std::fs::write(&path, "frame,x,y,particle\n0,1,1,0\n1,2,2,0\n").unwrap();
+    let (code, _, err) = crate::common::cli_in_process(&[
+        "diffusion",
+        "--tracks",
+        path.to_str().unwrap(),
+        "--ensemble-margin-px=-1",
+    ]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("--ensemble-margin-px") && err.trim().lines().count() == 1,
+        "{err}"
+    );
 }

@@ -201,22 +201,12 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
     for s in series {
         let mut start = 0;
         let mut piece = |from: usize, to: usize| {
-            let mut p = Series {
-                frames: s.frames[from..to].to_vec(),
-                axes: [s.axes[0][from..to].to_vec(), s.axes[1][from..to].to_vec()],
-                times: s.times[from..to].to_vec(),
-                blur: s.blur[from..to].to_vec(),
-                variances: s
-                    .variances
-                    .as_ref()
-                    .map(|v| [v[0][from..to].to_vec(), v[1][from..to].to_vec()]),
-                field: s.field,
-                detection: s.detection.clone(),
-                gates: [
-                    s.gates[0][from..to].iter().map(|g| g * fraction).collect(),
-                    s.gates[1][from..to].iter().map(|g| g * fraction).collect(),
-                ],
-            };
+            let mut p = s.slice(from, to);
+            for gates in &mut p.gates {
+                for g in gates.iter_mut() {
+                    *g *= fraction;
+                }
+            }
             p.gates[0][0] = f64::INFINITY;
             p.gates[1][0] = f64::INFINITY;
             pieces.push(p);
@@ -237,12 +227,59 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
     pieces
 }
 
+/// `series` cut to the box `margin` (µm) inside their field on every
+/// side: each run of consecutive localisations inside the box becomes a
+/// series whose field is the box (its first step's gate dropped, as it
+/// starts afresh). ML conditioned on the box reads D from steps whose
+/// ends are away from the edges, where a localiser's chance of finding a
+/// particle may depend on how the particle moved (its path leaving the
+/// field), which the [`DetectionProfile`], a function of position, does
+/// not describe (docs/tracking.md, "The tracking experiment"). A margin
+/// of 0 keeps every series whole.
+pub fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
+    if margin <= 0.0 {
+        return series.to_vec();
+    }
+    let mut pieces = Vec::new();
+    for s in series {
+        let inner = [
+            (s.field[0].0 + margin, s.field[0].1 - margin),
+            (s.field[1].0 + margin, s.field[1].1 - margin),
+        ];
+        if inner.iter().any(|(low, high)| low >= high) {
+            continue;
+        }
+        let inside = |i: usize| {
+            (0..2).all(|axis| (inner[axis].0..=inner[axis].1).contains(&s.axes[axis][i]))
+        };
+        let mut i = 0;
+        while i < s.len() {
+            if !inside(i) {
+                i += 1;
+                continue;
+            }
+            let start = i;
+            while i < s.len() && inside(i) {
+                i += 1;
+            }
+            let mut piece = s.slice(start, i);
+            piece.field = inner;
+            piece.gates[0][0] = f64::INFINITY;
+            piece.gates[1][0] = f64::INFINITY;
+            pieces.push(piece);
+        }
+    }
+    pieces
+}
+
 /// A recording's D by `method`: the ensemble estimate over all `series`
 /// of two localisations or more, and one per series of at least
 /// `min_points`. The ML ensemble takes its steps within `ensemble_gate`
 /// (≤ [`MAX_ENSEMBLE_GATE`]) of their links' gates, conditioned on them
-/// ([`within_gates`]; 1: every step); each track's own estimate, and the
-/// moment estimators, use every step as it is.
+/// ([`within_gates`]; 1: every step), and, with `ensemble_margin` > 0
+/// (µm), within the box that far inside the field ([`within_margin`]);
+/// each track's own estimate, and the moment estimators, use every step
+/// as it is.
 ///
 /// Maximum likelihood estimates a series without given variances with the
 /// ensemble's localisation variance rather than its own: one localiser on
@@ -256,6 +293,7 @@ pub fn estimate_recording(
     method: Method,
     min_points: usize,
     ensemble_gate: f64,
+    ensemble_margin: f64,
 ) -> RecordingEstimates {
     // A track's own estimate and the moment estimators use every step as
     // it is: the linker's full gate truncates a step's distribution too
@@ -273,10 +311,13 @@ pub fn estimate_recording(
         method.estimate(&all)
     };
     let whole_ensemble = of(&whole);
-    let ensemble = if method == Method::Ml && ensemble_gate <= MAX_ENSEMBLE_GATE {
-        of(&within_gates(series, ensemble_gate))
-    } else {
-        whole_ensemble
+    let ensemble = match (method, ensemble_gate <= MAX_ENSEMBLE_GATE) {
+        (Method::Ml, true) => of(&within_margin(
+            &within_gates(series, ensemble_gate),
+            ensemble_margin,
+        )),
+        (Method::Ml, false) if ensemble_margin > 0.0 => of(&within_margin(&whole, ensemble_margin)),
+        _ => whole_ensemble,
     };
     let shared_variance = match (method, &whole_ensemble) {
         (Method::Ml, Some(e)) if e.localisation_variance.is_finite() => {
@@ -366,6 +407,29 @@ impl Series {
             series.variances = Some(variances);
         }
         series
+    }
+
+    /// Localisations `from..to` of this series, as a series of its own.
+    pub fn slice(&self, from: usize, to: usize) -> Series {
+        Series {
+            frames: self.frames[from..to].to_vec(),
+            axes: [
+                self.axes[0][from..to].to_vec(),
+                self.axes[1][from..to].to_vec(),
+            ],
+            times: self.times[from..to].to_vec(),
+            blur: self.blur[from..to].to_vec(),
+            variances: self
+                .variances
+                .as_ref()
+                .map(|v| [v[0][from..to].to_vec(), v[1][from..to].to_vec()]),
+            field: self.field,
+            detection: self.detection.clone(),
+            gates: [
+                self.gates[0][from..to].to_vec(),
+                self.gates[1][from..to].to_vec(),
+            ],
+        }
     }
 
     /// Number of localisations.
@@ -549,6 +613,31 @@ mod tests {
         let ungated = series_with_counts(&[1, 1, 1, 1]);
         let whole = within_gates(std::slice::from_ref(&ungated), 2.0 / 3.0);
         assert_eq!(whole, [ungated]);
+    }
+
+    #[test]
+    fn within_margin_keeps_the_runs_inside_the_inner_box_conditioned_on_it() {
+        // A field [0, 10] on both axes, a margin of 2: x = 1 and x = 9 are
+        // outside the box [2, 8], so the series falls into the runs
+        // before, between and after them.
+        let mut series = series_with_counts(&[1, 1, 1, 1, 1, 1, 1, 1, 1, 1]);
+        series.axes[0] = vec![3.0, 4.0, 1.0, 5.0, 6.0, 7.0, 9.0, 5.0, 5.5, 6.0];
+        series.axes[1] = vec![5.0; 10];
+        series.gates = [vec![4.0; 10], vec![4.0; 10]];
+        let pieces = within_margin(std::slice::from_ref(&series), 2.0);
+        let runs: Vec<&[usize]> = pieces.iter().map(|p| p.frames.as_slice()).collect();
+        assert_eq!(runs, [&[0, 1][..], &[3, 4, 5], &[7, 8, 9]]);
+        for piece in &pieces {
+            assert_eq!(piece.field, [(2.0, 8.0), (2.0, 8.0)]);
+            assert_eq!(piece.gates[0][0], f64::INFINITY);
+            assert_eq!(piece.gates[0][1], 4.0);
+        }
+        // No margin: whole; a margin leaving no box: nothing.
+        assert_eq!(
+            within_margin(std::slice::from_ref(&series), 0.0),
+            [series.clone()]
+        );
+        assert!(within_margin(std::slice::from_ref(&series), 5.0).is_empty());
     }
 
     #[test]
