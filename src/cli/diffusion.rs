@@ -184,6 +184,13 @@ pub fn run(
                 method.name()
             )?;
         }
+        if let Some(phi) = e.ensemble_dispersion.filter(|&phi| phi > 1.0) {
+            writeln!(
+                stderr,
+                "{}: the ensemble's runs scatter {phi:.2} times as much as the likelihood says; the ensemble's interval is widened by that (docs/tracking.md, \"The estimators\")",
+                method.name()
+            )?;
+        }
     }
     let points: usize = series.iter().filter(|s| s.len() > 1).map(Series::len).sum();
     for (method, e) in &estimates {

@@ -27,7 +27,7 @@ use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
 pub const LINK_VERSION: &str = "scanloc-link/3";
 
 /// Version of the scoring of tracks ([`evaluate`] and its JSON).
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/4";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/5";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
@@ -505,6 +505,12 @@ pub struct EstimatorScore {
     /// and in evaluations made before `scanloc-track-metric/4`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dispersion: Option<f64>,
+    /// ML: how much more the ensemble's runs scatter than the likelihood
+    /// says (the ensemble's interval is widened by it where it exceeds 1).
+    /// Absent for the other methods, and in evaluations made before
+    /// `scanloc-track-metric/5`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ensemble_dispersion: Option<f64>,
 }
 
 /// A tracking pipeline's scores on one recording (`score.json` of a
@@ -575,6 +581,7 @@ pub fn evaluate(
                 per_track: score_diffusion(&valid, true_d),
                 tracks: per_track,
                 dispersion: estimates.dispersion,
+                ensemble_dispersion: estimates.ensemble_dispersion,
             }
         })
         .collect();

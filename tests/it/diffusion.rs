@@ -803,7 +803,7 @@ fn simulate_recording_writes_frames_and_truth() {
 }
 
 #[test]
-fn the_diffusion_command_widens_track_intervals_when_tracks_scatter_more_than_one_d() {
+fn the_diffusion_command_widens_intervals_when_tracks_scatter_more_than_one_d() {
     // 200 walks of 15 frames in the middle of a 200 × 200 field, half with
     // steps of σ = 2 px and half of σ = 4 px per axis: the tracks' ML
     // estimates scatter far more than one D's likelihood allows (φ̂ ≈ 3
@@ -849,6 +849,18 @@ fn the_diffusion_command_widens_track_intervals_when_tracks_scatter_more_than_on
         .and_then(|v| v.parse().ok())
         .unwrap_or_else(|| panic!("{line}"));
     assert!(phi > 1.5, "{line}");
+    // The ensemble's interval is widened by its runs' (here the whole
+    // tracks') dispersion too.
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("ml: the ensemble's runs scatter"))
+        .unwrap_or_else(|| panic!("no ensemble dispersion line on stderr: {err}"));
+    let ensemble_phi: f64 = line
+        .split_whitespace()
+        .nth(5)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(ensemble_phi > 1.5, "{line}");
     assert!(out.lines().any(|l| l.starts_with("ensemble,")), "{out}");
 }
 

@@ -219,60 +219,103 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
 /// the D whose −2 log L is within `phi` × 3.84 of its minimum (the
 /// quasi-likelihood interval; [`dispersion`]).
 pub fn estimate_with_dispersion(series: &[&Series], phi: f64) -> Option<Estimate> {
-    let (mean_sq, mean_dt, steps) = scales(series)?;
-    let known = series.iter().all(|s| s.variances.is_some());
-    let problem = Problem {
-        series,
-        v_max: if known { 0.0 } else { mean_sq },
-        shortest_free_time: shortest_free_time(series),
-    };
-    // A log-spaced grid brackets the optimum; golden section refines it.
-    let guess = (mean_sq / (2.0 * mean_dt)).ln();
-    let (lowest, highest) = (guess - 14.0, guess + 4.0);
-    let grid: Vec<f64> = (0..=18)
-        .map(|k| lowest + (highest - lowest) * k as f64 / 18.0)
-        .collect();
-    let values: Vec<f64> = grid.iter().map(|&g| problem.profile(g.exp()).0).collect();
-    let best = (0..grid.len()).min_by(|&a, &b| values[a].total_cmp(&values[b]))?;
-    if !values[best].is_finite() {
-        return None;
+    Some(Fit::new(series)?.estimate(phi))
+}
+
+/// The minimum of −2 log L over `series`, from which an estimate with its
+/// interval at any dispersion is read.
+struct Fit<'a> {
+    problem: Problem<'a>,
+    /// log D at the minimum, and −2 log L there.
+    log_d: f64,
+    minimum: f64,
+    /// The ends of the log D search.
+    lowest: f64,
+    highest: f64,
+    known: bool,
+    steps: usize,
+}
+
+impl<'a> Fit<'a> {
+    /// `None` without a step of non-zero length, or where −2 log L is
+    /// nowhere finite.
+    fn new(series: &'a [&'a Series]) -> Option<Self> {
+        let (mean_sq, mean_dt, steps) = scales(series)?;
+        let known = series.iter().all(|s| s.variances.is_some());
+        let problem = Problem {
+            series,
+            v_max: if known { 0.0 } else { mean_sq },
+            shortest_free_time: shortest_free_time(series),
+        };
+        // A log-spaced grid brackets the optimum; golden section refines it.
+        let guess = (mean_sq / (2.0 * mean_dt)).ln();
+        let (lowest, highest) = (guess - 14.0, guess + 4.0);
+        let grid: Vec<f64> = (0..=18)
+            .map(|k| lowest + (highest - lowest) * k as f64 / 18.0)
+            .collect();
+        let values: Vec<f64> = grid.iter().map(|&g| problem.profile(g.exp()).0).collect();
+        let best = (0..grid.len()).min_by(|&a, &b| values[a].total_cmp(&values[b]))?;
+        if !values[best].is_finite() {
+            return None;
+        }
+        let (left, right) = (
+            grid[best.saturating_sub(1)],
+            grid[(best + 1).min(grid.len() - 1)],
+        );
+        let (log_d, minimum) = golden(|g| problem.profile(g.exp()).0, left, right);
+        let (log_d, minimum) = if values[best] < minimum {
+            (grid[best], values[best])
+        } else {
+            (log_d, minimum)
+        };
+        Some(Fit {
+            problem,
+            log_d,
+            minimum,
+            lowest,
+            highest,
+            known,
+            steps,
+        })
     }
-    let (left, right) = (
-        grid[best.saturating_sub(1)],
-        grid[(best + 1).min(grid.len() - 1)],
-    );
-    let (log_d, minimum) = golden(|g| problem.profile(g.exp()).0, left, right);
-    let (log_d, minimum) = if values[best] < minimum {
-        (grid[best], values[best])
-    } else {
-        (log_d, minimum)
-    };
-    let level = minimum + CHI2_95 * phi.max(1.0);
-    let low = if problem.profile(lowest.exp()).0 <= level {
-        0.0
-    } else {
-        problem.crossing(log_d, lowest, level).exp()
-    };
-    let high = if problem.profile(highest.exp()).0 <= level {
-        f64::INFINITY
-    } else {
-        problem.crossing(log_d, highest, level).exp()
-    };
-    let d = log_d.exp();
-    let localisation_variance = if known {
-        mean_given_variance(series)
-    } else {
-        problem.profile(d).1
-    };
-    Some(Estimate {
-        d,
-        standard_error: (high - low) / (2.0 * super::Z_95),
-        low,
-        high,
-        localisation_variance,
-        steps,
-        interval_valid: steps >= MIN_STEPS,
-    })
+
+    /// The estimate, its interval the D within `phi` × 3.84 of the minimum.
+    fn estimate(&self, phi: f64) -> Estimate {
+        let Fit {
+            problem,
+            log_d,
+            minimum,
+            lowest,
+            highest,
+            ..
+        } = self;
+        let level = minimum + CHI2_95 * phi.max(1.0);
+        let low = if problem.profile(lowest.exp()).0 <= level {
+            0.0
+        } else {
+            problem.crossing(*log_d, *lowest, level).exp()
+        };
+        let high = if problem.profile(highest.exp()).0 <= level {
+            f64::INFINITY
+        } else {
+            problem.crossing(*log_d, *highest, level).exp()
+        };
+        let d = log_d.exp();
+        let localisation_variance = if self.known {
+            mean_given_variance(problem.series)
+        } else {
+            problem.profile(d).1
+        };
+        Estimate {
+            d,
+            standard_error: (high - low) / (2.0 * super::Z_95),
+            low,
+            high,
+            localisation_variance,
+            steps: self.steps,
+            interval_valid: self.steps >= MIN_STEPS,
+        }
+    }
 }
 
 /// Fewest tracks [`dispersion`] is measured on.
@@ -295,14 +338,19 @@ pub fn dispersion(series: &[&Series]) -> Option<f64> {
     if series.len() < MIN_DISPERSION_TRACKS || series.iter().any(|s| s.variances.is_none()) {
         return None;
     }
-    let joint = estimate(&series)?.d;
+    dispersion_at(&series, estimate(&series)?.d)
+}
+
+/// [`dispersion`] of `series` (each of a step or more, variances given)
+/// at their joint estimate `joint`.
+fn dispersion_at(series: &[&Series], joint: f64) -> Option<f64> {
     // Central differences in D, a step far above the search's precision
     // and far below an estimate's standard error.
     let h = 1e-3 * joint;
     let (below, above) = (joint - h, joint + h);
     let track_cost = |s: &Series, d: f64| axis_cost(s, 0, d, 0.0) + axis_cost(s, 1, d, 0.0);
     let (mut sum_scores_sq, mut curvature) = (0.0, 0.0);
-    for s in &series {
+    for s in series {
         let (low, middle, high) = (
             track_cost(s, below),
             track_cost(s, joint),
@@ -316,6 +364,43 @@ pub fn dispersion(series: &[&Series]) -> Option<f64> {
     let n = series.len() as f64;
     let phi = n / (n - 1.0) * sum_scores_sq / curvature;
     (curvature > 0.0 && phi.is_finite()).then_some(phi)
+}
+
+/// The maximum-likelihood estimate over `series` jointly (as [`estimate`]),
+/// its interval widened by the series' own dispersion where it exceeds 1,
+/// and that dispersion (`None` where [`dispersion`] cannot measure it).
+///
+/// An ensemble's likelihood interval assumes every series follows one D
+/// and the model's errors; series that scatter more (wrong links, a
+/// selection the model leaves out) make the ensemble's D̂ scatter more
+/// between recordings too, by √φ̂ in standard error (the quasi-likelihood
+/// interval, as for each track). φ̂ is measured with each series' σ² told
+/// as the joint estimate's, so D is the one parameter.
+pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
+    let fit = Fit::new(series)?;
+    let joint = fit.estimate(1.0);
+    let told: Vec<Series> = series
+        .iter()
+        .map(|s| match s.variances {
+            Some(_) => (*s).clone(),
+            None => Series {
+                variances: Some([
+                    vec![joint.localisation_variance; s.len()],
+                    vec![joint.localisation_variance; s.len()],
+                ]),
+                ..(*s).clone()
+            },
+        })
+        .collect();
+    let told: Vec<&Series> = told.iter().filter(|s| s.len() > 1).collect();
+    // With σ² fixed at the joint σ̂², D̂ is still the maximum over D.
+    let phi = (told.len() >= MIN_DISPERSION_TRACKS)
+        .then(|| dispersion_at(&told, joint.d))
+        .flatten();
+    match phi {
+        Some(phi) if phi > 1.0 => Some((fit.estimate(phi), Some(phi))),
+        _ => Some((joint, phi)),
+    }
 }
 
 /// The least `(Δtᵢ − 2τᵢ − 2τᵢ₊₁)/2` over every step of `series`, s: with
@@ -541,5 +626,54 @@ mod tests {
         assert!((kept - 0.95).abs() < 0.04, "{kept}");
         // Too few tracks to measure it: none.
         assert_eq!(dispersion(&refs[..MIN_DISPERSION_TRACKS - 1]), None);
+    }
+
+    #[test]
+    fn the_ensemble_interval_widens_to_the_scatter_of_tracks_whose_d_varies() {
+        // Recordings of 60 tracks of 15 localisations, σ² not told. Each
+        // track's D drawn from {0.6, 1, 1.6} (as wrong links or an
+        // unmodelled selection spread a recording's tracks): the joint D̂
+        // scatters between recordings more than one D's likelihood says.
+        use rand::{RngExt, SeedableRng};
+        let v = 0.004;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(31);
+        let (mut estimates, mut standard_errors, mut phis) = (Vec::new(), Vec::new(), Vec::new());
+        for recording in 0..30u64 {
+            let tracks: Vec<Series> = (0..50u64)
+                .flat_map(|k| {
+                    let d = [0.6, 1.0, 1.6][rng.random_range(0..3)];
+                    model_series(d, v, 1, 15, 1000 * recording + k)
+                })
+                .collect();
+            let refs: Vec<&Series> = tracks.iter().collect();
+            let (widened, phi) = ensemble(&refs).unwrap();
+            estimates.push(widened.d);
+            standard_errors.push(widened.standard_error);
+            phis.push(phi.unwrap());
+        }
+        let n = estimates.len() as f64;
+        let mean = estimates.iter().sum::<f64>() / n;
+        let scatter =
+            (estimates.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let average = |x: &[f64]| x.iter().sum::<f64>() / x.len() as f64;
+        // The likelihood alone states about 0.6 of the scatter here;
+        // widened, the standard error matches it (the scatter of 30
+        // estimates is known to ≈ 13 %).
+        let (ratio, phi) = (average(&standard_errors) / scatter, average(&phis));
+        assert!(phi > 1.8, "φ̂ {phi}");
+        assert!(
+            (0.75..1.3).contains(&ratio),
+            "SE / scatter {ratio}, φ̂ {phi}"
+        );
+        // Tracks of one D keep the likelihood's interval: φ̂ near 1 (to
+        // 3 × √(2/300)), and the standard error widened by √φ̂ at most.
+        let model = model_series(1.0, v, 300, 15, 41);
+        let refs: Vec<&Series> = model.iter().collect();
+        let (kept, phi) = ensemble(&refs).unwrap();
+        let phi = phi.unwrap();
+        assert!((phi - 1.0).abs() < 0.25, "φ̂ = {phi}");
+        let plain = estimate(&refs).unwrap();
+        assert!(kept.standard_error <= plain.standard_error * phi.max(1.0).sqrt() * 1.02);
+        assert!(kept.standard_error >= plain.standard_error * 0.999);
     }
 }

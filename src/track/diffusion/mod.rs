@@ -155,6 +155,10 @@ pub struct RecordingEstimates {
     /// interval is widened by it where it exceeds 1); `None` for the
     /// other methods, or where it could not be measured.
     pub dispersion: Option<f64>,
+    /// ML: the dispersion of the runs the ensemble is estimated over
+    /// ([`ml::ensemble`]; its interval is widened by it where it exceeds
+    /// 1); `None` for the other methods, or where it could not be measured.
+    pub ensemble_dispersion: Option<f64>,
 }
 
 /// Prepares a recording's `series` for estimation: each is told where the
@@ -234,7 +238,7 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
 /// ends are away from the edges, where a localiser's chance of finding a
 /// particle may depend on how the particle moved (its path leaving the
 /// field), which the [`DetectionProfile`], a function of position, does
-/// not describe (docs/tracking.md, "The tracking experiment"). A margin
+/// not describe (docs/tracking.md, "Near the field's edges"). A margin
 /// of 0 keeps every series whole.
 pub fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
     if margin <= 0.0 {
@@ -287,7 +291,8 @@ pub fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
 /// σ² from D (on the CNN's tracks of `make tracking` at D = 1, a relative
 /// RMSE of 0.47 against 0.64 profiled per track; docs/tracking.md, "The
 /// estimators"), and widens each track's interval by the tracks'
-/// [`ml::dispersion`] where it exceeds 1.
+/// [`ml::dispersion`] where it exceeds 1; the ensemble's interval is
+/// widened by its own runs' dispersion ([`ml::ensemble`]).
 pub fn estimate_recording(
     series: &[Series],
     method: Method,
@@ -311,13 +316,19 @@ pub fn estimate_recording(
         method.estimate(&all)
     };
     let whole_ensemble = of(&whole);
-    let ensemble = match (method, ensemble_gate <= MAX_ENSEMBLE_GATE) {
-        (Method::Ml, true) => of(&within_margin(
-            &within_gates(series, ensemble_gate),
-            ensemble_margin,
-        )),
-        (Method::Ml, false) if ensemble_margin > 0.0 => of(&within_margin(&whole, ensemble_margin)),
-        _ => whole_ensemble,
+    let (ensemble, ensemble_dispersion) = match method {
+        Method::Ml => {
+            let runs = match ensemble_gate <= MAX_ENSEMBLE_GATE {
+                true => within_margin(&within_gates(series, ensemble_gate), ensemble_margin),
+                false => within_margin(&whole, ensemble_margin),
+            };
+            let runs: Vec<&Series> = runs.iter().filter(|s| s.len() > 1).collect();
+            match ml::ensemble(&runs) {
+                Some((estimate, phi)) => (Some(estimate), phi),
+                None => (None, None),
+            }
+        }
+        _ => (whole_ensemble, None),
     };
     let shared_variance = match (method, &whole_ensemble) {
         (Method::Ml, Some(e)) if e.localisation_variance.is_finite() => {
@@ -359,6 +370,7 @@ pub fn estimate_recording(
         ensemble,
         per_track,
         dispersion,
+        ensemble_dispersion,
     }
 }
 
