@@ -78,8 +78,8 @@ pub struct DiffusionArgs {
     /// inside the field's edges, each run of localisations inside it a
     /// series conditioned on the box: for a localiser whose chance of
     /// finding a particle near an edge depends on how it moved, at the
-    /// cost of the steps near the edges (docs/tracking.md, "The tracking
-    /// experiment"). 0: the whole field.
+    /// cost of the steps near the edges (docs/tracking.md, "Near the
+    /// field's edges": 2 for the recordings' CNN). 0: the whole field.
     #[arg(long, default_value_t = 0.0)]
     ensemble_margin_px: f64,
 }
