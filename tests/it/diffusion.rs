@@ -904,15 +904,8 @@ fn an_ensemble_margin_removes_a_selection_on_motion_near_the_edges() {
             points,
         });
     }
-    let geometry = ScanGeometry {
-        height: 24,
-        width: 25,
-        pixel_size_um: 0.07,
-        dwell_us: 2.0,
-        retrace_ms: 1.1,
-        dead_time_ms: 0.0,
-        sigma_xy_um: 0.21,
-    };
+    // The paper's scan (the recording's D and QDs play no part).
+    let geometry = geometry(&recording(24, 25, 1.0, 1, 1.0));
     let mut series = series_of(&tracks, &geometry, Exposure::WholeFrame);
     attach_detection_profile(&mut series, geometry.pixel_size_um);
     let ml = |margin_px: f64| {

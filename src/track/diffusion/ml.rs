@@ -334,15 +334,21 @@ pub const MIN_DISPERSION_TRACKS: usize = 20;
 /// [`MIN_DISPERSION_TRACKS`] series of a step or more, or where the
 /// information is not positive.
 pub fn dispersion(series: &[&Series]) -> Option<f64> {
-    let series: Vec<&Series> = series.iter().copied().filter(|s| s.len() > 1).collect();
-    if series.len() < MIN_DISPERSION_TRACKS || series.iter().any(|s| s.variances.is_none()) {
-        return None;
-    }
+    let series = measurable(series)?;
     dispersion_at(&series, estimate(&series)?.d)
 }
 
-/// [`dispersion`] of `series` (each of a step or more, variances given)
-/// at their joint estimate `joint`.
+/// The series of a step or more in `series`, if [`dispersion`] can be
+/// measured on them: at least [`MIN_DISPERSION_TRACKS`], each with its
+/// variances given.
+fn measurable<'a>(series: &[&'a Series]) -> Option<Vec<&'a Series>> {
+    let series: Vec<&Series> = series.iter().copied().filter(|s| s.len() > 1).collect();
+    (series.len() >= MIN_DISPERSION_TRACKS && series.iter().all(|s| s.variances.is_some()))
+        .then_some(series)
+}
+
+/// [`dispersion`] of `series` (from [`measurable`]) at their joint
+/// estimate `joint`.
 fn dispersion_at(series: &[&Series], joint: f64) -> Option<f64> {
     // Central differences in D, a step far above the search's precision
     // and far below an estimate's standard error.
@@ -381,22 +387,11 @@ pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
     let joint = fit.estimate(1.0);
     let told: Vec<Series> = series
         .iter()
-        .map(|s| match s.variances {
-            Some(_) => (*s).clone(),
-            None => Series {
-                variances: Some([
-                    vec![joint.localisation_variance; s.len()],
-                    vec![joint.localisation_variance; s.len()],
-                ]),
-                ..(*s).clone()
-            },
-        })
+        .map(|s| s.told(joint.localisation_variance))
         .collect();
-    let told: Vec<&Series> = told.iter().filter(|s| s.len() > 1).collect();
     // With σ² fixed at the joint σ̂², D̂ is still the maximum over D.
-    let phi = (told.len() >= MIN_DISPERSION_TRACKS)
-        .then(|| dispersion_at(&told, joint.d))
-        .flatten();
+    let phi =
+        measurable(&told.iter().collect::<Vec<_>>()).and_then(|told| dispersion_at(&told, joint.d));
     match phi {
         Some(phi) if phi > 1.0 => Some((fit.estimate(phi), Some(phi))),
         _ => Some((joint, phi)),
@@ -578,11 +573,8 @@ mod tests {
     }
 
     /// `series` with every localisation's variance told as `v`.
-    fn told(mut series: Vec<Series>, v: f64) -> Vec<Series> {
-        for s in &mut series {
-            s.variances = Some([vec![v; s.len()], vec![v; s.len()]]);
-        }
-        series
+    fn told(series: Vec<Series>, v: f64) -> Vec<Series> {
+        series.iter().map(|s| s.told(v)).collect()
     }
 
     /// The share of `series` whose own interval at dispersion `phi` holds

@@ -211,8 +211,6 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
                     *g *= fraction;
                 }
             }
-            p.gates[0][0] = f64::INFINITY;
-            p.gates[1][0] = f64::INFINITY;
             pieces.push(p);
         };
         for i in 1..s.len() {
@@ -268,8 +266,6 @@ pub fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
             }
             let mut piece = s.slice(start, i);
             piece.field = inner;
-            piece.gates[0][0] = f64::INFINITY;
-            piece.gates[1][0] = f64::INFINITY;
             pieces.push(piece);
         }
     }
@@ -315,20 +311,28 @@ pub fn estimate_recording(
         let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
         method.estimate(&all)
     };
-    let whole_ensemble = of(&whole);
-    let (ensemble, ensemble_dispersion) = match method {
+    let (ensemble, ensemble_dispersion, whole_ensemble) = match method {
         Method::Ml => {
             let runs = match ensemble_gate <= MAX_ENSEMBLE_GATE {
                 true => within_margin(&within_gates(series, ensemble_gate), ensemble_margin),
                 false => within_margin(&whole, ensemble_margin),
             };
             let runs: Vec<&Series> = runs.iter().filter(|s| s.len() > 1).collect();
-            match ml::ensemble(&runs) {
-                Some((estimate, phi)) => (Some(estimate), phi),
-                None => (None, None),
-            }
+            let (ensemble, phi) = ml::ensemble(&runs).unzip();
+            // Where no gate or margin cut them, the runs are the whole
+            // tracks and one fit serves both (its σ̂² does not depend on
+            // the interval's width).
+            let all: Vec<&Series> = whole.iter().filter(|s| s.len() > 1).collect();
+            let whole_ensemble = match runs == all {
+                true => ensemble,
+                false => of(&whole),
+            };
+            (ensemble, phi.flatten(), whole_ensemble)
         }
-        _ => (whole_ensemble, None),
+        _ => {
+            let whole_ensemble = of(&whole);
+            (whole_ensemble, None, whole_ensemble)
+        }
     };
     let shared_variance = match (method, &whole_ensemble) {
         (Method::Ml, Some(e)) if e.localisation_variance.is_finite() => {
@@ -341,12 +345,9 @@ pub fn estimate_recording(
     let tracks: Vec<Option<Series>> = whole
         .iter()
         .map(|s| {
-            (s.len() >= min_points.max(2)).then(|| match (shared_variance, &s.variances) {
-                (Some(v), None) => Series {
-                    variances: Some([vec![v; s.len()], vec![v; s.len()]]),
-                    ..s.clone()
-                },
-                _ => s.clone(),
+            (s.len() >= min_points.max(2)).then(|| match shared_variance {
+                Some(v) => s.told(v),
+                None => s.clone(),
             })
         })
         .collect();
@@ -421,8 +422,19 @@ impl Series {
         series
     }
 
-    /// Localisations `from..to` of this series, as a series of its own.
+    /// Localisations `from..to` of this series, as a series of its own:
+    /// its first localisation starts it afresh, so the link into it has no
+    /// gate.
     pub fn slice(&self, from: usize, to: usize) -> Series {
+        let mut gates = [
+            self.gates[0][from..to].to_vec(),
+            self.gates[1][from..to].to_vec(),
+        ];
+        for axis in &mut gates {
+            if let Some(first) = axis.first_mut() {
+                *first = f64::INFINITY;
+            }
+        }
         Series {
             frames: self.frames[from..to].to_vec(),
             axes: [
@@ -437,10 +449,20 @@ impl Series {
                 .map(|v| [v[0][from..to].to_vec(), v[1][from..to].to_vec()]),
             field: self.field,
             detection: self.detection.clone(),
-            gates: [
-                self.gates[0][from..to].to_vec(),
-                self.gates[1][from..to].to_vec(),
-            ],
+            gates,
+        }
+    }
+
+    /// This series with every localisation's variance told as `v` (µm²),
+    /// unless it has its own.
+    pub fn told(&self, v: f64) -> Series {
+        Series {
+            variances: Some(
+                self.variances
+                    .clone()
+                    .unwrap_or_else(|| [vec![v; self.len()], vec![v; self.len()]]),
+            ),
+            ..self.clone()
         }
     }
 
