@@ -34,8 +34,9 @@ enum ExposureArg {
 ///
 /// Time stamps and motion blur come from the scan (the flags below, in the
 /// units of the manifest's microscope section), or the table's `time`
-/// column (s) where present. Without sigma_x, sigma_y, ml estimates each
-/// track with the ensemble's localisation variance; with 1,000
+/// column (s) where present. The localisation variance is estimated with
+/// D (the table's sigma_x, sigma_y only with --given-sigma): ml estimates
+/// each track with the ensemble's; with 1,000
 /// localisations or more, ml conditions on where the localiser finds
 /// particles, read off their density near the field's edges
 /// (docs/tracking.md, "The field selects the steps"). Where the tracks'
@@ -82,6 +83,14 @@ pub struct DiffusionArgs {
     /// field's edges": 2 for the recordings' CNN). 0: the whole field.
     #[arg(long, default_value_t = 0.0)]
     ensemble_margin_px: f64,
+    /// Take the table's sigma_x, sigma_y as each localisation's known
+    /// standard error (ml then reads D through the blur), for a localiser
+    /// whose σ is calibrated against the truth. Without it σ² is estimated
+    /// with D, as `scanloc run` does: the CNN and other localisers that
+    /// report a posterior mean err with their estimate, not with their σ
+    /// (docs/tracking.md, "The estimators").
+    #[arg(long)]
+    given_sigma: bool,
 }
 
 fn row(
@@ -129,7 +138,14 @@ pub fn run(
             args.ensemble_gate
         )));
     }
-    let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    let mut tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    if !args.given_sigma && tracks.iter().any(|t| t.has_sigma()) {
+        tracks = tracks.iter().map(|t| t.without_sigma()).collect();
+        writeln!(
+            stderr,
+            "the table's sigma_x, sigma_y are not used: the localisation variance is estimated with D (--given-sigma uses them)"
+        )?;
+    }
     let mut series: Vec<Series> = tracks
         .iter()
         .map(|track| Series::new(track, &geometry, exposure))

@@ -62,6 +62,13 @@ pub struct LinkArgs {
     /// lap: pixel size, µm.
     #[arg(long)]
     pixel_size_um: Option<f64>,
+    /// Link only the rows whose `score` column (as `scanloc locate` writes
+    /// it) is at least this; the others are left out of the output. A
+    /// detector's candidates below its best-F1 threshold are mostly noise
+    /// that would start false links (the recordings' CNN: 0.3,
+    /// docs/tracking.md, "From a recording to D").
+    #[arg(long)]
+    min_score: Option<f64>,
     /// lap: the gate, the largest Mahalanobis distance of a link's
     /// displacement [default: 3]. Each link's gate is written as its extent
     /// along x and y (gate_x, gate_y, px), which `scanloc diffusion` uses.
@@ -85,7 +92,18 @@ enum Linker {
 pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let linker = Configured::from_args(&args)?;
     let mut pending = PendingFile::create(&args.out)?;
-    let table = localisation_table::read_localisation_table(&args.locs)?;
+    let mut table = localisation_table::read_localisation_table(&args.locs)?;
+    let left_out = match args.min_score {
+        Some(least) if least.is_finite() => table
+            .retain_scoring_at_least(least, &args.locs.display().to_string())
+            .map_err(|e| e.context("--min-score"))?,
+        Some(least) => {
+            return Err(input_error(format!(
+                "--min-score: must be a finite number, got {least}"
+            )));
+        }
+        None => 0,
+    };
     let detections = track::detections(&table);
     let linking = match &linker {
         Configured::Trackpy(params) => track::trackpy::link(&detections, params),
@@ -102,10 +120,13 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     )?;
     pending.commit()?;
     let trajectories = linking.particle.iter().max().map_or(0, |&m| m + 1);
+    let below = args.min_score.map_or(String::new(), |least| {
+        format!(" ({left_out} scoring below {least} left out)")
+    });
     writeln!(
         stdout,
-        "linked {} localisations into {trajectories} trajectories ({}; {} links, {} over gaps, \
-         {} contested subnetworks) -> {}",
+        "linked {} localisations{below} into {trajectories} trajectories ({}; {} links, {} over \
+         gaps, {} contested subnetworks) -> {}",
         detections.len(),
         linker.describe(),
         linking.stats.links,

@@ -67,6 +67,42 @@ impl LocalisationTable {
     }
 }
 
+impl LocalisationTable {
+    /// Keeps the rows whose `score` column is at least `least` (as
+    /// `scanloc locate` writes it) and returns how many were left out;
+    /// `name` names the table in errors: a table without a `score` column,
+    /// or a score that is not a number (NaN included), is refused.
+    pub fn retain_scoring_at_least(&mut self, least: f64, name: &str) -> anyhow::Result<usize> {
+        let Some(at) = self.header.iter().position(|h| h.trim() == "score") else {
+            crate::bail_input!("{name}: no score column");
+        };
+        let mut keep = Vec::with_capacity(self.records.len());
+        for (index, record) in self.records.iter().enumerate() {
+            let text = record.get(at).unwrap_or("").trim();
+            match text.parse::<f64>() {
+                Ok(score) if !score.is_nan() => keep.push(score >= least),
+                _ => crate::bail_input!(
+                    "{name}: row {}: score: expected a number, got {text:?}",
+                    index + 1
+                ),
+            }
+        }
+        keep_rows(&mut self.records, &keep);
+        keep_rows(&mut self.frames, &keep);
+        keep_rows(&mut self.xs, &keep);
+        keep_rows(&mut self.ys, &keep);
+        keep_rows(&mut self.sigmas, &keep);
+        Ok(keep.iter().filter(|&&k| !k).count())
+    }
+}
+
+/// Keeps the `values` whose entry in `keep` (one per value, in order) is
+/// true: `Vec::retain` visits each value once, in order.
+fn keep_rows<T>(values: &mut Vec<T>, keep: &[bool]) {
+    let mut keep = keep.iter();
+    values.retain(|_| keep.next().copied().unwrap_or(false));
+}
+
 /// Reads a localisation table from `path` (see the module's conventions);
 /// a problem is one [`InputError`](crate::error::InputError) naming the
 /// file, the row and the column.
@@ -203,6 +239,22 @@ pub fn write_track_table_to<W: Write>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rows_below_the_least_score_are_left_out_of_every_column() {
+        let text = "frame,x,y,sigma_x,sigma_y,score\n0,1,2,0.5,0.5,0.9\n0,3,4,1,1,0.1\n1,5,6,,,0.3\n2,7,8,2,2,-1e9\n";
+        let mut table = read_localisation_table_from(text.as_bytes(), "t").unwrap();
+        assert_eq!(table.retain_scoring_at_least(0.3, "t").unwrap(), 2);
+        assert_eq!(table.frames, [0, 1]);
+        assert_eq!(table.xs, [1.0, 5.0]);
+        assert_eq!(table.ys, [2.0, 6.0]);
+        assert_eq!(
+            table.sigmas,
+            [Some(LocalisationSigma { x: 0.5, y: 0.5 }), None]
+        );
+        let kept: Vec<&str> = table.records.iter().map(|r| r.get(5).unwrap()).collect();
+        assert_eq!(kept, ["0.9", "0.3"]);
+    }
 
     #[test]
     fn other_columns_pass_through_and_particle_is_appended() {

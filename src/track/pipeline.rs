@@ -207,26 +207,14 @@ fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
 }
 
 /// `tracks` prepared for the D estimators, with the exposure the scan
-/// implies, their localisations' own σ left out: σ² is profiled. A
-/// localiser that reports its posterior mean (the CNN) errs with its
-/// estimates rather than with the truth, which no given σ describes
-/// (docs/tracking.md, "The estimators"). Each series carries the
-/// detection profile of all the tracks' localisations.
+/// implies, their localisations' own σ left out ([`Track::without_sigma`]):
+/// σ² is profiled. Each series carries the detection profile of all the
+/// tracks' localisations.
 fn series_of(tracks: &[Track], geometry: &ScanGeometry) -> Vec<Series> {
     let exposure = geometry.auto_exposure();
     let mut series: Vec<Series> = tracks
         .iter()
-        .map(|track| {
-            let bare = Track {
-                particle: track.particle,
-                points: track
-                    .points
-                    .iter()
-                    .map(|p| TrackPoint { sigma: None, ..*p })
-                    .collect(),
-            };
-            Series::new(&bare, geometry, exposure)
-        })
+        .map(|track| Series::new(&track.without_sigma(), geometry, exposure))
         .collect();
     attach_detection_profile(&mut series, geometry.pixel_size_um);
     series

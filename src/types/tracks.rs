@@ -30,3 +30,26 @@ pub struct Track {
     pub particle: i64,
     pub points: Vec<TrackPoint>,
 }
+
+impl Track {
+    /// The track with its localisations' own σ left out, so that an
+    /// estimator estimates the localisation variance with D: a localiser
+    /// that reports its posterior mean (the CNN) errs with its estimate
+    /// rather than with the truth, which no σ it gives describes
+    /// (docs/tracking.md, "The estimators").
+    pub fn without_sigma(&self) -> Track {
+        Track {
+            particle: self.particle,
+            points: self
+                .points
+                .iter()
+                .map(|p| TrackPoint { sigma: None, ..*p })
+                .collect(),
+        }
+    }
+
+    /// Whether any localisation carries its own σ.
+    pub fn has_sigma(&self) -> bool {
+        self.points.iter().any(|p| p.sigma.is_some())
+    }
+}

@@ -944,3 +944,142 @@ fn an_ensemble_margin_removes_a_selection_on_motion_near_the_edges() {
         "{err}"
     );
 }
+
+/// The ml ensemble D of `scanloc diffusion`'s output with `args`.
+fn diffusion_ml(tracks: &std::path::Path, extra: &[&str]) -> f64 {
+    let mut args = vec!["diffusion", "--tracks", tracks.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let (code, out, err) = crate::common::cli_in_process(&args);
+    assert_eq!(code, 0, "{err}");
+    ensemble_ml_row(&out)
+}
+
+#[test]
+fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
+    // docs/tracking.md, "From a recording to D": `link --min-score`, a
+    // first `diffusion`, `link --diffusion` with its D, and `diffusion
+    // --ensemble-margin-px` give what `scanloc run` gives for the same
+    // localisations (a lap linker with relink, σ² estimated rather than
+    // taken from the sigma columns), to rounding. Localisations: the true
+    // positions of the in-focus QDs with noise, each with a σ of its own
+    // and a score, plus noise candidates scoring below the threshold.
+    use scanloc::track::pipeline::{LapSettings, LinkerSpec, TrackScoring, evaluate};
+    use scanloc::types::{LocalisationSigma, Prediction};
+    // About two QDs within ±2 µm of focus (the helper's volume is deep).
+    let params = RecordingParams {
+        half_depth_um: 2.0,
+        density_per_um3: 2.0 / (2.35 * 2.28 * 4.0),
+        ..recording(24, 25, 1.0, 3000, 2.0)
+    };
+    let truth = simulate_recording(&params, 41, false).unwrap().truth;
+    let geometry = geometry(&params);
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let mut predictions = Vec::new();
+    for row in truth
+        .iter()
+        .filter(|r| r.z_mean.abs() <= 1.36 && r.on_fraction >= 0.5)
+    {
+        let sigma = 0.3 + 0.6 * rng.random::<f64>();
+        let nx: f64 = StandardNormal.sample(&mut rng);
+        let ny: f64 = StandardNormal.sample(&mut rng);
+        predictions.push(Prediction {
+            sigma: Some(LocalisationSigma { x: sigma, y: sigma }),
+            ..Prediction::new(
+                row.frame,
+                row.x + sigma * nx,
+                row.y + sigma * ny,
+                0.3 + 0.7 * rng.random::<f64>(),
+            )
+        });
+        if rng.random::<f64>() < 0.5 {
+            predictions.push(Prediction {
+                sigma: Some(LocalisationSigma { x: 2.0, y: 2.0 }),
+                ..Prediction::new(
+                    row.frame,
+                    rng.random::<f64>() * 25.0 - 0.5,
+                    rng.random::<f64>() * 24.0 - 0.5,
+                    0.29 * rng.random::<f64>(),
+                )
+            });
+        }
+    }
+    let linker = LinkerSpec::Lap(LapSettings {
+        search_range: Some(14.0),
+        diffusion_um2_s: None,
+        max_gap: 2,
+        gate_sigmas: None,
+        relink: true,
+    });
+    let scoring = TrackScoring {
+        ensemble_margin_px: 2.0,
+        ..TrackScoring::default()
+    };
+    let tracks =
+        scanloc::track::pipeline::link_predictions(&predictions, Some(0.3), &linker, &geometry)
+            .unwrap();
+    let experiment = evaluate(&truth, &tracks, &geometry, &scoring, 1.0).unwrap();
+    let experiment = experiment
+        .estimator(Method::Ml)
+        .unwrap()
+        .ensemble
+        .unwrap()
+        .d;
+
+    let dir = tempfile::tempdir().unwrap();
+    let locs = dir.path().join("locs.csv");
+    let mut text = String::from("frame,x,y,sigma_x,sigma_y,score\n");
+    for p in &predictions {
+        let s = p.sigma.unwrap();
+        text.push_str(&format!(
+            "{},{},{},{},{},{}\n",
+            p.frame, p.x, p.y, s.x, s.y, p.score
+        ));
+    }
+    std::fs::write(&locs, text).unwrap();
+    let link = |out: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "link",
+            "--locs",
+            locs.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--linker",
+            "lap",
+            "--min-score",
+            "0.3",
+        ];
+        args.extend_from_slice(extra);
+        let (code, out, err) = crate::common::cli_in_process(&args);
+        assert_eq!(code, 0, "{err}");
+        assert!(out.contains("scoring below 0.3 left out"), "{out}");
+    };
+    let first = dir.path().join("first.csv");
+    link(&first, &["--search-range", "14"]);
+    let first_d = diffusion_ml(&first, &[]).to_string();
+    let frame_time_ms = (geometry.frame_period_s() * 1e3).to_string();
+    let second = dir.path().join("tracks.csv");
+    link(
+        &second,
+        &[
+            "--diffusion",
+            &first_d,
+            "--frame-time-ms",
+            &frame_time_ms,
+            "--pixel-size-um",
+            "0.07",
+        ],
+    );
+    let command_line = diffusion_ml(&second, &["--ensemble-margin-px", "2"]);
+    eprintln!("ml ensemble: scanloc run {experiment}, the command line {command_line}");
+    assert!(
+        (command_line / experiment - 1.0).abs() < 1e-9,
+        "run {experiment}, command line {command_line}"
+    );
+    // The localisations' own σ are used only when asked for, and then
+    // change D: the default is not by chance the experiment's.
+    let given = diffusion_ml(&second, &["--ensemble-margin-px", "2", "--given-sigma"]);
+    assert!(
+        (given / experiment - 1.0).abs() > 1e-4,
+        "given σ {given}, run {experiment}"
+    );
+}

@@ -259,19 +259,27 @@ fn the_lap_command_writes_each_links_gate_and_diffusion_uses_it() {
 /// Runs `scanloc link` on a table with `text`, expecting a one-line refusal
 /// (exit 2) that names the file and contains `expected`, and no output.
 fn refused(text: &[u8], expected: &str) {
+    refused_with(text, &[], expected);
+}
+
+/// [`refused`] with `extra` flags.
+fn refused_with(text: &[u8], extra: &[&str], expected: &str) {
     let dir = tempfile::tempdir().unwrap();
     let locs = dir.path().join("locs.csv");
     let out = dir.path().join("tracks.csv");
     std::fs::write(&locs, text).unwrap();
-    let run = scanloc(&[
+    let (locs_arg, out_arg) = (locs.to_string_lossy(), out.to_string_lossy());
+    let mut args = vec![
         "link",
         "--locs",
-        &locs.to_string_lossy(),
+        &locs_arg,
         "--out",
-        &out.to_string_lossy(),
+        &out_arg,
         "--search-range",
         "3",
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    let run = scanloc(&args);
     let message = stderr(&run);
     assert_eq!(run.status.code(), Some(2), "{message}");
     assert_eq!(message.lines().count(), 1, "{message}");
@@ -298,6 +306,17 @@ fn bad_input_is_one_line_and_exit_2() {
         "row 1: frame: expected a whole number",
     );
     refused(b"frame,x,y\n0,1,1\n1,2\n", "row 2");
+    // --min-score needs a score column of numbers.
+    refused_with(
+        b"frame,x,y\n0,1,1\n",
+        &["--min-score", "0.3"],
+        "no score column",
+    );
+    refused_with(
+        b"frame,x,y,score\n0,1,1,0.5\n1,1,1,NaN\n",
+        &["--min-score", "0.3"],
+        "row 2: score: expected a number",
+    );
     // Not a table at all: the bytes of a .npy file.
     refused(
         b"\x93NUMPY\x01\x00v\x00{'descr': '<u2'}\n\xff\xfe\x00",
