@@ -91,17 +91,17 @@ enum Linker {
 
 pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let linker = Configured::from_args(&args)?;
+    if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
+        return Err(input_error(format!(
+            "--min-score: must be a finite number, got {least}"
+        )));
+    }
     let mut pending = PendingFile::create(&args.out)?;
     let mut table = localisation_table::read_localisation_table(&args.locs)?;
     let left_out = match args.min_score {
-        Some(least) if least.is_finite() => table
+        Some(least) => table
             .retain_scoring_at_least(least, &args.locs.display().to_string())
             .map_err(|e| e.context("--min-score"))?,
-        Some(least) => {
-            return Err(input_error(format!(
-                "--min-score: must be a finite number, got {least}"
-            )));
-        }
         None => 0,
     };
     let detections = track::detections(&table);

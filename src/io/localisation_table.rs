@@ -52,7 +52,7 @@ impl LocalisationTable {
     /// The whole numbers ≥ 0 of column `column` (e.g. `particle` of a track
     /// table); `name` names the table in errors.
     pub fn whole_numbers(&self, column: &str, name: &str) -> anyhow::Result<Vec<usize>> {
-        let Some(at) = self.header.iter().position(|h| h.trim() == column) else {
+        let Some(at) = self.column(column) else {
             crate::bail_input!("{name}: missing column {column}");
         };
         self.records
@@ -65,15 +65,13 @@ impl LocalisationTable {
             })
             .collect()
     }
-}
 
-impl LocalisationTable {
     /// Keeps the rows whose `score` column is at least `least` (as
     /// `scanloc locate` writes it) and returns how many were left out;
     /// `name` names the table in errors: a table without a `score` column,
     /// or a score that is not a number (NaN included), is refused.
     pub fn retain_scoring_at_least(&mut self, least: f64, name: &str) -> anyhow::Result<usize> {
-        let Some(at) = self.header.iter().position(|h| h.trim() == "score") else {
+        let Some(at) = self.column("score") else {
             crate::bail_input!("{name}: no score column");
         };
         let mut keep = Vec::with_capacity(self.records.len());
@@ -93,6 +91,11 @@ impl LocalisationTable {
         keep_rows(&mut self.ys, &keep);
         keep_rows(&mut self.sigmas, &keep);
         Ok(keep.iter().filter(|&&k| !k).count())
+    }
+
+    /// The index of the header's column `name` (surrounding spaces ignored).
+    fn column(&self, name: &str) -> Option<usize> {
+        self.header.iter().position(|h| h.trim() == name)
     }
 }
 
