@@ -8,7 +8,7 @@ use clap::Args;
 use scanloc::error::input_error;
 use scanloc::io::{self, PendingFile};
 use scanloc::sim::SimParams;
-use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording};
+use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording_with_progress};
 
 /// Simulate a continuous recording: frames scanned back to back on one
 /// clock while QDs diffuse in 3D through a periodic volume larger than the
@@ -111,7 +111,9 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let mut frames_out = PendingFile::create(&args.out)?;
     let mut truth_out = args.truth.as_deref().map(PendingFile::create).transpose()?;
 
-    let recording = simulate_recording(&params, args.seed, true)?;
+    let progress = scanloc::progress::bar(params.frames as u64, "simulating");
+    let recording = simulate_recording_with_progress(&params, args.seed, true, &progress)?;
+    progress.finish_and_clear();
 
     io::fill_frames(&mut frames_out, &recording.frames)?;
     if let Some(pending) = truth_out.as_mut() {

@@ -154,9 +154,14 @@ fn recording_spec(plan: &Plan, index: usize) -> anyhow::Result<&RecordingSpec> {
 }
 
 fn simulate_recording(recording: &RecordingSpec) -> anyhow::Result<Artefact> {
-    let progress = crate::progress::bar(0, &recording.name);
-    let made = crate::sim::recording::simulate_recording(&recording.params, recording.seed, true)
-        .with_context(|| format!("simulating recording {}", recording.name))?;
+    let progress = crate::progress::bar(recording.params.frames as u64, &recording.name);
+    let made = crate::sim::recording::simulate_recording_with_progress(
+        &recording.params,
+        recording.seed,
+        true,
+        &progress,
+    )
+    .with_context(|| format!("simulating recording {}", recording.name))?;
     progress.finish_and_clear();
     Ok(Artefact::Recording(Arc::new(
         super::artefacts::RecordingData {

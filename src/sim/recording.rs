@@ -31,6 +31,7 @@
 //! stream `f + 1`. The walk is one clock, so it runs on one thread; the
 //! result does not depend on the thread count.
 
+use indicatif::ProgressBar;
 use rand::{Rng, RngExt};
 use rand_chacha::ChaCha8Rng;
 
@@ -455,6 +456,18 @@ pub fn simulate_recording(
     seed: u64,
     render: bool,
 ) -> anyhow::Result<SimulatedRecording> {
+    simulate_recording_with_progress(params, seed, render, &ProgressBar::hidden())
+}
+
+/// [`simulate_recording`], advancing `progress` by one per frame scanned
+/// (its length set to the recording's frames): a recording of 80,000
+/// frames takes minutes, one walk that cannot be split across threads.
+pub fn simulate_recording_with_progress(
+    params: &RecordingParams,
+    seed: u64,
+    render: bool,
+    progress: &ProgressBar,
+) -> anyhow::Result<SimulatedRecording> {
     params
         .validate()
         .map_err(|e| input_error(format!("invalid recording parameter: {e}")))?;
@@ -470,7 +483,9 @@ pub fn simulate_recording(
         micro.detector_noise,
         micro.background.fixed().unwrap_or(0.0),
     );
+    progress.set_length(params.frames as u64);
     for frame in 0..params.frames {
+        progress.inc(1);
         if !render {
             walk.scan_frame(frame, None, &mut truth);
             continue;

@@ -1083,3 +1083,24 @@ fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
         "given σ {given}, run {experiment}"
     );
 }
+
+#[test]
+fn a_recording_reports_every_frame_it_scans_and_is_the_same_with_progress() {
+    // `scanloc run` and `simulate-recording` show the scan's progress (an
+    // 80,000-frame recording takes minutes on one thread); the bar must
+    // reach the recording's length and not change what is drawn.
+    let params = recording(24, 25, 1.0, 40, 8.0);
+    let progress = scanloc::progress::hidden();
+    let shown =
+        scanloc::sim::recording::simulate_recording_with_progress(&params, 11, true, &progress)
+            .unwrap();
+    assert_eq!(progress.length(), Some(40));
+    assert_eq!(progress.position(), 40);
+    let quiet = simulate_recording(&params, 11, true).unwrap();
+    assert_eq!(shown.frames, quiet.frames);
+    assert_eq!(shown.truth, quiet.truth);
+    assert!(
+        !shown.truth.is_empty(),
+        "8 QDs on average left no truth in 40 frames"
+    );
+}
