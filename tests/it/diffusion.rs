@@ -1086,8 +1086,8 @@ fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
 
 #[test]
 fn a_recording_reports_every_frame_it_scans_and_is_the_same_with_progress() {
-    // `scanloc run` and `simulate-recording` show the scan's progress (an
-    // 80,000-frame recording takes minutes on one thread); the bar must
+    // `scanloc run` and `simulate-recording` show the scan's progress (a
+    // large field's recording takes minutes on one thread); the bar must
     // reach the recording's length and not change what is drawn.
     let params = recording(24, 25, 1.0, 40, 8.0);
     let progress = scanloc::progress::hidden();
