@@ -99,13 +99,20 @@ pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<
         if at == frames.len() {
             break;
         }
-        // Every frame counts for memory; but once no source is left, the
-        // frames without detections change nothing: go to the next one
-        // with detections (frame numbers may be far apart).
-        frame = if state.has_sources() {
+        // Every frame counts for memory, but a run of frames without
+        // detections only loses the previous frame's detections (at its
+        // first frame) and lets remembered ones expire: step the first
+        // empty frame, then go straight to the next frame with detections
+        // and expire what that run of frames would have (frame numbers may
+        // be far apart, and `memory` may exceed them).
+        let next = frames[at];
+        frame = if next == frame + 1 {
+            next
+        } else if state.has_previous() {
             frame + 1
         } else {
-            frames[at]
+            state.expire_before(next);
+            next
         };
     }
     Ok(state.finish(&order))
@@ -228,9 +235,16 @@ impl<'a> State<'a> {
         self.next_label += 1;
     }
 
-    /// Whether the next frame has sources to link to.
-    fn has_sources(&self) -> bool {
-        !(self.previous.is_empty() && self.remembered.is_empty())
+    /// Whether the last frame stepped had detections (they become the
+    /// next frame's sources, or are lost there).
+    fn has_previous(&self) -> bool {
+        !self.previous.is_empty()
+    }
+
+    /// Forgets the remembered detections that the frames before `frame`
+    /// (stepped or skipped) let expire.
+    fn expire_before(&mut self, frame: usize) {
+        self.remember(frame - 1, &[]);
     }
 
     /// The first frame: every detection starts a trajectory.
@@ -386,7 +400,9 @@ impl<'a> State<'a> {
         let memory = self.memory;
         let in_memory = &mut self.in_memory;
         self.remembered.retain(|&(d, lost_at)| {
-            let keep = in_memory[d] && lost_at + memory > frame;
+            // `lost_at ≤ frame`; written as a difference so that a huge
+            // `memory` cannot overflow.
+            let keep = in_memory[d] && frame - lost_at < memory;
             in_memory[d] = keep;
             keep
         });
@@ -681,6 +697,28 @@ mod tests {
         assert_eq!(linked.stats.gap_links, 1);
         let linked = link(&detections, &params(1.0, 1)).unwrap();
         assert_eq!(linked.particle, [0, 1, 2]);
+    }
+
+    #[test]
+    fn a_memory_beyond_every_frame_number_remembers_for_ever() {
+        let detections = [
+            Detection::new(0, 5.0, 5.0),
+            Detection::new(9_000, 5.5, 5.0),
+            Detection::new(9_001, 9.0, 9.0),
+            Detection::new(9_500, 5.0, 5.5),
+        ];
+        // `lost_at + memory` would wrap to a small number: the source
+        // would expire at once and nothing over the gaps be linked.
+        for memory in [9_000, usize::MAX] {
+            let linked = link(&detections, &params(1.0, memory)).unwrap();
+            assert_eq!(linked.particle, [0, 0, 1, 0], "memory {memory}");
+            assert_eq!(linked.stats.gap_links, 2);
+        }
+        // The particle at 9,000 vanishes for frames 9,001 to 9,499.
+        let linked = link(&detections, &params(1.0, 499)).unwrap();
+        assert_eq!(linked.particle, [0, 1, 2, 1]);
+        let linked = link(&detections, &params(1.0, 498)).unwrap();
+        assert_eq!(linked.particle, [0, 1, 2, 3]);
     }
 
     #[test]
