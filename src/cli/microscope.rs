@@ -355,7 +355,8 @@ pub struct ScanGeometryArgs {
     /// Line retrace time in ms.
     #[arg(long, default_value_t = 1.1)]
     pub retrace_ms: f64,
-    /// Dead time between the flyback after a frame and the next frame, ms.
+    /// Dead time between the flyback after a frame and the next frame, ms
+    /// (at most 60,000).
     #[arg(long, default_value_t = 0.0)]
     pub dead_time_ms: f64,
     /// Lateral PSF standard deviation in µm.

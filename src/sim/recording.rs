@@ -48,6 +48,9 @@ pub const RECORDING_VERSION: &str = "scanloc-recording/1";
 /// Most QDs a recording's volume may hold (the per-frame simulator's limit).
 pub const MAX_RECORDING_QDS: u64 = super::params::MAX_EMITTERS as u64;
 
+/// The longest dead time between frames, ms.
+pub const MAX_DEAD_TIME_MS: f64 = 60_000.0;
+
 /// Two-state on/off blinking with exponential dwell times.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Blinking {
@@ -111,6 +114,17 @@ impl RecordingParams {
         non_negative("lateral_margin_um", self.lateral_margin_um)?;
         positive("half_depth_um", self.half_depth_um)?;
         non_negative("dead_time_ms", self.dead_time_ms)?;
+        if self.dead_time_ms > MAX_DEAD_TIME_MS {
+            // Beyond it the time stamps of a long recording (f64 seconds)
+            // would no longer resolve a pixel's dwell.
+            return Err(FieldError::new(
+                "dead_time_ms",
+                format!(
+                    "must be at most {MAX_DEAD_TIME_MS} ms (a minute between frames), got {}",
+                    self.dead_time_ms
+                ),
+            ));
+        }
         if let Some(blinking) = self.blinking {
             positive("blink_on_ms", blinking.on_ms)?;
             positive("blink_off_ms", blinking.off_ms)?;
@@ -220,6 +234,57 @@ struct FrameSums {
     weighted_t: f64,
 }
 
+/// How many mean on–off cycles past its last switch a QD's blinking clock
+/// may be before its state is drawn from the telegraph process's
+/// transition law rather than switch by switch ([`Blinking::run`]). At this
+/// distance the law is the stationary odds to within `e^-128`; no
+/// recording with blinking periods longer than a frame's dwell and retrace
+/// ever gets there.
+const SWITCH_BY_SWITCH_CYCLES: f64 = 32.0;
+
+impl Blinking {
+    /// The mean duration of the current state, s.
+    fn mean_s(&self, on: bool) -> f64 {
+        if on { self.on_ms } else { self.off_ms }.max(0.0) * 1e-3
+    }
+
+    /// Runs a QD's blinking clock for `dt_s`: `on` is its state and
+    /// `state_left_s` the time left in it, both updated.
+    ///
+    /// Switch by switch, one exponential per period; but once the clock is
+    /// more than [`SWITCH_BY_SWITCH_CYCLES`] cycles past the switch it has
+    /// reached (a long dead time, or periods far shorter than a sample),
+    /// the state at the end is drawn from the transition law instead. That
+    /// is exact, not an approximation: the process is Markov, so the state
+    /// after a time `t` from a switch into state `s` is on with probability
+    /// `π_on + (1[s = on] − π_on)·e^{−t(1/τ_on + 1/τ_off)}`, and the time
+    /// left in the state drawn is a fresh exponential. It keeps the cost of
+    /// any step bounded, where one draw per switch would not end for
+    /// periods of 1e-300 ms.
+    fn run<R: Rng + ?Sized>(&self, rng: &mut R, on: &mut bool, state_left_s: &mut f64, dt_s: f64) {
+        *state_left_s -= dt_s;
+        while *state_left_s <= 0.0 {
+            *on = !*on;
+            let since_switch_s = -*state_left_s;
+            let (on_s, off_s) = (self.mean_s(true), self.mean_s(false));
+            if since_switch_s > SWITCH_BY_SWITCH_CYCLES * (on_s + off_s) {
+                let stationary_on = on_s / (on_s + off_s);
+                let start = if *on { 1.0 } else { 0.0 };
+                let relax = (-since_switch_s * (1.0 / on_s + 1.0 / off_s)).exp();
+                *on = rng.random::<f64>() < stationary_on + (start - stationary_on) * relax;
+                *state_left_s = exponential(rng, self.mean_s(*on));
+                if *state_left_s <= 0.0 {
+                    // A zero draw (periods below f64's resolution): the
+                    // state holds until the next step.
+                    *state_left_s = f64::MIN_POSITIVE;
+                }
+                return;
+            }
+            *state_left_s += exponential(rng, self.mean_s(*on));
+        }
+    }
+}
+
 /// An exponential duration of mean `mean_s`.
 fn exponential<R: Rng + ?Sized>(rng: &mut R, mean_s: f64) -> f64 {
     -mean_s * (1.0 - rng.random::<f64>()).ln()
@@ -312,12 +377,7 @@ impl<'a> Walk<'a> {
                 }
             }
             if let Some(b) = blinking {
-                qd.state_left_s -= dt_s;
-                while qd.state_left_s <= 0.0 {
-                    qd.on = !qd.on;
-                    let mean = if qd.on { b.on_ms } else { b.off_ms } * 1e-3;
-                    qd.state_left_s += exponential(&mut self.rng, mean);
-                }
+                b.run(&mut self.rng, &mut qd.on, &mut qd.state_left_s, dt_s);
             }
         }
     }
@@ -511,4 +571,68 @@ pub fn simulate_recording_with_progress(
         FrameStack::default()
     };
     Ok(SimulatedRecording { frames, truth, qds })
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::SeedableRng;
+
+    use super::*;
+
+    /// The share of `steps` steps of `dt_s` after which the clock is on,
+    /// from the stationary state.
+    fn on_share(blinking: Blinking, dt_s: f64, steps: usize) -> f64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let (mut on, mut left) = (true, exponential(&mut rng, blinking.mean_s(true)));
+        let mut count = 0usize;
+        for _ in 0..steps {
+            blinking.run(&mut rng, &mut on, &mut left, dt_s);
+            assert!(left > 0.0);
+            count += usize::from(on);
+        }
+        count as f64 / steps as f64
+    }
+
+    #[test]
+    fn blinking_far_faster_than_a_step_keeps_its_odds_at_a_bounded_cost() {
+        // Switch by switch these steps would take 1e300 draws each.
+        let fast = Blinking {
+            on_ms: 1e-300,
+            off_ms: 2e-300,
+        };
+        let share = on_share(fast, 2e-6, 20_000);
+        // Independent draws of the stationary state: SE 0.0033; 6 SE.
+        assert!((share - 1.0 / 3.0).abs() < 0.02, "{share}");
+    }
+
+    #[test]
+    fn both_ways_of_running_the_clock_give_the_telegraph_odds() {
+        let b = Blinking {
+            on_ms: 1.0,
+            off_ms: 3.0,
+        };
+        // Switch by switch (steps of one on period) and by the transition
+        // law (steps of 40 cycles); both must give π_on = 1/4. 40,000
+        // steps, correlated over ≈ 1.5 of the first kind: SE ≤ 0.003,
+        // tolerance 5 SE.
+        for (dt_s, tolerance) in [(1e-3, 0.015), (0.16, 0.015)] {
+            let share = on_share(b, dt_s, 40_000);
+            assert!((share - 0.25).abs() < tolerance, "dt {dt_s}: {share}");
+        }
+    }
+
+    #[test]
+    fn a_dead_time_beyond_a_minute_is_refused() {
+        let params = RecordingParams {
+            microscope: SimParams::default(),
+            frames: 2,
+            density_per_um3: 1.0,
+            lateral_margin_um: 1.0,
+            half_depth_um: 2.0,
+            blinking: None,
+            dead_time_ms: MAX_DEAD_TIME_MS * 2.0,
+        };
+        let error = params.validate().unwrap_err();
+        assert!(error.to_string().contains("dead_time_ms"), "{error}");
+    }
 }
