@@ -21,6 +21,7 @@ use std::path::PathBuf;
 use clap::parser::ValueSource;
 use clap::{ArgMatches, Args, Command, FromArgMatches};
 use scanloc::error::input_error;
+use scanloc::sim::recording::MAX_DEAD_TIME_MS;
 use scanloc::sim::{DetectorNoise, Distribution, EmitterCount, SimParams};
 use scanloc::track::diffusion::ScanGeometry;
 
@@ -367,17 +368,20 @@ pub struct ScanGeometryArgs {
 impl ScanGeometryArgs {
     /// The geometry, each flag checked (exit 2 naming the flag).
     pub fn geometry(&self) -> anyhow::Result<ScanGeometry> {
+        // Upper ends far beyond any microscope, so that positions, times
+        // and their squares stay well inside f64 (1e300 px would make every
+        // estimate NaN).
         let checks = [
-            ("--pixel-size-um", self.pixel_size_um, false),
-            ("--dwell-us", self.dwell_us, false),
-            ("--retrace-ms", self.retrace_ms, true),
-            ("--dead-time-ms", self.dead_time_ms, true),
-            ("--sigma-xy-um", self.sigma_xy_um, false),
+            ("--pixel-size-um", self.pixel_size_um, false, 1e3),
+            ("--dwell-us", self.dwell_us, false, 1e6),
+            ("--retrace-ms", self.retrace_ms, true, 1e6),
+            ("--dead-time-ms", self.dead_time_ms, true, MAX_DEAD_TIME_MS),
+            ("--sigma-xy-um", self.sigma_xy_um, false, 1e3),
         ];
-        for (name, value, zero_ok) in checks {
-            if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) {
+        for (name, value, zero_ok, max) in checks {
+            if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) || value > max {
                 return Err(input_error(format!(
-                    "{name}: must be {}, got {value}",
+                    "{name}: must be {} and at most {max}, got {value}",
                     if zero_ok { "≥ 0" } else { "> 0" }
                 )));
             }

@@ -757,6 +757,26 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
         assert_eq!(err.trim().lines().count(), 1, "{name}: {err}");
         assert!(err.contains(needle) && err.contains(name), "{name}: {err}");
     }
+    // Scan flags beyond any microscope (their squares overflowed into NaN
+    // estimates with exit 0).
+    for (flag, value) in [
+        ("--pixel-size-um", "1e300"),
+        ("--dwell-us", "1e300"),
+        ("--dead-time-ms", "1e9"),
+    ] {
+        let (code, out, err) = crate::common::cli_in_process(&[
+            "diffusion",
+            "--tracks",
+            good.to_str().unwrap(),
+            flag,
+            value,
+        ]);
+        assert_eq!(code, 2, "{flag}: {out}");
+        assert!(
+            err.trim().lines().count() == 1 && err.contains(flag),
+            "{err}"
+        );
+    }
 }
 
 #[test]
