@@ -126,12 +126,13 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     writeln!(
         stdout,
         "linked {} localisations{below} into {trajectories} trajectories ({}; {} links, {} over \
-         gaps, {} contested subnetworks) -> {}",
+         gaps, {} contested subnetworks, largest {}) -> {}",
         detections.len(),
         linker.describe(),
         linking.stats.links,
         linking.stats.gap_links,
         linking.stats.contested,
+        linking.stats.largest,
         args.out.display()
     )?;
     Ok(ExitCode::SUCCESS)

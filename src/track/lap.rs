@@ -37,8 +37,8 @@
 //! by [`assign`](super::assign). Trajectory labels are given in order of
 //! first appearance (by frame, then input order).
 
-use rstar::RTree;
 use rstar::primitives::GeomWithData;
+use rstar::{AABB, RTree};
 
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
 use crate::error::input_error;
@@ -50,6 +50,10 @@ pub const GATE_SIGMAS: f64 = 3.0;
 /// Birth and death cost as a multiple of the largest candidate link cost
 /// (Jaqaman et al. 2008).
 pub const ALTERNATIVE_COST_FACTOR: f64 = 1.05;
+
+/// The most candidate links one LAP gathers (1.2 GB of them): a recording
+/// of docs/tracking.md has about three per localisation.
+pub const MAX_CANDIDATE_LINKS: usize = 50_000_000;
 
 /// The LAP linker's parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -135,7 +139,7 @@ pub fn link(detections: &[Detection], params: &LapParams) -> anyhow::Result<Link
         if detections[sources[0]].frame + 1 != detections[destinations[0]].frame {
             continue;
         }
-        let candidates = linker.candidates(sources, destinations, 1, 1);
+        let candidates = linker.candidates(sources, destinations, 1, 1)?;
         for (s, d) in solve(sources.len(), destinations.len(), &candidates, &mut stats)? {
             next[sources[s]] = Some(destinations[d]);
             previous[destinations[d]] = Some(sources[s]);
@@ -153,7 +157,7 @@ pub fn link(detections: &[Detection], params: &LapParams) -> anyhow::Result<Link
             .copied()
             .filter(|&i| previous[i].is_none())
             .collect();
-        let candidates = linker.candidates(&ends, &starts, 2, params.max_gap + 1);
+        let candidates = linker.candidates(&ends, &starts, 2, params.max_gap + 1)?;
         for (e, s) in solve(ends.len(), starts.len(), &candidates, &mut stats)? {
             previous[starts[s]] = Some(ends[e]);
             stats.links += 1;
@@ -239,24 +243,37 @@ impl<'a> Lap<'a> {
         destinations: &[usize],
         shortest: usize,
         longest: usize,
-    ) -> Vec<Candidate> {
+    ) -> anyhow::Result<Vec<Candidate>> {
         if sources.is_empty() || destinations.is_empty() {
-            return Vec::new();
+            return Ok(Vec::new());
         }
+        // Indexed by frame as well as position: gap closing looks for the
+        // ends a few frames before each start, and an index by position
+        // alone would visit every end of the recording near it (quadratic
+        // in a long recording of a small field).
         let points = sources
             .iter()
             .enumerate()
-            .map(|(s, &i)| GeomWithData::new([self.detections[i].x, self.detections[i].y], s))
+            .map(|(s, &i)| {
+                let a = &self.detections[i];
+                GeomWithData::new([a.x, a.y, a.frame as f64], s)
+            })
             .collect();
         let tree = RTree::bulk_load(points);
         // No gated pair is farther apart than this.
-        let reach2 = self.gate_sigmas
+        let reach = (self.gate_sigmas
             * self.gate_sigmas
-            * (longest as f64 * self.step_variance + 2.0 * self.largest_sigma2);
+            * (longest as f64 * self.step_variance + 2.0 * self.largest_sigma2))
+            .sqrt();
         let mut candidates = Vec::new();
         for (to, &j) in destinations.iter().enumerate() {
             let b = &self.detections[j];
-            for found in tree.locate_within_distance([b.x, b.y], reach2) {
+            let frame = b.frame as f64;
+            let window = AABB::from_corners(
+                [b.x - reach, b.y - reach, frame - longest as f64],
+                [b.x + reach, b.y + reach, frame - shortest as f64],
+            );
+            for found in tree.locate_in_envelope(window) {
                 let from = found.data;
                 let a = &self.detections[sources[from]];
                 let Some(frames) = b.frame.checked_sub(a.frame) else {
@@ -266,6 +283,12 @@ impl<'a> Lap<'a> {
                     continue;
                 }
                 if let Some((cost, _)) = self.cost(a, b, frames) {
+                    if candidates.len() == MAX_CANDIDATE_LINKS {
+                        return Err(input_error(format!(
+                            "more than {MAX_CANDIDATE_LINKS} candidate links within the gates: \
+                             lower the search range or the longest gap, or raise --min-score"
+                        )));
+                    }
                     candidates.push(Candidate { from, to, cost });
                 }
             }
@@ -273,7 +296,7 @@ impl<'a> Lap<'a> {
         // The tree's order is not the input's: sorted, the result does not
         // depend on it.
         candidates.sort_by_key(|c| (c.from, c.to));
-        candidates
+        Ok(candidates)
     }
 }
 

@@ -22,6 +22,7 @@ pub mod lap;
 pub mod pipeline;
 pub mod trackpy;
 
+use crate::error::input_error;
 use crate::io::localisation_table::LocalisationTable;
 use crate::types::LocalisationSigma;
 
@@ -147,6 +148,13 @@ pub(crate) struct Candidate {
     pub cost: f64,
 }
 
+/// The most sources plus destinations of one connected assignment problem
+/// [`assign`] solves (a dense matrix of 800 MB). Linking the recordings of
+/// docs/tracking.md gives problems of at most ten; only a search range or
+/// gap far beyond the particles' steps, over localisations that crowd the
+/// field, joins thousands into one.
+pub const MAX_ASSIGNMENT_SIZE: usize = 10_000;
+
 /// The least-cost links between `sources` sources and `destinations`
 /// destinations: minimises the sum of the chosen candidates' costs plus
 /// `death[s]` for each source left unlinked plus `birth[d]` for each
@@ -180,6 +188,16 @@ pub(crate) fn assign(
         return Ok(links);
     }
     let n = sources + destinations;
+    if n > MAX_ASSIGNMENT_SIZE {
+        // Its matrix alone would take 8·n² bytes (80 GB at n = 100,000),
+        // and the solver's time grows as n³.
+        return Err(input_error(format!(
+            "{sources} sources and {destinations} destinations form one connected assignment \
+             problem, more than the {MAX_ASSIGNMENT_SIZE} solved at once (its matrix would \
+             take {:.1} GiB): lower the search range or the longest gap, or raise --min-score",
+            (n as f64).powi(2) * 8.0 / (1u64 << 30) as f64
+        )));
+    }
     // More than any assignment without a forbidden entry can cost, so the
     // solver never takes one (linking nobody is always possible).
     let forbidden = 1.0

@@ -323,3 +323,40 @@ fn bad_input_is_one_line_and_exit_2() {
         "locs.csv",
     );
 }
+
+#[test]
+fn a_search_range_that_joins_thousands_into_one_problem_is_refused_not_allocated() {
+    // Two frames of 5,001 localisations along a line 1 px apart, the
+    // second shifted by 0.2 px: with a search range of 3 every
+    // localisation reaches its neighbours', so all 10,002 form one
+    // connected assignment problem (a dense matrix of 0.8 GB beyond the
+    // limit), for both linkers. With a range of 0.6 each problem is a pair.
+    let mut text = String::from("frame,x,y\n");
+    for frame in 0..2 {
+        for i in 0..5_001 {
+            text.push_str(&format!("{frame},{},1\n", i as f64 + 0.2 * frame as f64));
+        }
+    }
+    for linker in ["trackpy", "lap"] {
+        refused_with(
+            text.as_bytes(),
+            &["--linker", linker],
+            "one connected assignment problem",
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (locs, out) = (dir.path().join("locs.csv"), dir.path().join("tracks.csv"));
+    std::fs::write(&locs, &text).unwrap();
+    let run = scanloc(&[
+        "link",
+        "--locs",
+        &locs.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+        "--search-range",
+        "0.6",
+        "--linker",
+        "lap",
+    ]);
+    assert_eq!(run.status.code(), Some(0), "{}", stderr(&run));
+}
