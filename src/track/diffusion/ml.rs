@@ -21,8 +21,12 @@
 //! paper's field; [`super::fit_weight`]). With a [`super::DetectionProfile`]
 //! the condition is the localisation's being found: the edges' bins
 //! weigh the field's probability by their detection efficiency. The
-//! conditioned score still has zero mean, because whether a step is seen
-//! is decided by exactly the event each factor is conditioned on.
+//! conditioned score has zero mean where a track ends, because whether a
+//! step is seen is decided by exactly the event each factor is
+//! conditioned on; where a track starts by entering the field, the unseen
+//! step before it is correlated with the first one through the blur, which
+//! the conditioning leaves in (docs/tracking.md, "The field selects the
+//! steps").
 //!
 //! The 95 % interval is the likelihood-ratio interval of D (−2 log of the
 //! profile likelihood within 3.84 of its minimum); the standard error
