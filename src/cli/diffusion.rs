@@ -38,8 +38,10 @@ enum ExposureArg {
 /// D (the table's sigma_x, sigma_y only with --given-sigma): ml estimates
 /// each track with the ensemble's; with 1,000
 /// localisations or more, ml conditions on where the localiser finds
-/// particles, read off their density near the field's edges
-/// (docs/tracking.md, "The field selects the steps"). Where the tracks'
+/// particles, read off their density near the field's edges, and the ml
+/// ensemble takes each track given its first step, which leans inwards
+/// where a blurred track entered the field (docs/tracking.md, "The field
+/// selects the steps"). Where the tracks'
 /// ml estimates scatter more than their likelihood says (wrong links,
 /// heavy-tailed errors), each track's interval is widened by that
 /// dispersion, measured over 20 tracks or more and named on stderr.

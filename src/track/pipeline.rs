@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::diffusion::{
     ENSEMBLE_GATE, Estimate, MAX_ENSEMBLE_GATE, Method, ScanGeometry, Series,
-    attach_detection_profile, estimate_recording, within_gates,
+    attach_detection_profile, estimate_recording, ml, within_gates,
 };
 use super::{Detection, Linking, lap, trackpy};
 use crate::error::input_error;
@@ -24,10 +24,10 @@ use crate::types::{Prediction, RecordingTruthRow, Track, TrackPoint};
 
 /// Version of the linking step (the linkers of [`super::trackpy`] and
 /// [`super::lap`] and the tracks table they make).
-pub const LINK_VERSION: &str = "scanloc-link/3";
+pub const LINK_VERSION: &str = "scanloc-link/4";
 
 /// Version of the scoring of tracks ([`evaluate`] and its JSON).
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/5";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/6";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
@@ -198,12 +198,14 @@ impl LinkerSpec {
     }
 }
 
-/// The ML estimate of D (µm²/s) over all `tracks`, σ² profiled, with
-/// the tracks' detection profile.
+/// The ML ensemble's D (µm²/s) over all `tracks` as `scanloc diffusion`
+/// reads it with its defaults: σ² profiled, the tracks' detection
+/// profile, steps within [`ENSEMBLE_GATE`] of their gates, each run
+/// given its first step.
 fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
     let series = within_gates(&series_of(tracks, geometry), ENSEMBLE_GATE);
     let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
-    Method::Ml.estimate(&all).map(|e| e.d)
+    ml::ensemble(&all).map(|(e, _)| e.d)
 }
 
 /// `tracks` prepared for the D estimators, with the exposure the scan

@@ -117,9 +117,12 @@ fn series_of(tracks: &[Track], geometry: &ScanGeometry, exposure: Exposure) -> V
         .collect()
 }
 
+/// The ensemble estimate as `scanloc diffusion` reads it (no gates or
+/// margin; ML takes each track given its first step).
 fn ensemble(series: &[Series], method: Method) -> Estimate {
-    let all: Vec<&Series> = series.iter().collect();
-    method.estimate(&all).expect("an ensemble estimate")
+    estimate_recording(series, method, usize::MAX, 1.0, 0.0)
+        .ensemble
+        .expect("an ensemble estimate")
 }
 
 /// The two fields: the paper's 24 × 25 (whole-frame centroids) and a
@@ -158,7 +161,7 @@ const FIELDS: [Field; 2] = [
 #[test]
 fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
     // Each ensemble has ≳ 5,000 steps per axis: the CVE's and ML's standard
-    // errors are ≲ 1.7 % (asserted), so ±5 % is ≳ 3 standard errors. The
+    // errors are ≲ 1.8 % (asserted), so ±5 % is ≳ 2.8 standard errors. The
     // MSD fit's larger error is only reported. The
     // estimated localisation variance checks the blur derivation: with the
     // right R it is the added 35 nm noise (1.2e-3 µm²); a wrong R would
@@ -193,7 +196,7 @@ fn ensemble_d_is_within_5_percent_of_the_truth_in_small_and_large_fields() {
                     field.name
                 );
                 if method != Method::Msd {
-                    assert!(e.standard_error / d < 0.017, "{method:?}: {e:?}");
+                    assert!(e.standard_error / d < 0.018, "{method:?}: {e:?}");
                 }
                 if method != Method::Msd && field.exposure == Exposure::WholeFrame {
                     assert!(
@@ -497,7 +500,7 @@ fn the_ml_ensemble_within_narrower_gates_is_not_inflated_by_links_between_partic
 fn per_track_ml_takes_the_ensembles_localisation_variance() {
     // Short tracks cannot tell σ² from D: with the ensemble's σ² each
     // track's D is closer to the truth. Asserted: every per-track estimate
-    // carries the ensemble's σ², and the relative RMSE over ≳ 300 tracks of
+    // carries the σ² of all tracks' likelihood, and the relative RMSE over ≳ 300 tracks of
     // ≥ 10 steps is at least 15 % lower than with σ² profiled per track
     // (measured 0.32 against 0.49 on 606 tracks).
     let d = 1.0;
@@ -507,7 +510,13 @@ fn per_track_ml_takes_the_ensembles_localisation_variance() {
     let tracks = truth_tracks(&truth, false, false, keep, 19);
     let series = series_of(&tracks, &geometry(&params), Exposure::WholeFrame);
     let shared = estimate_recording(&series, Method::Ml, 11, 1.0, 0.0);
-    let ensemble_variance = shared.ensemble.expect("an ensemble").localisation_variance;
+    // The σ² of the whole tracks' likelihood over every step (the
+    // ensemble's own leaves each track's first step out).
+    let whole: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
+    let ensemble_variance = Method::Ml
+        .estimate(&whole)
+        .expect("an ensemble")
+        .localisation_variance;
     let rmse = |estimates: &[Estimate]| {
         (estimates
             .iter()
@@ -891,7 +900,7 @@ fn an_ensemble_margin_removes_a_selection_on_motion_near_the_edges() {
     let mut rng = ChaCha8Rng::seed_from_u64(17);
     let near_edge = |x: f64, y: f64| !((3.5..20.5).contains(&x) && (3.5..19.5).contains(&y));
     let mut tracks = Vec::new();
-    for walk in 0..1500 {
+    for walk in 0..2500 {
         let (mut x, mut y) = (
             rng.random::<f64>() * 25.0 - 0.5,
             rng.random::<f64>() * 24.0 - 0.5,

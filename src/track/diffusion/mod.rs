@@ -319,15 +319,11 @@ pub fn estimate_recording(
             };
             let runs: Vec<&Series> = runs.iter().filter(|s| s.len() > 1).collect();
             let (ensemble, phi) = ml::ensemble(&runs).unzip();
-            // Where no gate or margin cut them, the runs are the whole
-            // tracks and one fit serves both (its σ̂² does not depend on
-            // the interval's width).
-            let all: Vec<&Series> = whole.iter().filter(|s| s.len() > 1).collect();
-            let whole_ensemble = match runs == all {
-                true => ensemble,
-                false => of(&whole),
-            };
-            (ensemble, phi.flatten(), whole_ensemble)
+            // The tracks' σ² comes from the likelihood of every step of
+            // the whole tracks, as each track's own estimate takes them
+            // (the ensemble leaves out first steps and steps beyond its
+            // box).
+            (ensemble, phi.flatten(), of(&whole))
         }
         _ => {
             let whole_ensemble = of(&whole);
