@@ -205,7 +205,7 @@ impl LinkerSpec {
 fn ensemble_ml(tracks: &[Track], geometry: &ScanGeometry) -> Option<f64> {
     let series = within_gates(&series_of(tracks, geometry), ENSEMBLE_GATE);
     let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
-    ml::ensemble(&all).map(|(e, _)| e.d)
+    ml::ensemble_estimate(&all).map(|e| e.d)
 }
 
 /// `tracks` prepared for the D estimators, with the exposure the scan

@@ -424,11 +424,7 @@ fn dispersion_at(series: &[&Series], joint: f64, steps: Steps) -> Option<f64> {
 /// interval, as for each track). φ̂ is measured with each series' σ² told
 /// as the joint estimate's, so D is the one parameter.
 pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
-    let longer: Vec<&Series> = series.iter().copied().filter(|s| s.len() > 2).collect();
-    let (series, steps) = match longer.is_empty() {
-        true => (series.to_vec(), Steps::All),
-        false => (longer, Steps::AfterFirst),
-    };
+    let (series, steps) = ensemble_runs(series);
     let fit = Fit::new(&series, steps)?;
     let joint = fit.estimate(1.0);
     let told: Vec<Series> = series
@@ -441,6 +437,25 @@ pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
     match phi {
         Some(phi) if phi > 1.0 => Some((fit.estimate(phi), Some(phi))),
         _ => Some((joint, phi)),
+    }
+}
+
+/// [`ensemble`]'s estimate without the dispersion and its widening: the
+/// same D̂ and σ̂², for a caller that needs only those (the linker's
+/// relink pass).
+pub fn ensemble_estimate(series: &[&Series]) -> Option<Estimate> {
+    let (series, steps) = ensemble_runs(series);
+    Some(Fit::new(&series, steps)?.estimate(1.0))
+}
+
+/// The series an ensemble is fitted on and which of their steps: those of
+/// two steps or more, each given its first step, or all of `series` with
+/// every step if none is that long.
+fn ensemble_runs<'a>(series: &[&'a Series]) -> (Vec<&'a Series>, Steps) {
+    let longer: Vec<&Series> = series.iter().copied().filter(|s| s.len() > 2).collect();
+    match longer.is_empty() {
+        true => (series.to_vec(), Steps::All),
+        false => (longer, Steps::AfterFirst),
     }
 }
 
