@@ -114,6 +114,7 @@ pub(super) fn compute(
         } => {
             let spec = recording_spec(plan, *recording)?;
             let predictions = read_input(*predictions)?;
+            let progress = heartbeat(1, &step.name());
             let tracks = crate::track::pipeline::link_predictions(
                 predictions.predictions()?,
                 *min_score,
@@ -121,6 +122,7 @@ pub(super) fn compute(
                 &spec.geometry(),
             )
             .with_context(|| format!("linking {}", step.name()))?;
+            progress.finish_and_clear();
             Ok(Artefact::Tracks(Arc::new(tracks)))
         }
         Action::ScoreTracks {
@@ -132,17 +134,30 @@ pub(super) fn compute(
             let spec = recording_spec(plan, *recording)?;
             let data = read_input(*recording)?;
             let tracks = read_input(*tracks)?;
+            let progress = heartbeat(1, &step.name());
             let evaluation = crate::track::pipeline::evaluate(
                 &data.recording()?.truth,
                 tracks.tracks()?,
                 &spec.geometry(),
                 scoring,
                 spec.diffusion(),
+                &progress,
             )
             .with_context(|| format!("scoring {}", step.name()))?;
+            progress.finish_and_clear();
             Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
         }
     }
+}
+
+/// A progress bar of `len` parts for a step whose parts can take minutes
+/// each (linking, the D estimators): it ticks every second, so that a log
+/// gets a line every [`crate::progress::LOG_INTERVAL`] naming the step
+/// while it runs, not only when a part ends.
+fn heartbeat(len: u64, name: &str) -> indicatif::ProgressBar {
+    let progress = crate::progress::bar(len, name);
+    progress.enable_steady_tick(std::time::Duration::from_secs(1));
+    progress
 }
 
 /// The recording simulated by step `index`.

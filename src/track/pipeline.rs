@@ -532,9 +532,12 @@ pub fn evaluate(
     geometry: &ScanGeometry,
     scoring: &TrackScoring,
     true_d: f64,
+    progress: &indicatif::ProgressBar,
 ) -> anyhow::Result<TrackEvaluation> {
+    progress.set_length(1 + Method::ALL.len() as u64);
     let truth_tracks = truth_tracks(truth, &scoring.selection());
     let tracking = score_tracks(&truth_tracks, tracks, scoring.gate_px)?;
+    progress.inc(1);
     let series = series_of(tracks, geometry);
     let diffusion = Method::ALL
         .into_iter()
@@ -564,6 +567,7 @@ pub fn evaluate(
                 .filter(|t| t.estimate.interval_valid)
                 .map(|t| t.estimate.interval())
                 .collect();
+            progress.inc(1);
             EstimatorScore {
                 method,
                 ensemble_relative_error: ensemble.map(|e| e.d / true_d - 1.0),
@@ -653,7 +657,15 @@ mod tests {
             }),
         ] {
             let tracks = link_predictions(&predictions, None, &linker, &geometry).unwrap();
-            let scored = evaluate(&recording.truth, &tracks, &geometry, &scoring, 1.0).unwrap();
+            let scored = evaluate(
+                &recording.truth,
+                &tracks,
+                &geometry,
+                &scoring,
+                1.0,
+                &crate::progress::hidden(),
+            )
+            .unwrap();
             let recall = scored.tracking.link_recall.unwrap();
             assert!(recall > 0.9, "{linker:?}: link recall {recall}");
             let ml = scored.estimator(Method::Ml).unwrap();

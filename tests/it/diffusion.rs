@@ -1046,7 +1046,15 @@ fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
     let tracks =
         scanloc::track::pipeline::link_predictions(&predictions, Some(0.3), &linker, &geometry)
             .unwrap();
-    let experiment = evaluate(&truth, &tracks, &geometry, &scoring, 1.0).unwrap();
+    let experiment = evaluate(
+        &truth,
+        &tracks,
+        &geometry,
+        &scoring,
+        1.0,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
     let experiment = experiment
         .estimator(Method::Ml)
         .unwrap()
