@@ -31,6 +31,8 @@ pub mod scan;
 
 pub use scan::{Exposure, ScanGeometry};
 
+use rayon::prelude::*;
+
 use crate::types::Track;
 
 /// The quantile of the standard normal for two-sided 95 % intervals.
@@ -353,8 +355,9 @@ pub fn estimate_recording(
             ml::dispersion(&told)
         })
         .flatten();
+    // Each track's fit is its own: in parallel, collected in order.
     let per_track = tracks
-        .iter()
+        .par_iter()
         .map(|track| {
             let track = track.as_ref()?;
             match (method, dispersion) {
