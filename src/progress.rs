@@ -115,6 +115,16 @@ fn pace(pos: u64, elapsed: Duration) -> String {
     }
 }
 
+/// A [`bar`] labelled `message` for work whose parts can take minutes
+/// each (linking, the D estimators), of one part until the work sets its
+/// own length: it ticks every second, so that a log gets a line every
+/// [`LOG_INTERVAL`] while the work runs, not only when a part ends.
+pub fn heartbeat(message: &str) -> ProgressBar {
+    let bar = bar(1, message);
+    bar.enable_steady_tick(Duration::from_secs(1));
+    bar
+}
+
 /// A progress bar that never draws, for library callers and tests.
 pub fn hidden() -> ProgressBar {
     ProgressBar::hidden()

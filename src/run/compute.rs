@@ -114,7 +114,7 @@ pub(super) fn compute(
         } => {
             let spec = recording_spec(plan, *recording)?;
             let predictions = read_input(*predictions)?;
-            let progress = heartbeat(1, &step.name());
+            let progress = crate::progress::heartbeat(&step.name());
             let tracks = crate::track::pipeline::link_predictions(
                 predictions.predictions()?,
                 *min_score,
@@ -134,7 +134,7 @@ pub(super) fn compute(
             let spec = recording_spec(plan, *recording)?;
             let data = read_input(*recording)?;
             let tracks = read_input(*tracks)?;
-            let progress = heartbeat(1, &step.name());
+            let progress = crate::progress::heartbeat(&step.name());
             let evaluation = crate::track::pipeline::evaluate(
                 &data.recording()?.truth,
                 tracks.tracks()?,
@@ -148,16 +148,6 @@ pub(super) fn compute(
             Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
         }
     }
-}
-
-/// A progress bar of `len` parts for a step whose parts can take minutes
-/// each (linking, the D estimators): it ticks every second, so that a log
-/// gets a line every [`crate::progress::LOG_INTERVAL`] naming the step
-/// while it runs, not only when a part ends.
-fn heartbeat(len: u64, name: &str) -> indicatif::ProgressBar {
-    let progress = crate::progress::bar(len, name);
-    progress.enable_steady_tick(std::time::Duration::from_secs(1));
-    progress
 }
 
 /// The recording simulated by step `index`.

@@ -1052,7 +1052,7 @@ fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
         &geometry,
         &scoring,
         1.0,
-        &indicatif::ProgressBar::hidden(),
+        &scanloc::progress::hidden(),
     )
     .unwrap();
     let experiment = experiment
