@@ -325,6 +325,14 @@ impl Filter<'_> {
         counts: &[u32],
         particles: &mut Particles,
     ) -> Vec<Prediction> {
+        self.filter_frame(index, counts, particles);
+        self.estimate(index, particles)
+    }
+
+    /// Runs the filter over frame `index` with counts `counts`
+    /// (row-major), leaving the weighted particles of its posterior in
+    /// `particles`.
+    fn filter_frame(&self, index: usize, counts: &[u32], particles: &mut Particles) {
         let mut rng = frame_rng(self.seed, index);
         self.initialise(particles, &mut rng);
         let microscope = &self.microscope;
@@ -358,7 +366,6 @@ impl Filter<'_> {
                 }
             }
         }
-        self.estimate(index, particles)
     }
 
     /// How the background of a pixel is weighed: one known N_bkg for every
@@ -411,28 +418,31 @@ impl Filter<'_> {
         }
     }
 
+    /// Each particle's trajectory centroid (TrackPy pixels) and its
+    /// importance weight (relative: they need not sum to 1).
+    fn weighted_centroids(&self, p: &Particles) -> Vec<(f64, f64, f64)> {
+        let samples = (self.microscope.height * self.scan.beam_x_um().len()) as f64;
+        p.sum_x
+            .iter()
+            .zip(&p.sum_y)
+            .zip(&p.weight)
+            .map(|((sx, sy), &w)| {
+                (
+                    self.scan.um_to_px(sx / samples),
+                    self.scan.um_to_px(sy / samples),
+                    w,
+                )
+            })
+            .collect()
+    }
+
     /// The posterior mean of the trajectory centroid and the posterior mass
     /// within the score radius of it; with `max_candidates` > 1 the greedy
     /// disc cover of the centroids instead, ranked.
     fn estimate(&self, frame: usize, p: &Particles) -> Vec<Prediction> {
-        let samples = (self.microscope.height * self.scan.beam_x_um().len()) as f64;
-        let centroids: Vec<(f64, f64)> = p
-            .sum_x
-            .iter()
-            .zip(&p.sum_y)
-            .map(|(sx, sy)| {
-                (
-                    self.scan.um_to_px(sx / samples),
-                    self.scan.um_to_px(sy / samples),
-                )
-            })
-            .collect();
+        let weighted = self.weighted_centroids(p);
+        let centroids: Vec<(f64, f64)> = weighted.iter().map(|&(x, y, _)| (x, y)).collect();
         if self.settings.max_candidates > 1 {
-            let weighted: Vec<(f64, f64, f64)> = centroids
-                .iter()
-                .zip(&p.weight)
-                .map(|(&(x, y), &w)| (x, y, w))
-                .collect();
             let list = candidates::greedy_disc_cover(
                 &weighted,
                 self.settings.max_candidates,
@@ -537,33 +547,7 @@ pub fn locate_frames(
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Prediction>> {
-    settings
-        .validate()
-        .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
-    let microscope = settings.assumed_microscope(microscope);
-    microscope.validate().map_err(|e| {
-        input_error(format!(
-            "invalid microscope for the likelihood detector: {e}"
-        ))
-    })?;
-    settings
-        .check_microscope(&microscope)
-        .map_err(|e| input_error(e.to_string()))?;
-    if (frames.height, frames.width) != (microscope.height, microscope.width) {
-        return Err(input_error(format!(
-            "the likelihood detector models {}×{} frames, got {}×{}",
-            microscope.height, microscope.width, frames.height, frames.width
-        )));
-    }
-    if let Some(&index) = which.iter().find(|&&index| index >= frames.n) {
-        anyhow::bail!("frame {index} asked of a stack of {} frames", frames.n);
-    }
-    let filter = Filter {
-        scan: ScanModel::new(&microscope),
-        microscope,
-        settings,
-        seed,
-    };
+    let filter = Filter::checked(frames, which, microscope, settings, seed)?;
     let per_frame: Vec<Vec<Prediction>> = which
         .par_iter()
         .map_init(Particles::default, |particles, &index| {
@@ -575,6 +559,83 @@ pub fn locate_frames(
     let predictions: Vec<Prediction> = per_frame.into_iter().flatten().collect();
     refuse_non_finite(&predictions)?;
     Ok(predictions)
+}
+
+/// The filter's whole posterior of the trajectory centroid for the frames
+/// `which` of `frames`, in the order given: per frame, each particle's
+/// centroid `(x, y)` in TrackPy pixels and its weight, the weights summing
+/// to 1. The same filter as [`locate_frames`] with the same `settings`
+/// and `seed` (its predictions are summaries of these points), for callers
+/// that need the posterior's shape, such as a network learning it.
+pub fn posterior_clouds(
+    frames: &FrameStack,
+    which: &[usize],
+    microscope: &SimParams,
+    settings: &LikelihoodParams,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<Vec<(f64, f64, f64)>>> {
+    let filter = Filter::checked(frames, which, microscope, settings, seed)?;
+    which
+        .par_iter()
+        .map_init(Particles::default, |particles, &index| {
+            filter.filter_frame(index, frames.frame(index), particles);
+            let mut cloud = filter.weighted_centroids(particles);
+            let total: f64 = cloud.iter().map(|point| point.2).sum();
+            progress.inc(1);
+            let finite = cloud
+                .iter()
+                .all(|&(x, y, w)| x.is_finite() && y.is_finite() && w.is_finite());
+            if !(finite && total > 0.0 && total.is_finite()) {
+                return Err(input_error(format!(
+                    "likelihood: frame {index}: the posterior is not finite; the microscope's parameters are beyond what the filter can follow"
+                )));
+            }
+            cloud.iter_mut().for_each(|point| point.2 /= total);
+            Ok(cloud)
+        })
+        .collect()
+}
+
+impl<'a> Filter<'a> {
+    /// The filter of `settings` under `microscope` (as `settings` assume
+    /// it), once both are checked and the frames `which` of `frames` are
+    /// known to be ones it can model.
+    fn checked(
+        frames: &FrameStack,
+        which: &[usize],
+        microscope: &SimParams,
+        settings: &'a LikelihoodParams,
+        seed: u64,
+    ) -> anyhow::Result<Self> {
+        settings
+            .validate()
+            .map_err(|e| input_error(format!("invalid likelihood parameter: {e}")))?;
+        let microscope = settings.assumed_microscope(microscope);
+        microscope.validate().map_err(|e| {
+            input_error(format!(
+                "invalid microscope for the likelihood detector: {e}"
+            ))
+        })?;
+        settings
+            .check_microscope(&microscope)
+            .map_err(|e| input_error(e.to_string()))?;
+        if (frames.height, frames.width) != (microscope.height, microscope.width) {
+            return Err(input_error(format!(
+                "the likelihood detector models {}×{} frames, got {}×{}",
+                microscope.height, microscope.width, frames.height, frames.width
+            )));
+        }
+        if let Some(&index) = which.iter().find(|&&index| index >= frames.n) {
+            anyhow::bail!("frame {index} asked of a stack of {} frames", frames.n);
+        }
+        Ok(Filter {
+            scan: ScanModel::new(&microscope),
+            microscope,
+            settings,
+            seed,
+        })
+    }
 }
 
 /// The last guard before predictions are written: every position and
