@@ -124,11 +124,11 @@ pub struct TrainArgs {
     /// (member 1 is the network a single training would give).
     #[arg(long)]
     members: Option<usize>,
-    /// Posterior targets: the score map and offsets of the simulated
-    /// training frames learn the likelihood detector's posterior mean of
-    /// each QD's centroid, computed with this many particles per frame,
-    /// instead of the true centroid (0 = the truth; 2,000 takes ≈ 17 ms of
-    /// CPU per 24 × 25 frame).
+    /// Posterior targets: the simulated training frames with one QD are
+    /// labelled by the likelihood detector with this many particles per
+    /// frame instead of by the true centroid: the peaks head learns its
+    /// posterior mean, the categorical head its posterior over the pixels
+    /// (0 = the truth; 2,000 takes ≈ 17 ms of CPU per 24 × 25 frame).
     #[arg(long)]
     teacher_particles: Option<usize>,
     /// With --teacher-particles: teach every epoch's fresh frames too

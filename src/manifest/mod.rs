@@ -335,7 +335,7 @@ impl DetectorSpec {
         match self {
             DetectorSpec::CrockerGrier(_) => crate::detect::crocker_grier::CODE_VERSION,
             DetectorSpec::Cnn(spec) if spec.training.teacher_particles > 0 => {
-                crate::detect::cnn::TEACHER_CODE_VERSION
+                crate::detect::cnn::teacher_code_version(spec.architecture.head)
             }
             DetectorSpec::Cnn(_) => crate::detect::cnn::CODE_VERSION,
             DetectorSpec::Likelihood(_) => crate::detect::likelihood::CODE_VERSION,

@@ -1237,6 +1237,51 @@ fn categorical_settings(epochs: usize) -> TrainingSettings {
 }
 
 #[test]
+fn a_teacher_gives_the_categorical_head_its_posterior_and_the_network_still_localises() {
+    // The categorical head learns the teacher's posterior over the pixels
+    // (docs/cnn.md, "Posterior targets"): a model of its own key, other
+    // weights than the untaught one's, the same on a second training, and
+    // still a localiser (as above: median within 1.5 px, chance ≈ 5 px).
+    let data = dataset(40.0, 300, 11);
+    let train = |teacher_particles| {
+        cnn::train(
+            &categorical_architecture(3),
+            &TrainingSettings {
+                teacher_particles,
+                ..categorical_settings(4)
+            },
+            &data,
+            Some(&params(40.0)),
+            5,
+            &metrics::paper_aucs,
+            &hidden(),
+        )
+        .unwrap()
+    };
+    let taught = train(300);
+    assert_ne!(taught.to_bytes().unwrap(), train(0).to_bytes().unwrap());
+    assert_eq!(taught.to_bytes().unwrap(), train(300).to_bytes().unwrap());
+    let test = dataset(40.0, 200, 12);
+    let median = median_top_distance_px(&taught, &test);
+    assert!(median < 1.5, "median distance {median:.2} px");
+    let spec = |teacher_particles| {
+        scanloc::manifest::DetectorSpec::Cnn(scanloc::manifest::CnnSpec {
+            architecture: categorical_architecture(3),
+            training: TrainingSettings {
+                teacher_particles,
+                ..categorical_settings(4)
+            },
+            training_set: "train".to_string(),
+        })
+    };
+    assert_eq!(
+        spec(300).code_version(),
+        "scanloc-cnn/3+scanloc-likelihood/2+posterior/1"
+    );
+    assert_eq!(spec(0).code_version(), "scanloc-cnn/3");
+}
+
+#[test]
 fn the_categorical_head_learns_and_gives_ranked_guesses_whose_masses_are_a_distribution() {
     // Bright QDs (N_qd 40) as in the peaks test above, 4 epochs.
     let data = dataset(40.0, 400, 11);

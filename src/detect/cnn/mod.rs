@@ -300,20 +300,22 @@ pub struct TrainingSettings {
     #[serde(default = "one_member", skip_serializing_if = "is_one_member")]
     pub members: usize,
     /// 0: the score map and the offsets learn the true centroids. N > 0:
-    /// on the fixed training frames that hold one QD they learn the
-    /// likelihood detector's posterior mean of the centroid instead (a
-    /// teacher computed once per training with N particles per frame,
-    /// under the training frames' own simulator parameters, their
-    /// distributions of D, brightness and background as priors); the
-    /// within-1-px head still learns from the truth, and fresh frames keep
-    /// their truth unless `teacher_fresh_frames` (docs/cnn.md,
+    /// on the fixed training frames that hold one QD a teacher, the
+    /// likelihood detector with N particles per frame (computed once per
+    /// training, under the training frames' own simulator parameters,
+    /// their distributions of D, brightness and background as priors),
+    /// replaces the truth: the peaks head's score map and offsets learn its
+    /// posterior mean of the centroid, the categorical head's softmax its
+    /// whole posterior over the pixels (its offsets and σ maps keep the
+    /// truth). The within-1-px head still learns from the truth, and fresh
+    /// frames keep their truth unless `teacher_fresh_frames` (docs/cnn.md,
     /// "Posterior targets"). Needs the simulator parameters of the training
     /// frames. Left out of the serialised settings when 0, so models
     /// trained without a teacher keep their bytes and content keys.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub teacher_particles: usize,
     /// With a teacher, also label every epoch's fresh frames that hold one
-    /// QD with its posterior means (computed for each epoch's frames as
+    /// QD with its posteriors (computed for each epoch's frames as
     /// they are simulated, from a seed of the member and the epoch): every
     /// sample the network learns from is taught, at the teacher's cost for
     /// `fresh_frames_per_epoch × epochs × members` more frames. Needs
@@ -635,6 +637,20 @@ pub const CODE_VERSION: &str = "scanloc-cnn/3";
 /// detector's ([`crate::detect::likelihood::CODE_VERSION`]), whose
 /// predictions became its targets, so a change to either renews it.
 pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2";
+/// The code version of a categorical head's model trained with a teacher:
+/// [`TEACHER_CODE_VERSION`] and `posterior/1`, the teacher's whole
+/// posterior over the pixels as the softmax's target (before it, such a
+/// model learnt the pixel of the posterior mean, as a peaks head does).
+pub const CATEGORICAL_TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2+posterior/1";
+
+/// The code version of a model of `head` trained with a teacher
+/// (`training.teacher_particles` > 0).
+pub fn teacher_code_version(head: CnnHead) -> &'static str {
+    match head {
+        CnnHead::Peaks => TEACHER_CODE_VERSION,
+        CnnHead::Categorical => CATEGORICAL_TEACHER_CODE_VERSION,
+    }
+}
 /// Version of the decoding (output maps → predictions: peaks, positions,
 /// scores, σ), the code version of every CNN prediction's content key:
 /// bump its second part when a change alters predictions but not the
@@ -1021,6 +1037,15 @@ mod tests {
             TEACHER_CODE_VERSION,
             format!("{CODE_VERSION}+{}", crate::detect::likelihood::CODE_VERSION)
         );
+        assert_eq!(
+            CATEGORICAL_TEACHER_CODE_VERSION,
+            format!("{TEACHER_CODE_VERSION}+posterior/1")
+        );
+        assert_eq!(
+            teacher_code_version(CnnHead::Categorical),
+            CATEGORICAL_TEACHER_CODE_VERSION
+        );
+        assert_eq!(teacher_code_version(CnnHead::Peaks), TEACHER_CODE_VERSION);
         let json = serde_json::to_string(&TrainingSettings::default()).unwrap();
         assert!(!json.contains("teacher"), "{json}");
         let taught = TrainingSettings {

@@ -81,7 +81,18 @@ struct Source<'a> {
     /// 1 px of the truth, not of the teacher); `None`: `emitters` are the
     /// truth.
     true_centroids: Option<Vec<Vec<(f64, f64)>>>,
+    /// Per frame, the teacher's posterior of the centroid as the
+    /// categorical head's softmax learns it: the probability that the
+    /// centroid is nearest each pixel (row-major index), the pixels with
+    /// none left out; empty for a frame the teacher did not label (its
+    /// one true centroid's pixel is the target). `None`: no teacher, or
+    /// the peaks head (whose teacher moves `emitters`).
+    posterior: Option<Vec<PixelPosterior>>,
 }
+
+/// A frame's posterior over its pixels: `(row-major pixel, probability)`,
+/// the probabilities summing to 1.
+type PixelPosterior = Vec<(u32, f32)>;
 
 impl Source<'_> {
     /// The true centroids of frame `i`, which the within-1-px head learns
@@ -199,6 +210,15 @@ fn batch_loss(
         .iter()
         .map(|(source, i)| source.emitters[*i].as_slice())
         .collect();
+    let posteriors: Vec<&[(u32, f32)]> = items
+        .iter()
+        .map(|(source, i)| {
+            source
+                .posterior
+                .as_ref()
+                .map_or(&[][..], |posterior| posterior[*i].as_slice())
+        })
+        .collect();
     let target = targets(
         height,
         width,
@@ -227,7 +247,9 @@ fn batch_loss(
     let score_count = positives.max(1) as f64;
     let (score_loss, score_value) = match arch.head {
         CnnHead::Peaks => focal_loss(logit, positive, negative_weight, score_count)?,
-        CnnHead::Categorical => categorical_loss(logit, &emitters, [n, height, width], device)?,
+        CnnHead::Categorical => {
+            categorical_loss(logit, &emitters, &posteriors, [n, height, width], device)?
+        }
     };
     let offset = output.clone().narrow(1, OFFSET_X_CHANNEL, 2);
     let log_sigma = output.clone().narrow(1, LOG_SIGMA_X_CHANNEL, 2);
@@ -306,7 +328,9 @@ fn focal_loss(
 
 /// The categorical head's loss: per frame, the cross-entropy of the
 /// softmax over its pixels against the pixel nearest its one centroid
-/// (`emitters`, clamped into the frame), averaged over the frames.
+/// (`emitters`, clamped into the frame), or against the teacher's
+/// posterior over the pixels where `posteriors` has one for the frame,
+/// averaged over the frames.
 ///
 /// The softmax is computed here in f64 with sums in raster order, not by
 /// the backend (whose reductions sum in an order that depends on the CPU's
@@ -317,6 +341,7 @@ fn focal_loss(
 fn categorical_loss(
     logit: Tensor<4>,
     emitters: &[&[(f64, f64)]],
+    posteriors: &[&[(u32, f32)]],
     [n, height, width]: [usize; 3],
     device: &Device,
 ) -> anyhow::Result<(Tensor<1>, f64)> {
@@ -326,14 +351,18 @@ fn categorical_loss(
         .try_to_vec::<f32>()
         .map_err(|e| anyhow::anyhow!("reading the score logits: {e:?}"))?;
     let mut targets = Vec::with_capacity(n);
-    for frame_emitters in emitters {
+    for (frame_emitters, &posterior) in emitters.iter().zip(posteriors) {
         let &[(x, y)] = *frame_emitters else {
             crate::bail_input!(
                 "training frames: the categorical head trains on frames of exactly one QD; a batch frame holds {}",
                 frame_emitters.len()
             );
         };
-        targets.push(nearest_pixel(x, y, height, width));
+        targets.push(if posterior.is_empty() {
+            vec![(nearest_pixel(x, y, height, width) as u32, 1.0)]
+        } else {
+            posterior.to_vec()
+        });
     }
     let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
     let gradient = Tensor::<4>::from_data(TensorData::new(gradient, [n, 1, height, width]), device);
@@ -342,23 +371,30 @@ fn categorical_loss(
 
 /// The mean over frames of the cross-entropy of each frame's softmax
 /// (`logits` row-major, one frame after another, `targets.len()` frames)
-/// against its target pixel, and its gradient with respect to the logits,
-/// `(softmax − onehot) / frames`; in f64, summed in raster order.
-fn cross_entropy_and_gradient(logits: &[f32], targets: &[usize]) -> (f64, Vec<f32>) {
+/// against its target distribution over the pixels (`(pixel, probability)`
+/// pairs summing to 1: one pixel of probability 1 for a true centroid),
+/// and its gradient with respect to the logits, `(softmax − target) /
+/// frames`; in f64, summed in raster order (a target's terms in its
+/// order).
+fn cross_entropy_and_gradient(logits: &[f32], targets: &[Vec<(u32, f32)>]) -> (f64, Vec<f32>) {
     let frames = targets.len();
     let len = logits.len() / frames.max(1);
     let mut gradient = vec![0.0f32; logits.len()];
     let mut total = 0.0;
-    for (b, &target) in targets.iter().enumerate() {
+    let mut target_map = vec![0.0f64; len];
+    for (b, target) in targets.iter().enumerate() {
         let frame = &logits[b * len..(b + 1) * len];
-        total += frame_log_normaliser(frame) - frame[target] as f64;
-        for (p, (g, q)) in gradient[b * len..(b + 1) * len]
+        let log_normaliser = frame_log_normaliser(frame);
+        for &(p, q) in target {
+            target_map[p as usize] += f64::from(q);
+            total += f64::from(q) * (log_normaliser - frame[p as usize] as f64);
+        }
+        for ((g, q), t) in gradient[b * len..(b + 1) * len]
             .iter_mut()
             .zip(softmax(frame))
-            .enumerate()
+            .zip(&mut target_map)
         {
-            let onehot = if p == target { 1.0 } else { 0.0 };
-            *g = ((q - onehot) / frames as f64) as f32;
+            *g = ((q - std::mem::take(t)) / frames as f64) as f32;
         }
     }
     (total / frames.max(1) as f64, gradient)
@@ -531,9 +567,21 @@ fn train_and_select(
         (_, None) => crate::bail_input!(
             "training.teacher_particles: posterior-mean targets need the simulator parameters of the training frames (a dataset the manifest simulates, or `scanloc train`)"
         ),
-        (particles, Some(microscope)) => Some(teacher_targets(
-            training, microscope, particles, seed, progress,
-        )?),
+        (particles, Some(microscope)) => {
+            let truth = truth_by_frame(&training.truth, training.frames.n)?;
+            let lesson = Teacher {
+                head: arch.head,
+                microscope,
+                particles,
+                filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+            };
+            Some(lesson.teach(
+                &training.frames,
+                &truth,
+                &teacher_message(&progress.message()),
+                progress,
+            )?)
+        }
     };
     let job = Job {
         arch,
@@ -541,7 +589,7 @@ fn train_and_select(
         training,
         selection,
         fresh_params,
-        teacher: teacher.as_deref(),
+        teacher: teacher.as_ref(),
     };
     let mut nets = Vec::with_capacity(settings.members);
     let mut records = Vec::with_capacity(settings.members);
@@ -586,64 +634,132 @@ pub fn teacher_targets(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let truth = truth_by_frame(&training.truth, training.frames.n)?;
-    let task = progress.message();
-    let message = if task.is_empty() {
+    let teacher = Teacher {
+        head: CnnHead::Peaks,
+        microscope,
+        particles,
+        filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+    };
+    let message = teacher_message(&progress.message());
+    match teacher.teach(&training.frames, &truth, &message, progress)? {
+        Lesson::Means(means) => Ok(means),
+        Lesson::Pixels(_) => unreachable!("the peaks head's teacher gives means"),
+    }
+}
+
+/// The teacher's progress message for the fixed frames, after the
+/// training's name `task`.
+fn teacher_message(task: &str) -> String {
+    if task.is_empty() {
         "posterior targets".to_string()
     } else {
         format!("{task}: posterior targets")
-    };
-    posterior_targets(
-        &training.frames,
-        &truth,
-        microscope,
-        particles,
-        stream(seed, STREAM_TEACHER, 0).random::<u64>(),
-        &message,
-        progress,
-    )
+    }
 }
 
-/// Per frame of `frames` (whose true centroids are `truth`), the teacher's
-/// posterior mean for the frames with one QD and the truth for the others,
-/// the filter seeded with `filter_seed`. The progress bar counts the
-/// teacher's frames under `message`, then shows what it showed.
-fn posterior_targets(
-    frames: &FrameStack,
-    truth: &[Vec<(f64, f64)>],
-    microscope: &SimParams,
+/// The likelihood detector as a teacher of one head: how many particles,
+/// under which simulator parameters (the frames' own, their distributions
+/// the priors), from which seed.
+struct Teacher<'a> {
+    head: CnnHead,
+    microscope: &'a SimParams,
     particles: usize,
     filter_seed: u64,
-    message: &str,
-    progress: &ProgressBar,
-) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
-    let settings = crate::detect::likelihood::LikelihoodParams {
-        particles,
-        ..Default::default()
-    };
-    let taught: Vec<usize> = (0..truth.len()).filter(|&i| truth[i].len() == 1).collect();
-    let (length, position, shown) = (progress.length(), progress.position(), progress.message());
-    progress.set_length(taught.len() as u64);
-    progress.set_position(0);
-    progress.set_message(message.to_string());
-    let posterior = crate::detect::likelihood::locate_frames(
-        frames,
-        &taught,
-        microscope,
-        &settings,
-        filter_seed,
-        progress,
-    )
-    .context("training.teacher_particles: the teacher's posterior targets");
-    if let Some(length) = length {
-        progress.set_length(length);
+}
+
+/// What a teacher gives a stack's frames (those with one QD; the others
+/// keep their truth).
+#[derive(Clone)]
+enum Lesson {
+    /// For the peaks head: per frame, the posterior mean of the centroid
+    /// (the truth for frames with none or several QDs), which the score
+    /// map and the offsets learn in place of the truth.
+    Means(Vec<Vec<(f64, f64)>>),
+    /// For the categorical head: per frame, the posterior of the centroid
+    /// over the pixels (empty for frames with none or several QDs), which
+    /// the softmax learns in place of the true centroid's pixel; the
+    /// offsets and σ maps still learn the truth.
+    Pixels(Vec<PixelPosterior>),
+}
+
+impl Teacher<'_> {
+    /// The lesson for `frames` (whose true centroids are `truth`): the
+    /// filter runs on the frames with one QD, frame `i` from ChaCha8
+    /// stream `i` of the teacher's seed. The progress bar counts those
+    /// frames under `message`, then shows what it showed.
+    fn teach(
+        &self,
+        frames: &FrameStack,
+        truth: &[Vec<(f64, f64)>],
+        message: &str,
+        progress: &ProgressBar,
+    ) -> anyhow::Result<Lesson> {
+        let settings = crate::detect::likelihood::LikelihoodParams {
+            particles: self.particles,
+            ..Default::default()
+        };
+        let taught: Vec<usize> = (0..truth.len()).filter(|&i| truth[i].len() == 1).collect();
+        let (length, position, shown) =
+            (progress.length(), progress.position(), progress.message());
+        progress.set_length(taught.len() as u64);
+        progress.set_position(0);
+        progress.set_message(message.to_string());
+        let lesson = match self.head {
+            CnnHead::Peaks => crate::detect::likelihood::locate_frames(
+                frames,
+                &taught,
+                self.microscope,
+                &settings,
+                self.filter_seed,
+                progress,
+            )
+            .map(|means| {
+                let mut targets = truth.to_vec();
+                for (&index, mean) in taught.iter().zip(means) {
+                    targets[index] = vec![(mean.x, mean.y)];
+                }
+                Lesson::Means(targets)
+            }),
+            CnnHead::Categorical => crate::detect::likelihood::posterior_clouds(
+                frames,
+                &taught,
+                self.microscope,
+                &settings,
+                self.filter_seed,
+                progress,
+            )
+            .map(|clouds| {
+                let mut targets = vec![PixelPosterior::new(); truth.len()];
+                for (&index, cloud) in taught.iter().zip(clouds) {
+                    targets[index] = pixel_posterior(&cloud, frames.height, frames.width);
+                }
+                Lesson::Pixels(targets)
+            }),
+        }
+        .context("training.teacher_particles: the teacher's posterior targets");
+        if let Some(length) = length {
+            progress.set_length(length);
+        }
+        progress.set_position(position);
+        progress.set_message(shown);
+        lesson
     }
-    progress.set_position(position);
-    progress.set_message(shown);
-    let mut targets = truth.to_vec();
-    for (&index, mean) in taught.iter().zip(posterior?) {
-        targets[index] = vec![(mean.x, mean.y)];
+}
+
+/// A posterior of the centroid given as weighted points `(x, y, weight)`
+/// (weights summing to 1) as the probability that the centroid is nearest
+/// each pixel of a `height × width` frame (points outside clamped to the
+/// border, as the categorical head's target is), in raster order.
+fn pixel_posterior(cloud: &[(f64, f64, f64)], height: usize, width: usize) -> PixelPosterior {
+    let mut mass = vec![0.0f64; height * width];
+    for &(x, y, weight) in cloud {
+        mass[nearest_pixel(x, y, height, width)] += weight;
     }
-    Ok(targets)
+    (0..)
+        .zip(mass)
+        .filter(|&(_, m)| m > 0.0)
+        .map(|(pixel, m)| (pixel, m as f32))
+        .collect()
 }
 
 /// The seed ensemble member `index` (0-based) trains from: the training
@@ -698,9 +814,8 @@ struct Job<'a> {
     training: &'a Dataset,
     selection: Selection<'a>,
     fresh_params: Option<&'a SimParams>,
-    /// Per frame of `training`, the positions its score map and offsets
-    /// learn instead of the truth ([`teacher_targets`]).
-    teacher: Option<&'a [Vec<(f64, f64)>]>,
+    /// What the teacher gives `training`'s frames.
+    teacher: Option<&'a Lesson>,
 }
 
 /// Trains one network from `seed` (its initialisation, validation split,
@@ -807,17 +922,29 @@ fn train_member(
     Ok((best_net, record))
 }
 
-/// The training set as a source: its truth per frame (`truth`), or the
-/// teacher's targets with the truth beside them.
+/// The training set as a source: its truth per frame (`truth`) and what
+/// the teacher gives it.
 fn fixed_source(job: Job<'_>, truth: Vec<Vec<(f64, f64)>>) -> Source<'_> {
-    let (emitters, true_centroids) = match job.teacher {
-        Some(taught) => (taught.to_vec(), Some(truth)),
-        None => (truth, None),
+    taught_source(&job.training.frames, truth, job.teacher.cloned())
+}
+
+/// Frames as a source: their truth per frame (`truth`), or what the teacher
+/// gives them with the truth beside it.
+fn taught_source(
+    frames: &FrameStack,
+    truth: Vec<Vec<(f64, f64)>>,
+    lesson: Option<Lesson>,
+) -> Source<'_> {
+    let (emitters, true_centroids, posterior) = match lesson {
+        None => (truth, None, None),
+        Some(Lesson::Means(means)) => (means, Some(truth), None),
+        Some(Lesson::Pixels(pixels)) => (truth, None, Some(pixels)),
     };
     Source {
-        frames: &job.training.frames,
+        frames,
         emitters,
         true_centroids,
+        posterior,
     }
 }
 
@@ -964,26 +1091,24 @@ fn fresh_source<'a>(
 ) -> anyhow::Result<Source<'a>> {
     let settings = job.settings;
     let fresh_truth = truth_by_frame(&fresh_dataset.truth, fresh_dataset.frames.n)?;
-    let (emitters, true_centroids) = match job.fresh_params {
-        Some(params) if settings.teacher_fresh_frames => {
-            let taught = posterior_targets(
+    let lesson = match job.fresh_params {
+        Some(microscope) if settings.teacher_fresh_frames => {
+            let teacher = Teacher {
+                head: job.arch.head,
+                microscope,
+                particles: settings.teacher_particles,
+                filter_seed: stream(seed, STREAM_TEACHER, epoch as u64).random::<u64>(),
+            };
+            Some(teacher.teach(
                 &fresh_dataset.frames,
                 &fresh_truth,
-                params,
-                settings.teacher_particles,
-                stream(seed, STREAM_TEACHER, epoch as u64).random::<u64>(),
                 &format!("{label}posterior targets of epoch {epoch}'s fresh frames"),
                 progress,
-            )?;
-            (taught, Some(fresh_truth))
+            )?)
         }
-        _ => (fresh_truth, None),
+        _ => None,
     };
-    Ok(Source {
-        emitters,
-        true_centroids,
-        frames: &fresh_dataset.frames,
-    })
+    Ok(taught_source(&fresh_dataset.frames, fresh_truth, lesson))
 }
 
 /// The validation AUCs of the network after epoch `epoch` on `scored`; an
@@ -1137,7 +1262,10 @@ fn learning_rate(settings: &TrainingSettings, step: usize, total: usize) -> f64 
 
 #[cfg(test)]
 mod tests {
-    use super::{cross_entropy_and_gradient, member_seed};
+    use super::{
+        CnnHead, FrameStack, Lesson, SimParams, Teacher, cross_entropy_and_gradient, member_seed,
+        pixel_posterior, sim, truth_by_frame,
+    };
 
     #[test]
     fn the_categorical_gradient_is_the_cross_entropys() {
@@ -1145,15 +1273,20 @@ mod tests {
         // central finite differences of the returned value (f32 logits, so
         // a step of 1e-2 and a tolerance of 1e-4).
         let logits: Vec<f32> = (0..24).map(|i| ((i * 7 % 11) as f32 - 5.0) * 0.4).collect();
-        let targets = [5, 10];
+        // The first frame's target one pixel (a true centroid), the
+        // second's a posterior over three.
+        let targets = [vec![(5, 1.0)], vec![(10, 0.5), (2, 0.3), (11, 0.2)]];
         let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
         let by_hand: f64 = targets
             .iter()
             .enumerate()
-            .map(|(b, &t)| {
+            .map(|(b, target)| {
                 let frame = &logits[b * 12..(b + 1) * 12];
                 let total: f64 = frame.iter().map(|&l| (l as f64).exp()).sum();
-                total.ln() - frame[t] as f64
+                target
+                    .iter()
+                    .map(|&(p, q)| q as f64 * (total.ln() - frame[p as usize] as f64))
+                    .sum::<f64>()
             })
             .sum::<f64>()
             / 2.0;
@@ -1181,6 +1314,78 @@ mod tests {
                 .sum();
             assert!(sum.abs() < 1e-6, "{sum}");
         }
+    }
+
+    #[test]
+    fn a_posterior_cloud_becomes_the_mass_of_the_pixel_nearest_each_point() {
+        // A 3 × 4 frame (pixel centres at integers): two points in pixel
+        // (row 1, column 2), one in (0, 0), one beyond the right edge that
+        // the border pixel (2, 3) takes, as a centroid's target is clamped.
+        let cloud = [
+            (2.2, 0.9, 0.3),
+            (1.6, 1.4, 0.2),
+            (-0.3, 0.1, 0.1),
+            (5.0, 2.2, 0.4),
+        ];
+        let posterior = pixel_posterior(&cloud, 3, 4);
+        assert_eq!(posterior, vec![(0, 0.1), (6, 0.5), (11, 0.4)]);
+    }
+
+    #[test]
+    fn the_categorical_heads_teacher_gives_each_one_qd_frame_its_posterior_over_the_pixels() {
+        // Bright QDs diffusing at D = 1 in 14 × 14 frames: the posterior of
+        // the centroid spreads over a few pixels around the truth. The
+        // frame of two QDs gets no lesson (it keeps its truth).
+        let microscope = SimParams {
+            height: 14,
+            width: 14,
+            margin_px: 3.0,
+            brightness: 40.0.into(),
+            diffusion_um2_s: 1.0.into(),
+            ..SimParams::default()
+        };
+        let hidden = crate::progress::hidden();
+        let single = sim::simulate(&microscope, 3, 0..5, &hidden).unwrap();
+        let mut truth = truth_by_frame(&single.truth, 5).unwrap();
+        truth.push(vec![(4.0, 4.0), (9.0, 9.0)]);
+        let mut data = single.frames.data.clone();
+        data.extend_from_slice(single.frames.frame(0));
+        let frames = FrameStack::from_vec(6, 14, 14, data).unwrap();
+        let teach = |filter_seed| {
+            let teacher = Teacher {
+                head: CnnHead::Categorical,
+                microscope: &microscope,
+                particles: 2000,
+                filter_seed,
+            };
+            match teacher.teach(&frames, &truth, "", &hidden).unwrap() {
+                Lesson::Pixels(pixels) => pixels,
+                Lesson::Means(_) => panic!("the categorical head is taught means"),
+            }
+        };
+        let lesson = teach(1);
+        assert_eq!(lesson.len(), 6);
+        assert!(lesson[5].is_empty(), "{:?}", lesson[5]);
+        for (frame, posterior) in lesson[..5].iter().enumerate() {
+            let total: f64 = posterior.iter().map(|&(_, q)| f64::from(q)).sum();
+            assert!((total - 1.0).abs() < 1e-5, "frame {frame}: {total}");
+            assert!(posterior.windows(2).all(|pair| pair[0].0 < pair[1].0));
+            let [(x, y)] = truth[frame][..] else {
+                unreachable!()
+            };
+            let near: f64 = posterior
+                .iter()
+                .filter(|&&(p, _)| {
+                    let (px, py) = ((p % 14) as f64, (p / 14) as f64);
+                    (px - x).hypot(py - y) <= 2.5
+                })
+                .map(|&(_, q)| f64::from(q))
+                .sum();
+            assert!(near > 0.9, "frame {frame}: {near:.3} within 2.5 px");
+            assert!(posterior.len() >= 2, "frame {frame}: {posterior:?}");
+        }
+        assert_eq!(teach(1), lesson);
+        assert_ne!(teach(2), lesson);
     }
 
     #[test]
