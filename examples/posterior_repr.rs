@@ -8,15 +8,10 @@
 //! cargo run --release --locked --example posterior_repr -- FRAMES D SEED PARTICLES MAX_CANDIDATES
 //! ```
 use scanloc::detect::candidates::{CentreSearch, greedy_disc_cover};
+use scanloc::detect::cnn::inference::GAUSS_HERMITE;
 use scanloc::detect::likelihood::{LikelihoodParams, posterior_clouds};
 use scanloc::sim::{self, SimParams};
 use scanloc::types::{Distribution, Prediction, RandomDistribution};
-
-const GAUSS_HERMITE: [(f64, f64); 3] = [
-    (0.0, 2.0 / 3.0),
-    (-1.732_050_807_568_877_2, 1.0 / 6.0),
-    (1.732_050_807_568_877_2, 1.0 / 6.0),
-];
 
 /// The cloud binned into cells of side `cell` px centred on multiples of
 /// `cell`: per cell its mass, mean and per-axis sd (capped at `cap`), as

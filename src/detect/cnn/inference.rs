@@ -459,7 +459,7 @@ pub const MAX_SPREAD_SIGMA_PX: f64 = 0.5;
 
 /// The 3-point Gauss–Hermite rule for a standard normal: nodes 0 and ±√3
 /// with weights 2/3 and 1/6 each (exact for polynomials to degree 5).
-const GAUSS_HERMITE: [(f64, f64); 3] = [
+pub const GAUSS_HERMITE: [(f64, f64); 3] = [
     (0.0, 2.0 / 3.0),
     (-1.732_050_807_568_877_2, 1.0 / 6.0),
     (1.732_050_807_568_877_2, 1.0 / 6.0),

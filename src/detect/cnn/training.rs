@@ -350,20 +350,27 @@ fn categorical_loss(
         .into_data()
         .try_to_vec::<f32>()
         .map_err(|e| anyhow::anyhow!("reading the score logits: {e:?}"))?;
-    let mut targets = Vec::with_capacity(n);
-    for (frame_emitters, &posterior) in emitters.iter().zip(posteriors) {
+    let mut centroid_pixels = Vec::with_capacity(n);
+    for frame_emitters in emitters {
         let &[(x, y)] = *frame_emitters else {
             crate::bail_input!(
                 "training frames: the categorical head trains on frames of exactly one QD; a batch frame holds {}",
                 frame_emitters.len()
             );
         };
-        targets.push(if posterior.is_empty() {
-            vec![(nearest_pixel(x, y, height, width) as u32, 1.0)]
-        } else {
-            posterior.to_vec()
-        });
+        centroid_pixels.push([(nearest_pixel(x, y, height, width) as u32, 1.0)]);
     }
+    let targets: Vec<&[(u32, f32)]> = posteriors
+        .iter()
+        .zip(&centroid_pixels)
+        .map(|(&posterior, centroid)| {
+            if posterior.is_empty() {
+                &centroid[..]
+            } else {
+                posterior
+            }
+        })
+        .collect();
     let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
     let gradient = Tensor::<4>::from_data(TensorData::new(gradient, [n, 1, height, width]), device);
     Ok(((logit * gradient).sum(), value))
@@ -376,7 +383,7 @@ fn categorical_loss(
 /// and its gradient with respect to the logits, `(softmax − target) /
 /// frames`; in f64, summed in raster order (a target's terms in its
 /// order).
-fn cross_entropy_and_gradient(logits: &[f32], targets: &[Vec<(u32, f32)>]) -> (f64, Vec<f32>) {
+fn cross_entropy_and_gradient(logits: &[f32], targets: &[&[(u32, f32)]]) -> (f64, Vec<f32>) {
     let frames = targets.len();
     let len = logits.len() / frames.max(1);
     let mut gradient = vec![0.0f32; logits.len()];
@@ -385,7 +392,7 @@ fn cross_entropy_and_gradient(logits: &[f32], targets: &[Vec<(u32, f32)>]) -> (f
     for (b, target) in targets.iter().enumerate() {
         let frame = &logits[b * len..(b + 1) * len];
         let log_normaliser = frame_log_normaliser(frame);
-        for &(p, q) in target {
+        for &(p, q) in *target {
             target_map[p as usize] += f64::from(q);
             total += f64::from(q) * (log_normaliser - frame[p as usize] as f64);
         }
@@ -567,21 +574,9 @@ fn train_and_select(
         (_, None) => crate::bail_input!(
             "training.teacher_particles: posterior-mean targets need the simulator parameters of the training frames (a dataset the manifest simulates, or `scanloc train`)"
         ),
-        (particles, Some(microscope)) => {
-            let truth = truth_by_frame(&training.truth, training.frames.n)?;
-            let lesson = Teacher {
-                head: arch.head,
-                microscope,
-                particles,
-                filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
-            };
-            Some(lesson.teach(
-                &training.frames,
-                &truth,
-                &teacher_message(&progress.message()),
-                progress,
-            )?)
-        }
+        (particles, Some(microscope)) => Some(fixed_lesson(
+            arch.head, training, microscope, particles, seed, progress,
+        )?),
     };
     let job = Job {
         arch,
@@ -633,28 +628,44 @@ pub fn teacher_targets(
     seed: u64,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
-    let truth = truth_by_frame(&training.truth, training.frames.n)?;
-    let teacher = Teacher {
-        head: CnnHead::Peaks,
+    match fixed_lesson(
+        CnnHead::Peaks,
+        training,
         microscope,
         particles,
-        filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
-    };
-    let message = teacher_message(&progress.message());
-    match teacher.teach(&training.frames, &truth, &message, progress)? {
+        seed,
+        progress,
+    )? {
         Lesson::Means(means) => Ok(means),
         Lesson::Pixels(_) => unreachable!("the peaks head's teacher gives means"),
     }
 }
 
-/// The teacher's progress message for the fixed frames, after the
-/// training's name `task`.
-fn teacher_message(task: &str) -> String {
-    if task.is_empty() {
+/// What the teacher of `head` gives the fixed frames of `training` (see
+/// [`teacher_targets`]), under a progress message "posterior targets"
+/// after the training's name.
+fn fixed_lesson(
+    head: CnnHead,
+    training: &Dataset,
+    microscope: &SimParams,
+    particles: usize,
+    seed: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Lesson> {
+    let truth = truth_by_frame(&training.truth, training.frames.n)?;
+    let teacher = Teacher {
+        head,
+        microscope,
+        particles,
+        filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
+    };
+    let task = progress.message();
+    let message = if task.is_empty() {
         "posterior targets".to_string()
     } else {
         format!("{task}: posterior targets")
-    }
+    };
+    teacher.teach(&training.frames, &truth, &message, progress)
 }
 
 /// The likelihood detector as a teacher of one head: how many particles,
@@ -1275,7 +1286,7 @@ mod tests {
         let logits: Vec<f32> = (0..24).map(|i| ((i * 7 % 11) as f32 - 5.0) * 0.4).collect();
         // The first frame's target one pixel (a true centroid), the
         // second's a posterior over three.
-        let targets = [vec![(5, 1.0)], vec![(10, 0.5), (2, 0.3), (11, 0.2)]];
+        let targets: [&[(u32, f32)]; 2] = [&[(5, 1.0)], &[(10, 0.5), (2, 0.3), (11, 0.2)]];
         let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
         let by_hand: f64 = targets
             .iter()

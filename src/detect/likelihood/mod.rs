@@ -317,18 +317,6 @@ impl Filter<'_> {
         p.weight.resize(n, 1.0);
     }
 
-    /// The predictions for frame `index` with counts `counts` (row-major):
-    /// one, or the ranked list.
-    fn locate_frame(
-        &self,
-        index: usize,
-        counts: &[u32],
-        particles: &mut Particles,
-    ) -> Vec<Prediction> {
-        self.filter_frame(index, counts, particles);
-        self.estimate(index, particles)
-    }
-
     /// Runs the filter over frame `index` with counts `counts`
     /// (row-major), leaving the weighted particles of its posterior in
     /// `particles`.
@@ -436,12 +424,12 @@ impl Filter<'_> {
             .collect()
     }
 
-    /// The posterior mean of the trajectory centroid and the posterior mass
+    /// The predictions of frame `frame` from its filtered particles: the
+    /// posterior mean of the trajectory centroid and the posterior mass
     /// within the score radius of it; with `max_candidates` > 1 the greedy
     /// disc cover of the centroids instead, ranked.
     fn estimate(&self, frame: usize, p: &Particles) -> Vec<Prediction> {
         let weighted = self.weighted_centroids(p);
-        let centroids: Vec<(f64, f64)> = weighted.iter().map(|&(x, y, _)| (x, y)).collect();
         if self.settings.max_candidates > 1 {
             let list = candidates::greedy_disc_cover(
                 &weighted,
@@ -457,20 +445,19 @@ impl Filter<'_> {
                 })
                 .collect();
         }
-        let total: f64 = p.weight.iter().sum();
+        let total: f64 = weighted.iter().map(|&(_, _, w)| w).sum();
         let (mut x, mut y) = (0.0, 0.0);
-        for (&(cx, cy), w) in centroids.iter().zip(&p.weight) {
+        for &(cx, cy, w) in &weighted {
             x += w * cx;
             y += w * cy;
         }
         x /= total;
         y /= total;
         let radius2 = self.settings.score_radius_px * self.settings.score_radius_px;
-        let within: f64 = centroids
+        let within: f64 = weighted
             .iter()
-            .zip(&p.weight)
-            .filter(|((cx, cy), _)| (cx - x).powi(2) + (cy - y).powi(2) <= radius2)
-            .map(|(_, w)| w)
+            .filter(|(cx, cy, _)| (cx - x).powi(2) + (cy - y).powi(2) <= radius2)
+            .map(|&(_, _, w)| w)
             .sum();
         vec![Prediction::new(frame, x, y, within / total)]
     }
@@ -548,14 +535,9 @@ pub fn locate_frames(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Prediction>> {
     let filter = Filter::checked(frames, which, microscope, settings, seed)?;
-    let per_frame: Vec<Vec<Prediction>> = which
-        .par_iter()
-        .map_init(Particles::default, |particles, &index| {
-            let predictions = filter.locate_frame(index, frames.frame(index), particles);
-            progress.inc(1);
-            predictions
-        })
-        .collect();
+    let per_frame = filter.each_frame(frames, which, progress, |index, particles| {
+        filter.estimate(index, particles)
+    });
     let predictions: Vec<Prediction> = per_frame.into_iter().flatten().collect();
     refuse_non_finite(&predictions)?;
     Ok(predictions)
@@ -576,13 +558,10 @@ pub fn posterior_clouds(
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<Vec<(f64, f64, f64)>>> {
     let filter = Filter::checked(frames, which, microscope, settings, seed)?;
-    which
-        .par_iter()
-        .map_init(Particles::default, |particles, &index| {
-            filter.filter_frame(index, frames.frame(index), particles);
+    filter
+        .each_frame(frames, which, progress, |index, particles| {
             let mut cloud = filter.weighted_centroids(particles);
             let total: f64 = cloud.iter().map(|point| point.2).sum();
-            progress.inc(1);
             let finite = cloud
                 .iter()
                 .all(|&(x, y, w)| x.is_finite() && y.is_finite() && w.is_finite());
@@ -594,6 +573,7 @@ pub fn posterior_clouds(
             cloud.iter_mut().for_each(|point| point.2 /= total);
             Ok(cloud)
         })
+        .into_iter()
         .collect()
 }
 
@@ -635,6 +615,27 @@ impl<'a> Filter<'a> {
             settings,
             seed,
         })
+    }
+
+    /// Runs the filter over each of the frames `which` of `frames` in
+    /// parallel (each frame on its own stream, so the thread count changes
+    /// nothing) and gives `summary(index, particles)` of each, in the order
+    /// of `which`; `progress` advances by one per frame.
+    fn each_frame<T: Send>(
+        &self,
+        frames: &FrameStack,
+        which: &[usize],
+        progress: &ProgressBar,
+        summary: impl Fn(usize, &Particles) -> T + Sync,
+    ) -> Vec<T> {
+        which
+            .par_iter()
+            .map_init(Particles::default, |particles, &index| {
+                self.filter_frame(index, frames.frame(index), particles);
+                progress.inc(1);
+                summary(index, particles)
+            })
+            .collect()
     }
 }
 
