@@ -152,6 +152,19 @@ pub fn run(
         .iter()
         .map(|track| Series::new(track, &geometry, exposure))
         .collect();
+    for (track, s) in tracks.iter().zip(&series) {
+        if let Some(i) = s.first_step_shorter_than_blur() {
+            return Err(input_error(format!(
+                "{}: particle {}: column time: the step from frame {} to frame {} lasts {} s, not more than the two localisations' blur ({} s): time stamps must increase with the frame, in seconds",
+                args.tracks.display(),
+                track.particle,
+                s.frames[i],
+                s.frames[i + 1],
+                s.times[i + 1] - s.times[i],
+                s.blur[i] + s.blur[i + 1],
+            )));
+        }
+    }
     if series.iter().all(|s| s.len() < 2) {
         return Err(input_error(format!(
             "{}: no track has two localisations",

@@ -7,8 +7,9 @@
 //!   the `lap` linker writes them) and `time` (s). Rows may come in any order; they are grouped by
 //!   particle and sorted by frame. Refused, with one line naming the file,
 //!   row and column: a missing column, a value that is not a finite number,
-//!   a frame that is not a whole number ≥ 0, a negative `sigma`, and a
-//!   particle found twice in one frame.
+//!   a frame that is not a whole number ≥ 0, a negative `sigma`, a
+//!   particle found twice in one frame, and a track with `time` in some of
+//!   its rows but not all.
 //! - Recording truth: `frame,qd,x,y,z_mean,on_fraction,x_seen,y_seen,t_mid,t_beam,t_seen,diffusion`
 //!   ([`RecordingTruthRow`]), as `scanloc simulate-recording --truth`
 //!   writes it. Read back with every column required (in any order, other
@@ -264,6 +265,16 @@ pub fn read_tracks_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<
                 return Err(input_error(format!(
                     "{source}: particle {particle} appears twice in frame {}",
                     pair[0].frame
+                )));
+            }
+            // A time stamp replaces the scan's: a track timed in part would
+            // mix two clocks.
+            let timed = points.iter().filter(|p| p.time_s.is_some()).count();
+            if timed != 0 && timed != points.len() {
+                let untimed = points.iter().find(|p| p.time_s.is_none());
+                return Err(input_error(format!(
+                    "{source}: particle {particle}: column time: empty in frame {} but given in others of the track (give every row of a track its time, or none)",
+                    untimed.map_or(0, |p| p.frame)
                 )));
             }
             Ok(Track { particle, points })

@@ -756,6 +756,24 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
             "\u{93}NUMPY\u{1}\0v\0{'descr': '<u2'}\n\0\0\0",
             "frame",
         ),
+        // Time stamps that do not increase with the frame (or in ms where
+        // seconds are meant, shorter than the blur): every estimate was
+        // dropped and the command printed a header alone with exit 0.
+        (
+            "still",
+            "frame,x,y,particle,time\n0,1,1,0,0\n1,2,2,0,0\n2,2,3,0,0\n",
+            "from frame 0 to frame 1 lasts 0 s",
+        ),
+        (
+            "backwards",
+            "frame,x,y,particle,time\n0,1,1,0,0.0552\n1,2,2,0,0.0276\n2,2,3,0,0.1\n",
+            "from frame 0 to frame 1",
+        ),
+        (
+            "parttimed",
+            "frame,x,y,particle,time\n0,1,1,0,0.0276\n1,2,2,0,\n2,2,3,0,0.0828\n",
+            "empty in frame 1",
+        ),
     ];
     for (name, body, needle) in cases {
         let path = dir.path().join(format!("{name}.csv"));

@@ -474,6 +474,19 @@ impl Series {
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }
+
+    /// The first step (index of its first localisation) whose time is not
+    /// longer than its two localisations' blur, `Δtᵢ ≤ τᵢ + τᵢ₊₁`: its
+    /// displacement would have a variance `2D(Δtᵢ − τᵢ − τᵢ₊₁) ≤ 0`, which
+    /// no estimator can use. The scan's own stamps never give one (a
+    /// frame's blur is at most a sixth of its period); a table's `time`
+    /// column can (time stamps that do not increase, or not in seconds).
+    pub fn first_step_shorter_than_blur(&self) -> Option<usize> {
+        (1..self.len()).map(|i| i - 1).find(|&i| {
+            let step = self.times[i + 1] - self.times[i];
+            step.is_nan() || step <= self.blur[i] + self.blur[i + 1]
+        })
+    }
 }
 
 /// The estimators (written as their [`Method::name`]).
