@@ -49,7 +49,8 @@ enum ExposureArg {
 /// rows (particle `ensemble`).
 #[derive(Debug, Args)]
 pub struct DiffusionArgs {
-    /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s).
+    /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s: in every row
+    /// of a track or in none, each step longer than its two localisations' blur).
     #[arg(long)]
     tracks: PathBuf,
     /// The scan the localisations come from.
