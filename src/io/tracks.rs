@@ -269,8 +269,9 @@ pub fn read_tracks_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<
             }
             // A time stamp replaces the scan's: a track timed in part would
             // mix two clocks.
-            let untimed = points.iter().find(|p| p.time_s.is_none());
-            if let (Some(untimed), true) = (untimed, points.iter().any(|p| p.time_s.is_some())) {
+            if let Some(untimed) = points.iter().find(|p| p.time_s.is_none())
+                && points.iter().any(|p| p.time_s.is_some())
+            {
                 return Err(input_error(format!(
                     "{source}: particle {particle}: column time: empty in frame {} but given in others of the track (give every row of a track its time, or none)",
                     untimed.frame
