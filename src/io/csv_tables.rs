@@ -187,7 +187,8 @@ pub fn read_predictions_scored_by_from<R: Read>(
             match text.parse::<f64>() {
                 Ok(value) if value.is_finite() => Ok(value),
                 _ => Err(input_error(format!(
-                    "{name}: row {row}: {column}: expected a finite number, got {text:?}"
+                    "{name}: row {row}: {column}: expected a finite number, got {}",
+                    quoted(text)
                 ))),
             }
         };
@@ -215,7 +216,8 @@ pub fn read_predictions_scored_by_from<R: Read>(
             Some(text) => match text.parse::<u32>() {
                 Ok(rank) if rank >= 1 => Some(rank),
                 _ => crate::bail_input!(
-                    "{name}: row {row}: candidate: expected a whole number ≥ 1, got {text:?}"
+                    "{name}: row {row}: candidate: expected a whole number ≥ 1, got {}",
+                    quoted(text)
                 ),
             },
         };
@@ -243,7 +245,7 @@ pub fn parse_frame_number(text: &str) -> Result<usize, String> {
                 // Saturates for huge values, which the bound below refuses.
                 value as u64
             }
-            _ => return Err(format!("expected a whole number ≥ 0, got {text:?}")),
+            _ => return Err(format!("expected a whole number ≥ 0, got {}", quoted(text))),
         },
     };
     let limit = crate::limits::MAX_FRAMES;
@@ -268,7 +270,7 @@ fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<
         return Ok(f64::NAN);
     }
     text.parse::<f64>()
-        .map_err(|_| serde::de::Error::custom(format!("expected a number, got {text:?}")))
+        .map_err(|_| serde::de::Error::custom(format!("expected a number, got {}", quoted(text))))
 }
 
 /// Writes predictions as `frame,x,y,score` (with `sigma_x,sigma_y` before
@@ -367,7 +369,10 @@ fn read_rows<T: for<'de> Deserialize<'de>>(
 }
 
 /// Starts reading CSV from `reader`: its header, checked to have every
-/// `required` column (an error names `source` and the missing columns).
+/// `required` column (an error names `source` and the missing columns) and
+/// no column named twice (which of the two a reader took would be a guess;
+/// unnamed columns, as pandas writes an index, are left alone), with each
+/// record bounded by [`BoundedRecords`].
 pub(crate) fn open_table<R: Read>(
     reader: R,
     source: &str,
@@ -390,7 +395,33 @@ pub(crate) fn open_table<R: Read>(
             headers.iter().collect::<Vec<_>>().join(",")
         )));
     }
+    let named: Vec<&str> = headers.iter().map(str::trim).collect();
+    if let Some((later, name)) = named
+        .iter()
+        .enumerate()
+        .find(|(at, name)| !name.is_empty() && named[..*at].contains(name))
+    {
+        return Err(input_error(format!(
+            "{source}: column {} appears twice in the header (columns {} and {})",
+            quoted(name),
+            named.iter().position(|n| n == name).unwrap_or(0) + 1,
+            later + 1
+        )));
+    }
     Ok((reader, headers))
+}
+
+/// The longest a cell is quoted in an error, in characters.
+const QUOTED_CELL_CHARS: usize = 40;
+
+/// A cell's text as an error quotes it: in quotes, cut to its first
+/// [`QUOTED_CELL_CHARS`] characters and marked `…` where longer, so that a
+/// runaway cell (a row may hold a MiB) keeps the error one short line.
+pub(crate) fn quoted(text: &str) -> String {
+    match text.char_indices().nth(QUOTED_CELL_CHARS) {
+        Some((cut, _)) => format!("{:?}…", &text[..cut]),
+        None => format!("{text:?}"),
+    }
 }
 
 /// Where a [`BoundedRecords`] is within the CSV it reads, as far as

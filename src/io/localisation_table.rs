@@ -80,8 +80,9 @@ impl LocalisationTable {
             match text.parse::<f64>() {
                 Ok(score) if !score.is_nan() => keep.push(score >= least),
                 _ => crate::bail_input!(
-                    "{name}: row {}: score: expected a number, got {text:?}",
-                    index + 1
+                    "{name}: row {}: score: expected a number, got {}",
+                    index + 1,
+                    super::csv_tables::quoted(text)
                 ),
             }
         }
@@ -143,8 +144,8 @@ pub fn read_localisation_table_from<R: Read>(
             match cell(at).parse::<f64>() {
                 Ok(value) if value.is_finite() => Ok(value),
                 _ => Err(input_error(format!(
-                    "{name}: row {row}: {column}: expected a finite number, got {:?}",
-                    cell(at)
+                    "{name}: row {row}: {column}: expected a finite number, got {}",
+                    super::csv_tables::quoted(cell(at))
                 ))),
             }
         };

@@ -22,6 +22,7 @@ use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::Path;
 
+use super::csv_tables::quoted;
 use super::{PendingFile, open_input};
 use crate::error::input_error;
 use crate::types::{RecordingTruthRow, Track, TrackPoint};
@@ -113,8 +114,9 @@ fn parse_truth_row(
         match text.parse::<f64>() {
             Ok(value) if value.is_finite() => Ok(value),
             _ => Err(format!(
-                "column {}: expected a finite number, got {text:?}",
-                RECORDING_TRUTH_COLUMNS[column]
+                "column {}: expected a finite number, got {}",
+                RECORDING_TRUTH_COLUMNS[column],
+                quoted(text)
             )),
         }
     };
@@ -124,8 +126,8 @@ fn parse_truth_row(
         Ok(value) if value <= i64::MAX as u64 => value,
         _ => {
             return Err(format!(
-                "column qd: expected a whole number from 0 to 2^63 − 1, got {:?}",
-                cell(1)
+                "column qd: expected a whole number from 0 to 2^63 − 1, got {}",
+                quoted(cell(1))
             ));
         }
     };
@@ -242,11 +244,7 @@ impl Columns {
 
 /// Reads a tracks table from any reader; `source` names it in errors.
 pub fn read_tracks_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<Track>> {
-    let mut reader = csv::Reader::from_reader(reader);
-    let headers = reader
-        .headers()
-        .map_err(|e| input_error(format!("{source}: not a CSV table: {e}")))?
-        .clone();
+    let (mut reader, headers) = super::csv_tables::open_table(reader, source, &[])?;
     let columns = Columns::find(&headers, source)?;
     let mut tracks: BTreeMap<i64, Vec<TrackPoint>> = BTreeMap::new();
     for (index, record) in reader.records().enumerate() {
@@ -295,7 +293,8 @@ fn parse_row(record: &csv::StringRecord, columns: &Columns) -> Result<(i64, Trac
         match text.parse::<f64>() {
             Ok(value) if value.is_finite() => Ok(value),
             _ => Err(format!(
-                "column {name}: expected a finite number, got {text:?}"
+                "column {name}: expected a finite number, got {}",
+                quoted(text)
             )),
         }
     };
@@ -308,7 +307,8 @@ fn parse_row(record: &csv::StringRecord, columns: &Columns) -> Result<(i64, Trac
             Ok(value) if value.fract() == 0.0 && value.abs() < 9e15 => value as i64,
             _ => {
                 return Err(format!(
-                    "column particle: expected a whole number, got {particle_text:?}"
+                    "column particle: expected a whole number, got {}",
+                    quoted(particle_text)
                 ));
             }
         },

@@ -272,6 +272,135 @@ fn csv_rows_longer_than_the_bound_are_refused_naming_file_and_line() {
         let output = scanloc(&["score", "--truth", truth, "--locs", locs]);
         assert_refused(&output, &[file, line, "longer than"]);
     }
+    // The tracking commands' tables are bounded alike (the tracks reader
+    // held a whole 300 MB cell in memory and quoted it back in its error).
+    let good_tracks = write(
+        dir.path(),
+        "tracks.csv",
+        b"frame,x,y,particle\n0,5,5,0\n1,6,6,0\n2,6,7,0\n",
+    );
+    let mut tracks_row = b"frame,x,y,particle\n0,5,5,".to_vec();
+    tracks_row.extend_from_slice(&long);
+    let tracks_row = write(dir.path(), "tracks-row.csv", &tracks_row);
+    let out = dir.path().join("out.csv");
+    let out = out.to_str().unwrap();
+    for (args, file, line) in [
+        (
+            vec!["diffusion", "--tracks", &tracks_row],
+            "tracks-row.csv",
+            "line 2",
+        ),
+        (
+            vec![
+                "link",
+                "--locs",
+                &one_line,
+                "--search-range",
+                "3",
+                "--out",
+                out,
+            ],
+            "one-line.csv",
+            "line 1",
+        ),
+        (
+            vec![
+                "score-tracks",
+                "--tracks",
+                &good_tracks,
+                "--truth",
+                &one_line,
+            ],
+            "one-line.csv",
+            "line 1",
+        ),
+    ] {
+        assert_refused(&scanloc(&args), &[file, line, "longer than"]);
+    }
+}
+
+#[test]
+fn a_bad_cell_is_quoted_short_and_a_column_named_twice_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let long = "9".repeat(500_000);
+    let out = dir.path().join("out.csv");
+    let out = out.to_str().unwrap();
+    let tracks = write(
+        dir.path(),
+        "long-cell.csv",
+        format!("frame,x,y,particle\n0,1,1,{long}x\n").as_bytes(),
+    );
+    let locs = write(
+        dir.path(),
+        "long-x.csv",
+        format!("frame,x,y\n0,{long}x,1\n").as_bytes(),
+    );
+    for (args, file, column) in [
+        (
+            vec!["diffusion", "--tracks", &tracks],
+            "long-cell.csv",
+            "particle",
+        ),
+        (
+            vec!["link", "--locs", &locs, "--search-range", "3", "--out", out],
+            "long-x.csv",
+            "x",
+        ),
+    ] {
+        let output = scanloc(&args);
+        assert_refused(&output, &[file, column, "\"999", "…"]);
+        assert!(stderr(&output).len() < 300, "{:.300}", stderr(&output));
+    }
+    // Which of two columns of one name a reader took was a guess: the
+    // first, silently.
+    let twice_tracks = write(
+        dir.path(),
+        "twice-tracks.csv",
+        b"frame,x,y,particle,particle\n0,1,1,3,4\n1,1,1,3,4\n2,1,2,3,4\n",
+    );
+    let twice_locs = write(dir.path(), "twice-locs.csv", b"frame,x,y,x\n0,1,1,5\n");
+    let twice_truth = write(dir.path(), "twice-truth.csv", b"frame,x,y, y\n0,1,1,2\n");
+    let good_locs = write(dir.path(), "l.csv", b"frame,x,y,score\n0,5,5,1\n");
+    for (args, file, column) in [
+        (
+            vec!["diffusion", "--tracks", &twice_tracks],
+            "twice-tracks.csv",
+            "\"particle\" appears twice in the header (columns 4 and 5)",
+        ),
+        (
+            vec![
+                "link",
+                "--locs",
+                &twice_locs,
+                "--search-range",
+                "3",
+                "--out",
+                out,
+            ],
+            "twice-locs.csv",
+            "\"x\" appears twice in the header (columns 2 and 4)",
+        ),
+        (
+            vec!["score", "--truth", &twice_truth, "--locs", &good_locs],
+            "twice-truth.csv",
+            "\"y\" appears twice",
+        ),
+    ] {
+        assert_refused(&scanloc(&args), &[file, column]);
+    }
+    assert!(!Path::new(out).exists());
+    // An unnamed column, as pandas writes its index, is no name at all.
+    let indexed = write(dir.path(), "indexed.csv", b",frame,x,y\n0,0,1,1\n1,1,2,1\n");
+    let output = scanloc(&[
+        "link",
+        "--locs",
+        &indexed,
+        "--search-range",
+        "3",
+        "--out",
+        out,
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
 }
 
 /// Truth and predictions on frames `frames` (one QD and one prediction
