@@ -40,6 +40,35 @@ pub const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
 /// at once.
 pub const MAX_THREADS: usize = 1024;
 
+/// Largest search range of a linker, in the localisation table's units
+/// (pixels, or whatever a user's table is in): far beyond any field, and
+/// small enough that a link's cost, which multiplies two variances of its
+/// square, stays finite. The LAP's step variance is bounded by its square.
+pub const MAX_SEARCH_RANGE: f64 = 1e9;
+/// Largest diffusion coefficient a linker is told, µm²/s: a thousand times
+/// a small molecule's in water.
+pub const MAX_DIFFUSION_UM2_S: f64 = 1e6;
+/// Largest LAP gate, in standard deviations of a link's displacement.
+pub const MAX_GATE_SIGMAS: f64 = 1e3;
+
+/// Checks a linker setting (`name` names the field or flag): a finite
+/// number > 0 and at most `max` (one of the bounds above).
+pub fn check_link_setting(name: &str, value: f64, max: f64) -> Result<f64, FieldError> {
+    if !(value.is_finite() && value > 0.0) {
+        return Err(FieldError::new(
+            name,
+            format!("must be a finite number > 0, got {value}"),
+        ));
+    }
+    if value > max {
+        return Err(FieldError::new(
+            name,
+            format!("must be at most {max:e}, got {value:e}"),
+        ));
+    }
+    Ok(value)
+}
+
 /// Checks a frame count (`name` names the field or flag): 1 to
 /// [`MAX_FRAMES`].
 pub fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {

@@ -146,15 +146,13 @@ enum Configured {
 
 impl Configured {
     fn from_args(args: &LinkArgs) -> anyhow::Result<Self> {
-        let positive = |flag: &str, value: f64| {
-            if value.is_finite() && value > 0.0 {
-                Ok(value)
-            } else {
-                Err(input_error(format!(
-                    "{flag}: must be a finite number > 0, got {value}"
-                )))
-            }
+        use scanloc::limits::{
+            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting,
         };
+        let bounded = |flag: &str, value: f64, max: f64| -> anyhow::Result<f64> {
+            Ok(check_link_setting(flag, value, max)?)
+        };
+        let positive = |flag: &str, value: f64| bounded(flag, value, f64::MAX);
         match args.linker {
             Linker::Trackpy => {
                 if args.diffusion.is_some() || args.max_gap.is_some() || args.gate.is_some() {
@@ -167,7 +165,7 @@ impl Configured {
                     return Err(input_error("--search-range: needed by --linker trackpy"));
                 };
                 Ok(Self::Trackpy(TrackpyParams {
-                    search_range: positive("--search-range", search_range)?,
+                    search_range: bounded("--search-range", search_range, MAX_SEARCH_RANGE)?,
                     memory: args.memory.unwrap_or(0),
                 }))
             }
@@ -180,14 +178,15 @@ impl Configured {
                 let max_gap = args.max_gap.unwrap_or(DEFAULT_MAX_GAP);
                 let mut params = match (args.diffusion, args.search_range) {
                     (Some(d), _) => LapParams::from_diffusion(
-                        positive("--diffusion", d)?,
+                        bounded("--diffusion", d, MAX_DIFFUSION_UM2_S)?,
                         positive("--frame-time-ms", args.frame_time_ms.unwrap_or(f64::NAN))?,
                         positive("--pixel-size-um", args.pixel_size_um.unwrap_or(f64::NAN))?,
                         max_gap,
                     ),
-                    (None, Some(r)) => {
-                        LapParams::from_search_range(positive("--search-range", r)?, max_gap)
-                    }
+                    (None, Some(r)) => LapParams::from_search_range(
+                        bounded("--search-range", r, MAX_SEARCH_RANGE)?,
+                        max_gap,
+                    ),
                     (None, None) => {
                         return Err(input_error(
                             "--linker lap needs --search-range or --diffusion (with \
@@ -196,7 +195,7 @@ impl Configured {
                     }
                 };
                 if let Some(gate) = args.gate {
-                    params.gate_sigmas = positive("--gate", gate)?;
+                    params.gate_sigmas = bounded("--gate", gate, MAX_GATE_SIGMAS)?;
                 }
                 params.validate()?;
                 Ok(Self::Lap(params))

@@ -95,22 +95,19 @@ impl LapParams {
         }
     }
 
-    /// Refuses a step variance that is not a finite number > 0 and gaps of
-    /// more than [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
+    /// Refuses a step variance that is not a finite number > 0 or exceeds
+    /// the square of [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE),
+    /// a gate beyond [`MAX_GATE_SIGMAS`](crate::limits::MAX_GATE_SIGMAS)
+    /// and gaps of more than [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
     pub fn validate(&self) -> anyhow::Result<()> {
-        if !(self.step_variance.is_finite() && self.step_variance > 0.0) {
-            return Err(input_error(format!(
-                "step variance: must be a finite number > 0 px² (check the search range, \
-                 diffusion, frame time and pixel size), got {}",
-                self.step_variance
-            )));
-        }
-        if !(self.gate_sigmas.is_finite() && self.gate_sigmas > 0.0) {
-            return Err(input_error(format!(
-                "gate: must be a finite number > 0 standard deviations, got {}",
-                self.gate_sigmas
-            )));
-        }
+        use crate::limits::{MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting};
+        check_link_setting(
+            "step variance (px²; from the search range, or the diffusion, frame time and \
+             pixel size)",
+            self.step_variance,
+            MAX_SEARCH_RANGE * MAX_SEARCH_RANGE,
+        )?;
+        check_link_setting("gate", self.gate_sigmas, MAX_GATE_SIGMAS)?;
         if self.max_gap > crate::limits::MAX_FRAMES {
             return Err(input_error(format!(
                 "max gap: must be at most {} frames, got {}",

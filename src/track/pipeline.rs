@@ -88,15 +88,8 @@ impl LinkerSpec {
     /// Checks the settings; the error names the field.
     pub fn validate(&self) -> Result<(), crate::error::FieldError> {
         use crate::error::FieldError;
-        let positive = |name: &str, value: f64| {
-            if value.is_finite() && value > 0.0 {
-                Ok(())
-            } else {
-                Err(FieldError::new(
-                    name,
-                    format!("must be a finite number > 0, got {value}"),
-                ))
-            }
+        use crate::limits::{
+            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting,
         };
         let frames = |name: &str, value: usize| {
             if value <= crate::limits::MAX_FRAMES {
@@ -113,13 +106,17 @@ impl LinkerSpec {
         };
         match self {
             LinkerSpec::Trackpy(s) => {
-                positive("search_range", s.search_range)?;
+                check_link_setting("search_range", s.search_range, MAX_SEARCH_RANGE)?;
                 frames("memory", s.memory)
             }
             LinkerSpec::Lap(s) => {
                 match (s.search_range, s.diffusion_um2_s) {
-                    (Some(range), None) => positive("search_range", range)?,
-                    (None, Some(d)) => positive("diffusion_um2_s", d)?,
+                    (Some(range), None) => {
+                        check_link_setting("search_range", range, MAX_SEARCH_RANGE)?;
+                    }
+                    (None, Some(d)) => {
+                        check_link_setting("diffusion_um2_s", d, MAX_DIFFUSION_UM2_S)?;
+                    }
                     _ => {
                         return Err(FieldError::new(
                             "search_range",
@@ -128,7 +125,7 @@ impl LinkerSpec {
                     }
                 }
                 if let Some(gate) = s.gate_sigmas {
-                    positive("gate_sigmas", gate)?;
+                    check_link_setting("gate_sigmas", gate, MAX_GATE_SIGMAS)?;
                 }
                 frames("max_gap", s.max_gap)
             }

@@ -39,7 +39,6 @@
 use std::ops::Range;
 
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
-use crate::error::input_error;
 
 /// TrackPy's largest number of candidate sources per destination.
 pub const MAX_NEIGHBORS: usize = 10;
@@ -57,14 +56,14 @@ pub struct TrackpyParams {
 }
 
 impl TrackpyParams {
-    /// Refuses a search range that is not a finite number > 0.
+    /// Refuses a search range that is not a finite number > 0 and at most
+    /// [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE).
     pub fn validate(&self) -> anyhow::Result<()> {
-        if !(self.search_range.is_finite() && self.search_range > 0.0) {
-            return Err(input_error(format!(
-                "search range: must be a finite number > 0 px, got {}",
-                self.search_range
-            )));
-        }
+        crate::limits::check_link_setting(
+            "search range",
+            self.search_range,
+            crate::limits::MAX_SEARCH_RANGE,
+        )?;
         Ok(())
     }
 }

@@ -290,6 +290,28 @@ fn refused_with(text: &[u8], extra: &[&str], expected: &str) {
     assert!(!Path::new(&out).exists());
 }
 
+/// Runs `scanloc link` on a good table with `flags` (after
+/// `--search-range 3`, which a later one replaces), expecting a one-line
+/// refusal (exit 2) containing `expected`, and no output.
+fn refused_flags(text: &[u8], flags: &[&str], expected: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let locs = dir.path().join("locs.csv");
+    let out = dir.path().join("tracks.csv");
+    std::fs::write(&locs, text).unwrap();
+    let (locs_arg, out_arg) = (locs.to_string_lossy(), out.to_string_lossy());
+    let mut args = vec!["link", "--locs", &locs_arg, "--out", &out_arg];
+    if !flags.contains(&"--search-range") && !flags.contains(&"--diffusion") {
+        args.extend(["--search-range", "3"]);
+    }
+    args.extend_from_slice(flags);
+    let run = scanloc(&args);
+    let message = stderr(&run);
+    assert_eq!(run.status.code(), Some(2), "{flags:?}: {message}");
+    assert_eq!(message.lines().count(), 1, "{message}");
+    assert!(message.contains(expected), "{flags:?}: {message}");
+    assert!(!Path::new(&out).exists());
+}
+
 #[test]
 fn bad_input_is_one_line_and_exit_2() {
     refused(b"frame,x\n0,1\n", "missing column(s) y");
@@ -317,6 +339,47 @@ fn bad_input_is_one_line_and_exit_2() {
         &["--min-score", "0.3"],
         "row 2: score: expected a number",
     );
+    // Settings beyond any recording: squared in a link's cost, they
+    // overflowed it, and lap linked nothing (exit 0).
+    let one = b"frame,x,y\n0,1,1\n1,2,2\n";
+    for (flags, expected) in [
+        (
+            &["--search-range", "1e300"][..],
+            "--search-range: must be at most 1e9",
+        ),
+        (
+            &["--linker", "lap", "--gate", "1e300"],
+            "--gate: must be at most 1e3",
+        ),
+        (
+            &[
+                "--linker",
+                "lap",
+                "--diffusion",
+                "1e300",
+                "--frame-time-ms",
+                "27.6",
+                "--pixel-size-um",
+                "0.07",
+            ],
+            "--diffusion: must be at most 1e6",
+        ),
+        (
+            &[
+                "--linker",
+                "lap",
+                "--diffusion",
+                "1",
+                "--frame-time-ms",
+                "1e300",
+                "--pixel-size-um",
+                "0.07",
+            ],
+            "step variance",
+        ),
+    ] {
+        refused_flags(one, flags, expected);
+    }
     // Not a table at all: the bytes of a .npy file.
     refused(
         b"\x93NUMPY\x01\x00v\x00{'descr': '<u2'}\n\xff\xfe\x00",

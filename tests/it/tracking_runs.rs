@@ -254,6 +254,20 @@ fn bad_tracking_sections_are_one_line_naming_the_field() {
             "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5, diffusion_um2_s: 1}}\n",
             "linkers.lap.lap.search_range",
         ),
+        // Beyond any recording: their squares overflowed a link's cost,
+        // which then linked nothing (exit 0).
+        (
+            "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {diffusion_um2_s: 1e300}}\n",
+            "linkers.lap.lap.diffusion_um2_s: must be at most 1e6",
+        ),
+        (
+            "recordings:\n  rec: {frames: 5}\nlinkers:\n  tp: {trackpy: {search_range: 1e300}}\n",
+            "linkers.tp.trackpy.search_range: must be at most 1e9",
+        ),
+        (
+            "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5, gate_sigmas: 1e300}}\n",
+            "linkers.lap.lap.gate_sigmas: must be at most 1e3",
+        ),
         (
             "recordings:\n  rec: {diffusion_um2_s: 1}\n",
             "recordings.rec",
