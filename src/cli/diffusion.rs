@@ -83,7 +83,7 @@ pub struct DiffusionArgs {
     /// series conditioned on the box: for a localiser whose chance of
     /// finding a particle near an edge depends on how it moved, at the
     /// cost of the steps near the edges (docs/tracking.md, "Near the
-    /// field's edges": 2 for the recordings' CNN). 0: the whole field.
+    /// field's edges": 2 for the recordings' CNN). 0: the whole field; less than half the field's shorter side.
     #[arg(long, default_value_t = 0.0)]
     ensemble_margin_px: f64,
     /// Take the table's sigma_x, sigma_y as each localisation's known
@@ -133,6 +133,19 @@ pub fn run(
         return Err(input_error(format!(
             "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
             args.ensemble_margin_px
+        )));
+    }
+    scanloc::track::pipeline::check_ensemble_margin(
+        args.ensemble_margin_px,
+        geometry.height,
+        geometry.width,
+    )
+    .map_err(|e| input_error(format!("--ensemble-margin-px: {e}")))?;
+    if args.min_points < 2 || args.min_points > scanloc::limits::MAX_FRAMES {
+        return Err(input_error(format!(
+            "--min-points: must be 2 to {}, got {}",
+            scanloc::limits::MAX_FRAMES,
+            args.min_points
         )));
     }
     if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
@@ -226,8 +239,18 @@ pub fn run(
     }
     let points: usize = series.iter().filter(|s| s.len() > 1).map(Series::len).sum();
     for (method, e) in &estimates {
-        if let Some(estimate) = &e.ensemble {
-            row(stdout, "ensemble", points, *method, estimate)?;
+        match &e.ensemble {
+            Some(estimate) => row(stdout, "ensemble", points, *method, estimate)?,
+            None => writeln!(
+                stderr,
+                "{}: no ensemble estimate: too few steps{}",
+                method.name(),
+                if *method == Method::Ml && args.ensemble_margin_px > 0.0 {
+                    " inside the ensemble's margin (--ensemble-margin-px)"
+                } else {
+                    ""
+                }
+            )?,
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -320,6 +320,20 @@ pub fn valid_ensemble_gate(share: f64) -> bool {
     (share > 0.0 && share <= MAX_ENSEMBLE_GATE) || share == 1.0
 }
 
+/// Checks that an ensemble margin of `margin_px` leaves a box inside a
+/// field of `height × width` px (the ML ensemble takes only the steps in
+/// it; with none, it would have nothing to estimate from).
+pub fn check_ensemble_margin(margin_px: f64, height: usize, width: usize) -> Result<(), String> {
+    if 2.0 * margin_px < height.min(width) as f64 {
+        Ok(())
+    } else {
+        Err(format!(
+            "{margin_px} px inside each edge leaves nothing of the {height} × {width} px field \
+             (a margin must be less than half its shorter side)"
+        ))
+    }
+}
+
 fn default_gate_px() -> f64 {
     DEFAULT_GATE_PX
 }

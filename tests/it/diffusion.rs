@@ -790,6 +790,9 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
         ("--pixel-size-um", "1e300"),
         ("--dwell-us", "1e300"),
         ("--dead-time-ms", "1e9"),
+        // A margin that leaves no box gave no ML ensemble row and no word.
+        ("--ensemble-margin-px", "12.5"),
+        ("--min-points", "0"),
     ] {
         let (code, out, err) = crate::common::cli_in_process(&[
             "diffusion",
@@ -804,6 +807,24 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
             "{err}"
         );
     }
+    // A box too small for any run: the missing row is said on stderr.
+    let (code, out, err) = crate::common::cli_in_process(&[
+        "diffusion",
+        "--tracks",
+        good.to_str().unwrap(),
+        "--ensemble-margin-px",
+        "11.9",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        !out.lines()
+            .any(|l| l.starts_with("ensemble,") && l.contains(",ml,")),
+        "{out}"
+    );
+    assert!(
+        err.contains("ml: no ensemble estimate: too few steps inside the ensemble's margin"),
+        "{err}"
+    );
 }
 
 #[test]

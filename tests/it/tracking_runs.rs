@@ -289,6 +289,10 @@ fn bad_tracking_sections_are_one_line_naming_the_field() {
             "recordings.rec",
         ),
         (
+            "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5}}\ntracking:\n  scoring: {ensemble_margin_px: 12}\n  evaluations:\n    - {detector: cg, linker: lap, recordings: [rec]}\n",
+            "tracking.scoring.ensemble_margin_px: 12 px inside each edge leaves nothing of the 24 × 25 px field",
+        ),
+        (
             "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5}}\ntracking:\n  scoring: {gate_px: 0}\n  evaluations:\n    - {detector: cg, linker: lap, recordings: [rec]}\n",
             "tracking.scoring.gate_px",
         ),

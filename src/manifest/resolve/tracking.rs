@@ -184,12 +184,24 @@ pub(super) fn resolve_tracking(
         }
         for (position, recording) in entry.recordings.iter().enumerate() {
             let recording_path = super::item(&recordings_path, position);
-            if !recordings.iter().any(|r| &r.name == recording) {
+            let Some(found) = recordings.iter().find(|r| &r.name == recording) else {
                 return Err(FieldError::at(
                     &recording_path,
                     format!("`{recording}` is not a recording of this manifest"),
                 ));
-            }
+            };
+            let field = &found.params.microscope;
+            crate::track::pipeline::check_ensemble_margin(
+                section.scoring.ensemble_margin_px,
+                field.height,
+                field.width,
+            )
+            .map_err(|e| {
+                FieldError::at(
+                    &super::field(&super::field(&path, "scoring"), "ensemble_margin_px"),
+                    format!("{e}, recording `{recording}`"),
+                )
+            })?;
             let spec = TrackingEvaluationSpec {
                 detector: entry.detector.clone(),
                 linker: entry.linker.clone(),
