@@ -83,7 +83,8 @@ pub struct DiffusionArgs {
     /// series conditioned on the box: for a localiser whose chance of
     /// finding a particle near an edge depends on how it moved, at the
     /// cost of the steps near the edges (docs/tracking.md, "Near the
-    /// field's edges": 2 for the recordings' CNN). 0: the whole field; less than half the field's shorter side.
+    /// field's edges": 2 for the recordings' CNN). 0: the whole field;
+    /// less than half the field's shorter side.
     #[arg(long, default_value_t = 0.0)]
     ensemble_margin_px: f64,
     /// Take the table's sigma_x, sigma_y as each localisation's known
