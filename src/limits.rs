@@ -40,6 +40,11 @@ pub const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
 /// at once.
 pub const MAX_THREADS: usize = 1024;
 
+/// Largest matching radius ε of the metric, px: far beyond any frame.
+pub const MAX_EPS_PX: f64 = 1e6;
+/// Most matching radii one score lists.
+pub const MAX_RADII: usize = 32;
+
 /// Largest search range of a linker, in the localisation table's units
 /// (pixels, or whatever a user's table is in): far beyond any field, and
 /// small enough that a link's cost, which multiplies two variances of its

@@ -108,6 +108,7 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         )?;
     }
     let resamples = paired::check_resamples("--resamples", args.resamples)?;
+    metrics::check_radii("--eps", &args.eps)?;
     let truth = csv_tables::read_truth(&args.truth)?;
     let predictions = csv_tables::read_predictions_scored_by(&args.locs, &args.score_column)?;
     // --compare's file and its localisations.

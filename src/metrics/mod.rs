@@ -338,20 +338,33 @@ pub fn score(
     )
 }
 
-/// Refuses a matching radius that is not a positive number of pixels.
-fn check_radii(eps_px: &[f64]) -> anyhow::Result<()> {
+/// Refuses a matching radius that is not a positive number of pixels up to
+/// [`MAX_EPS_PX`](crate::limits::MAX_EPS_PX), and more than
+/// [`MAX_RADII`](crate::limits::MAX_RADII) radii: the bounds a manifest's
+/// `metrics.eps_px` has. `name` names the setting in the error.
+pub fn check_radii(name: &str, eps_px: &[f64]) -> anyhow::Result<()> {
+    use crate::limits::{MAX_EPS_PX, MAX_RADII};
+    if eps_px.len() > MAX_RADII {
+        return Err(input_error(format!(
+            "{name}: at most {MAX_RADII} radii, got {}",
+            eps_px.len()
+        )));
+    }
     for &eps in eps_px {
-        if !(eps.is_finite() && eps > 0.0) {
+        if !(eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX) {
+            let shown = if eps.abs() > MAX_EPS_PX {
+                format!("{eps:e}")
+            } else {
+                eps.to_string()
+            };
             return Err(input_error(format!(
-                "eps: must be a positive number of pixels, got {eps}"
+                "{name}: must be a positive number of pixels (at most {MAX_EPS_PX:e}), got {shown}"
             )));
         }
     }
     Ok(())
 }
 
-/// Refuses a test set without ground truth, where recall and the AUC are
-/// undefined.
 fn refuse_without_truth(truth: &[TruthRow]) -> anyhow::Result<()> {
     if truth.is_empty() {
         return Err(input_error(
@@ -378,7 +391,7 @@ pub fn score_read_as(
     reading: ScoreReading,
 ) -> anyhow::Result<Score> {
     let truth_by_frame = checked_truth_by_frame(predictions, truth, frames)?;
-    check_radii(eps_px)?;
+    check_radii("eps", eps_px)?;
     if let Some(threshold) = reading.threshold
         && !threshold.is_finite()
     {

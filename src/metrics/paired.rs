@@ -211,7 +211,7 @@ fn resampled_aucs(
 ) -> anyhow::Result<Resampled> {
     check_resamples("resamples", resamples as u64)?;
     refuse_without_truth(truth)?;
-    check_radii(eps_px)?;
+    check_radii("eps", eps_px)?;
     // Also the checks of the predictions and truth (finite, on frames
     // `0..frames`): the observed AUCs are computed first.
     let aucs_of = |predictions: &[Prediction], truth: &[TruthRow]| -> anyhow::Result<Vec<f64>> {

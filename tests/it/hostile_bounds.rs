@@ -320,6 +320,25 @@ fn csv_rows_longer_than_the_bound_are_refused_naming_file_and_line() {
 }
 
 #[test]
+fn score_bounds_its_radii_as_a_manifest_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = write(dir.path(), "t.csv", b"frame,x,y\n0,5,5\n");
+    let locs = write(dir.path(), "l.csv", b"frame,x,y,score\n0,5,5,1\n");
+    let many: Vec<String> = (1..=33).map(|r| r.to_string()).collect();
+    let many = many.join(",");
+    for (eps, needle) in [
+        (
+            "1e300",
+            "--eps: must be a positive number of pixels (at most 1e6), got 1e300",
+        ),
+        (&many[..], "--eps: at most 32 radii, got 33"),
+    ] {
+        let output = scanloc(&["score", "--truth", &truth, "--locs", &locs, "--eps", eps]);
+        assert_refused(&output, &[needle]);
+    }
+}
+
+#[test]
 fn a_bad_cell_is_quoted_short_and_a_column_named_twice_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let long = "9".repeat(500_000);

@@ -5,7 +5,7 @@ use crate::error::{FieldError, Segment};
 use crate::manifest::{DetectorEntry, MetricsSpec};
 
 /// Most radii a manifest may list (columns of the AUC table per dataset).
-const MAX_RADII: usize = 32;
+use crate::limits::{MAX_EPS_PX, MAX_RADII};
 
 /// Checks the radii (1 to [`MAX_RADII`] distinct positive numbers of
 /// pixels) and the score thresholds (finite, of detectors of the manifest).
@@ -35,10 +35,10 @@ pub(super) fn check_metrics(
     }
     for (index, &eps) in metrics.eps_px.iter().enumerate() {
         let radius_path: Vec<Segment> = super::item(&path, index);
-        if !(eps.is_finite() && eps > 0.0 && eps <= 1e6) {
+        if !(eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX) {
             return Err(FieldError::at(
                 &radius_path,
-                format!("must be a positive number of pixels (at most 1e6), got {eps}"),
+                format!("must be a positive number of pixels (at most {MAX_EPS_PX:e}), got {eps}"),
             ));
         }
         if metrics.eps_px[..index].contains(&eps) {
