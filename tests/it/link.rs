@@ -264,36 +264,24 @@ fn refused(text: &[u8], expected: &str) {
 
 /// [`refused`] with `extra` flags.
 fn refused_with(text: &[u8], extra: &[&str], expected: &str) {
-    let dir = tempfile::tempdir().unwrap();
-    let locs = dir.path().join("locs.csv");
-    let out = dir.path().join("tracks.csv");
-    std::fs::write(&locs, text).unwrap();
-    let (locs_arg, out_arg) = (locs.to_string_lossy(), out.to_string_lossy());
-    let mut args = vec![
-        "link",
-        "--locs",
-        &locs_arg,
-        "--out",
-        &out_arg,
-        "--search-range",
-        "3",
-    ];
-    args.extend_from_slice(extra);
-    let run = scanloc(&args);
-    let message = stderr(&run);
-    assert_eq!(run.status.code(), Some(2), "{message}");
-    assert_eq!(message.lines().count(), 1, "{message}");
+    let (message, locs) = link_refusal(text, extra);
     assert!(
-        message.contains(&*locs.to_string_lossy()) && message.contains(expected),
+        message.contains(&locs) && message.contains(expected),
         "{message}"
     );
-    assert!(!Path::new(&out).exists());
 }
 
-/// Runs `scanloc link` on a good table with `flags` (after
-/// `--search-range 3`, which a later one replaces), expecting a one-line
-/// refusal (exit 2) containing `expected`, and no output.
+/// Runs `scanloc link` on a table with `text` and `flags`, expecting a
+/// one-line refusal (exit 2) containing `expected`, and no output.
 fn refused_flags(text: &[u8], flags: &[&str], expected: &str) {
+    let (message, _) = link_refusal(text, flags);
+    assert!(message.contains(expected), "{flags:?}: {message}");
+}
+
+/// Runs `scanloc link` on a table with `text` and `flags` (with
+/// `--search-range 3` unless they give the step), asserting a one-line
+/// refusal with exit code 2 and no output: the message and the table's path.
+fn link_refusal(text: &[u8], flags: &[&str]) -> (String, String) {
     let dir = tempfile::tempdir().unwrap();
     let locs = dir.path().join("locs.csv");
     let out = dir.path().join("tracks.csv");
@@ -308,8 +296,8 @@ fn refused_flags(text: &[u8], flags: &[&str], expected: &str) {
     let message = stderr(&run);
     assert_eq!(run.status.code(), Some(2), "{flags:?}: {message}");
     assert_eq!(message.lines().count(), 1, "{message}");
-    assert!(message.contains(expected), "{flags:?}: {message}");
     assert!(!Path::new(&out).exists());
+    (message, locs_arg.into_owned())
 }
 
 #[test]
