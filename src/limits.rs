@@ -40,7 +40,8 @@ pub const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
 /// at once.
 pub const MAX_THREADS: usize = 1024;
 
-/// Largest matching radius ε of the metric, px: far beyond any frame.
+/// Largest matching radius ε of the metric, and gate of the tracking
+/// measures, px: far beyond any frame.
 pub const MAX_EPS_PX: f64 = 1e6;
 /// Most matching radii one score lists.
 pub const MAX_RADII: usize = 32;
@@ -56,9 +57,9 @@ pub const MAX_DIFFUSION_UM2_S: f64 = 1e6;
 /// Largest LAP gate, in standard deviations of a link's displacement.
 pub const MAX_GATE_SIGMAS: f64 = 1e3;
 
-/// Checks a linker setting (`name` names the field or flag): a finite
+/// Checks a bounded setting (`name` names the field or flag): a finite
 /// number > 0 and at most `max` (one of the bounds above).
-pub fn check_link_setting(name: &str, value: f64, max: f64) -> Result<f64, FieldError> {
+pub fn check_positive_at_most(name: &str, value: f64, max: f64) -> Result<f64, FieldError> {
     if !(value.is_finite() && value > 0.0) {
         return Err(FieldError::new(
             name,

@@ -147,10 +147,10 @@ enum Configured {
 impl Configured {
     fn from_args(args: &LinkArgs) -> anyhow::Result<Self> {
         use scanloc::limits::{
-            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting,
+            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
         };
         let bounded = |flag: &str, value: f64, max: f64| -> anyhow::Result<f64> {
-            Ok(check_link_setting(flag, value, max)?)
+            Ok(check_positive_at_most(flag, value, max)?)
         };
         let positive = |flag: &str, value: f64| bounded(flag, value, f64::MAX);
         match args.linker {

@@ -65,12 +65,11 @@ pub struct ScoreTracksArgs {
 }
 
 pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let gate = args.gate_px;
-    if !(gate.is_finite() && gate > 0.0) {
-        return Err(input_error(format!(
-            "--gate-px: must be a finite number > 0, got {gate}"
-        )));
-    }
+    let gate = scanloc::limits::check_positive_at_most(
+        "--gate-px",
+        args.gate_px,
+        scanloc::limits::MAX_EPS_PX,
+    )?;
     if let Some(depth) = args.max_depth_um
         && !(depth.is_finite() && depth >= 0.0)
     {

@@ -380,20 +380,17 @@ fn ratio(numerator: f64, denominator: f64) -> Option<f64> {
 }
 
 /// Scores `estimated` tracks against `truth` tracks with the gate
-/// `gate_px` (finite, > 0); see the module's documentation. Each track's
-/// points must be in increasing frame order, one per frame (as the tracks
-/// reader and [`truth_tracks`] give them).
+/// `gate_px` (finite, > 0, at most
+/// [`MAX_EPS_PX`](crate::limits::MAX_EPS_PX)); see the module's
+/// documentation. Each track's points must be in increasing frame order,
+/// one per frame (as the tracks reader and [`truth_tracks`] give them).
 pub fn score_tracks(
     truth: &[Track],
     estimated: &[Track],
     gate_px: f64,
 ) -> anyhow::Result<TrackingScore> {
-    if !(gate_px.is_finite() && gate_px > 0.0) {
-        return Err(input_error(format!(
-            "the gate must be a finite number > 0 px, got {gate_px}"
-        )));
-    }
-    let gate = gate_px;
+    let gate =
+        crate::limits::check_positive_at_most("the gate (px)", gate_px, crate::limits::MAX_EPS_PX)?;
     let pairs = near_pairs(truth, estimated, gate)?;
     let truth_points: usize = truth.iter().map(|t| t.points.len()).sum();
     let estimated_points: usize = estimated.iter().map(|t| t.points.len()).sum();

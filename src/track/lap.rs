@@ -100,14 +100,14 @@ impl LapParams {
     /// a gate beyond [`MAX_GATE_SIGMAS`](crate::limits::MAX_GATE_SIGMAS)
     /// and gaps of more than [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
     pub fn validate(&self) -> anyhow::Result<()> {
-        use crate::limits::{MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting};
-        check_link_setting(
+        use crate::limits::{MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most};
+        check_positive_at_most(
             "step variance (px²; from the search range, or the diffusion, frame time and \
              pixel size)",
             self.step_variance,
             MAX_SEARCH_RANGE * MAX_SEARCH_RANGE,
         )?;
-        check_link_setting("gate", self.gate_sigmas, MAX_GATE_SIGMAS)?;
+        check_positive_at_most("gate", self.gate_sigmas, MAX_GATE_SIGMAS)?;
         if self.max_gap > crate::limits::MAX_FRAMES {
             return Err(input_error(format!(
                 "max gap: must be at most {} frames, got {}",

@@ -89,7 +89,7 @@ impl LinkerSpec {
     pub fn validate(&self) -> Result<(), crate::error::FieldError> {
         use crate::error::FieldError;
         use crate::limits::{
-            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_link_setting,
+            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
         };
         let frames = |name: &str, value: usize| {
             if value <= crate::limits::MAX_FRAMES {
@@ -106,16 +106,16 @@ impl LinkerSpec {
         };
         match self {
             LinkerSpec::Trackpy(s) => {
-                check_link_setting("search_range", s.search_range, MAX_SEARCH_RANGE)?;
+                check_positive_at_most("search_range", s.search_range, MAX_SEARCH_RANGE)?;
                 frames("memory", s.memory)
             }
             LinkerSpec::Lap(s) => {
                 match (s.search_range, s.diffusion_um2_s) {
                     (Some(range), None) => {
-                        check_link_setting("search_range", range, MAX_SEARCH_RANGE)?;
+                        check_positive_at_most("search_range", range, MAX_SEARCH_RANGE)?;
                     }
                     (None, Some(d)) => {
-                        check_link_setting("diffusion_um2_s", d, MAX_DIFFUSION_UM2_S)?;
+                        check_positive_at_most("diffusion_um2_s", d, MAX_DIFFUSION_UM2_S)?;
                     }
                     _ => {
                         return Err(FieldError::new(
@@ -125,7 +125,7 @@ impl LinkerSpec {
                     }
                 }
                 if let Some(gate) = s.gate_sigmas {
-                    check_link_setting("gate_sigmas", gate, MAX_GATE_SIGMAS)?;
+                    check_positive_at_most("gate_sigmas", gate, MAX_GATE_SIGMAS)?;
                 }
                 frames("max_gap", s.max_gap)
             }
@@ -360,12 +360,7 @@ impl TrackScoring {
     /// Checks the settings; the error names the field.
     pub fn validate(&self) -> Result<(), crate::error::FieldError> {
         use crate::error::FieldError;
-        if !(self.gate_px.is_finite() && self.gate_px > 0.0) {
-            return Err(FieldError::new(
-                "gate_px",
-                format!("must be a finite number > 0, got {}", self.gate_px),
-            ));
-        }
+        crate::limits::check_positive_at_most("gate_px", self.gate_px, crate::limits::MAX_EPS_PX)?;
         if let Some(depth) = self.max_depth_um
             && !(depth.is_finite() && depth >= 0.0)
         {

@@ -59,7 +59,7 @@ impl TrackpyParams {
     /// Refuses a search range that is not a finite number > 0 and at most
     /// [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE).
     pub fn validate(&self) -> anyhow::Result<()> {
-        crate::limits::check_link_setting(
+        crate::limits::check_positive_at_most(
             "search range",
             self.search_range,
             crate::limits::MAX_SEARCH_RANGE,

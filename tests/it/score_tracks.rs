@@ -172,6 +172,10 @@ fn bad_input_is_one_line_naming_the_file_and_field() {
             String::new(), // the good case
         ),
         (vec!["--gate-px", "0"], "--gate-px".into()),
+        (
+            vec!["--gate-px", "1e300"],
+            "--gate-px: must be at most 1e6".into(),
+        ),
         (vec!["--min-on-fraction", "1.5"], "--min-on-fraction".into()),
         (
             vec!["--max-depth-um", "1"],

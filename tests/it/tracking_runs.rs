@@ -297,6 +297,10 @@ fn bad_tracking_sections_are_one_line_naming_the_field() {
             "tracking.scoring.gate_px",
         ),
         (
+            "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5}}\ntracking:\n  scoring: {gate_px: 1e300}\n  evaluations:\n    - {detector: cg, linker: lap, recordings: [rec]}\n",
+            "tracking.scoring.gate_px: must be at most 1e6",
+        ),
+        (
             "recordings:\n  rec: {frames: 5}\nlinkers:\n  lap: {lap: {search_range: 5}}\ntracking:\n  evaluations:\n    - {detector: cg, linker: lap, recordings: [other]}\n",
             "tracking.evaluations[0].recordings[0]",
         ),
