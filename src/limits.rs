@@ -43,7 +43,8 @@ pub const MAX_THREADS: usize = 1024;
 /// Largest matching radius ε of the metric, and gate of the tracking
 /// measures, px: far beyond any frame.
 pub const MAX_EPS_PX: f64 = 1e6;
-/// Most matching radii one score lists.
+/// Most matching radii one score lists (columns of the AUC table per
+/// dataset), in a manifest and on the command line.
 pub const MAX_RADII: usize = 32;
 
 /// Largest search range of a linker, in the localisation table's units

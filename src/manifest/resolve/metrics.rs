@@ -2,10 +2,8 @@
 //! detectors' score thresholds.
 
 use crate::error::{FieldError, Segment};
-use crate::manifest::{DetectorEntry, MetricsSpec};
-
-/// Most radii a manifest may list (columns of the AUC table per dataset).
 use crate::limits::{MAX_EPS_PX, MAX_RADII};
+use crate::manifest::{DetectorEntry, MetricsSpec};
 
 /// Checks the radii (1 to [`MAX_RADII`] distinct positive numbers of
 /// pixels) and the score thresholds (finite, of detectors of the manifest).
