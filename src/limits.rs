@@ -43,6 +43,23 @@ pub const MAX_THREADS: usize = 1024;
 /// Largest matching radius ε of the metric, and gate of the tracking
 /// measures, px: far beyond any frame.
 pub const MAX_EPS_PX: f64 = 1e6;
+/// Checks a matching radius ε: a positive number of pixels up to
+/// [`MAX_EPS_PX`]; the error is the message alone, for the caller to name
+/// the setting (a flag, or a manifest's `metrics.eps_px[i]`).
+pub fn check_radius(eps: f64) -> Result<(), String> {
+    if eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX {
+        return Ok(());
+    }
+    let shown = if eps.abs() > MAX_EPS_PX {
+        format!("{eps:e}")
+    } else {
+        eps.to_string()
+    };
+    Err(format!(
+        "must be a positive number of pixels (at most {MAX_EPS_PX:e}), got {shown}"
+    ))
+}
+
 /// Most matching radii one score lists (columns of the AUC table per
 /// dataset), in a manifest and on the command line.
 pub const MAX_RADII: usize = 32;

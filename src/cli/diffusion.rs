@@ -142,13 +142,7 @@ pub fn run(
         geometry.width,
     )
     .map_err(|e| input_error(format!("--ensemble-margin-px: {e}")))?;
-    if args.min_points < 2 || args.min_points > scanloc::limits::MAX_FRAMES {
-        return Err(input_error(format!(
-            "--min-points: must be 2 to {}, got {}",
-            scanloc::limits::MAX_FRAMES,
-            args.min_points
-        )));
-    }
+    scanloc::track::pipeline::check_min_points("--min-points", args.min_points)?;
     if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
         return Err(input_error(format!(
             "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",

@@ -343,7 +343,7 @@ pub fn score(
 /// [`MAX_RADII`](crate::limits::MAX_RADII) radii: the bounds a manifest's
 /// `metrics.eps_px` has. `name` names the setting in the error.
 pub fn check_radii(name: &str, eps_px: &[f64]) -> anyhow::Result<()> {
-    use crate::limits::{MAX_EPS_PX, MAX_RADII};
+    use crate::limits::MAX_RADII;
     if eps_px.len() > MAX_RADII {
         return Err(input_error(format!(
             "{name}: at most {MAX_RADII} radii, got {}",
@@ -351,20 +351,13 @@ pub fn check_radii(name: &str, eps_px: &[f64]) -> anyhow::Result<()> {
         )));
     }
     for &eps in eps_px {
-        if !(eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX) {
-            let shown = if eps.abs() > MAX_EPS_PX {
-                format!("{eps:e}")
-            } else {
-                eps.to_string()
-            };
-            return Err(input_error(format!(
-                "{name}: must be a positive number of pixels (at most {MAX_EPS_PX:e}), got {shown}"
-            )));
-        }
+        crate::limits::check_radius(eps).map_err(|e| input_error(format!("{name}: {e}")))?;
     }
     Ok(())
 }
 
+/// Refuses a test set without ground truth, where recall and the AUC are
+/// undefined.
 fn refuse_without_truth(truth: &[TruthRow]) -> anyhow::Result<()> {
     if truth.is_empty() {
         return Err(input_error(

@@ -320,6 +320,21 @@ pub fn valid_ensemble_gate(share: f64) -> bool {
     (share > 0.0 && share <= MAX_ENSEMBLE_GATE) || share == 1.0
 }
 
+/// Checks the fewest localisations a track needs for a row of its own
+/// (`name` names the field or flag): 2 (one step) to
+/// [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
+pub fn check_min_points(name: &str, points: usize) -> Result<usize, crate::error::FieldError> {
+    let limit = crate::limits::MAX_FRAMES;
+    if (2..=limit).contains(&points) {
+        Ok(points)
+    } else {
+        Err(crate::error::FieldError::new(
+            name,
+            format!("must be 2 to {limit}, got {points}"),
+        ))
+    }
+}
+
 /// Checks that an ensemble margin of `margin_px` leaves a box inside a
 /// field of `height × width` px (the ML ensemble takes only the steps in
 /// it; with none, it would have nothing to estimate from).
@@ -377,16 +392,7 @@ impl TrackScoring {
                 format!("must be between 0 and 1, got {share}"),
             ));
         }
-        if self.min_points < 2 || self.min_points > crate::limits::MAX_FRAMES {
-            return Err(FieldError::new(
-                "min_points",
-                format!(
-                    "must be 2 to {}, got {}",
-                    crate::limits::MAX_FRAMES,
-                    self.min_points
-                ),
-            ));
-        }
+        check_min_points("min_points", self.min_points)?;
         if !(self.ensemble_margin_px.is_finite() && self.ensemble_margin_px >= 0.0) {
             return Err(FieldError::new(
                 "ensemble_margin_px",

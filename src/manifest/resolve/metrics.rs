@@ -2,7 +2,7 @@
 //! detectors' score thresholds.
 
 use crate::error::{FieldError, Segment};
-use crate::limits::{MAX_EPS_PX, MAX_RADII};
+use crate::limits::MAX_RADII;
 use crate::manifest::{DetectorEntry, MetricsSpec};
 
 /// Checks the radii (1 to [`MAX_RADII`] distinct positive numbers of
@@ -33,12 +33,7 @@ pub(super) fn check_metrics(
     }
     for (index, &eps) in metrics.eps_px.iter().enumerate() {
         let radius_path: Vec<Segment> = super::item(&path, index);
-        if !(eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX) {
-            return Err(FieldError::at(
-                &radius_path,
-                format!("must be a positive number of pixels (at most {MAX_EPS_PX:e}), got {eps}"),
-            ));
-        }
+        crate::limits::check_radius(eps).map_err(|e| FieldError::at(&radius_path, e))?;
         if metrics.eps_px[..index].contains(&eps) {
             return Err(FieldError::at(
                 &radius_path,
