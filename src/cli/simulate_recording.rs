@@ -44,9 +44,14 @@ pub struct SimulateRecordingArgs {
     /// PSF samples per pixel dwell (1 = the paper).
     #[arg(long, default_value_t = 1)]
     substeps: u32,
-    /// QDs per µm³ of the simulated volume.
+    /// QDs per µm³ of the simulated volume (their number is a Poisson draw
+    /// of density × volume).
     #[arg(long, default_value_t = 0.05)]
     qd_density: f64,
+    /// Exactly this many QDs in the volume, instead of the Poisson draw of
+    /// --qd-density (e.g. a recording with as many QDs as another).
+    #[arg(long, conflicts_with = "qd_density")]
+    qd_count: Option<u64>,
     /// How far the volume reaches beyond the field on every side, µm (the
     /// default is beyond the PSF cut-off, so QDs wrap around unseen).
     #[arg(long, default_value_t = 1.5)]
@@ -86,6 +91,7 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
         },
         frames: args.frames,
         density_per_um3: args.qd_density,
+        qd_count: args.qd_count,
         lateral_margin_um: args.margin_um,
         half_depth_um: args.half_depth_um,
         blinking: match (args.blink_on_ms, args.blink_off_ms) {

@@ -143,7 +143,7 @@ impl RecordingSpec {
     /// (part of its content key; the names are the manifest's).
     pub fn params_json(&self) -> serde_json::Value {
         let p = &self.params;
-        serde_json::json!({
+        let mut json = serde_json::json!({
             "microscope": p.microscope,
             "frames": p.frames,
             "qd_density": p.density_per_um3,
@@ -151,7 +151,12 @@ impl RecordingSpec {
             "half_depth_um": p.half_depth_um,
             "dead_time_ms": p.dead_time_ms,
             "blink": p.blinking.map(|b| serde_json::json!({"on_ms": b.on_ms, "off_ms": b.off_ms})),
-        })
+        });
+        // Only when set, so that a recording drawn by density keeps its key.
+        if let Some(count) = p.qd_count {
+            json["qd_count"] = count.into();
+        }
+        json
     }
 
     /// The recording's D, µm²/s (a recording's D is a fixed number).
@@ -214,6 +219,9 @@ pub struct TrackingEvaluationSpec {
     /// Only predictions scoring at least this are linked (all when absent).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub min_score: Option<f64>,
+    /// This pipeline's bias correction, in place of the scoring's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bias_correction: Option<crate::track::pipeline::BiasCorrection>,
 }
 
 impl TrackingEvaluationSpec {

@@ -75,6 +75,9 @@ pub(super) struct RawTrackingEvaluation {
     pub recordings: Vec<String>,
     #[serde(default)]
     pub min_score: Option<f64>,
+    /// This pipeline's bias correction, in place of the scoring's.
+    #[serde(default, with = "serde_yaml::with::singleton_map_recursive")]
+    pub bias_correction: Option<crate::track::pipeline::BiasCorrection>,
 }
 
 #[derive(Deserialize)]

@@ -13,6 +13,7 @@ use crate::manifest::{
     CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, MetricsSpec, RecordingSpec,
 };
 use crate::registry::Registry;
+use crate::track::pipeline::BiasCorrection;
 
 /// Artefacts held in memory for the steps still to come, each dropped after
 /// the last step that reads it.
@@ -129,13 +130,14 @@ pub(super) fn compute(
             recording,
             tracks,
             scoring,
+            bias,
             ..
         } => {
             let spec = recording_spec(plan, *recording)?;
             let data = read_input(*recording)?;
             let tracks = read_input(*tracks)?;
             let progress = crate::progress::heartbeat(&step.name());
-            let evaluation = crate::track::pipeline::evaluate(
+            let mut evaluation = crate::track::pipeline::evaluate(
                 &data.recording()?.truth,
                 tracks.tracks()?,
                 &spec.geometry(),
@@ -145,6 +147,29 @@ pub(super) fn compute(
             )
             .with_context(|| format!("scoring {}", step.name()))?;
             progress.finish_and_clear();
+            if let (BiasCorrection::Simulated { recordings }, Some(bias)) =
+                (scoring.bias_correction, bias)
+            {
+                let predictions = read_input(bias.predictions)?;
+                let model = bias.model.map(&mut read_input).transpose()?;
+                let pipeline = super::bias::Pipeline {
+                    detector: &bias.detector,
+                    model: model.as_ref(),
+                    min_score: bias.min_score,
+                    linker: &bias.linker.spec,
+                };
+                evaluation.corrected_ensemble = super::bias::correct_ensemble(
+                    &step.name(),
+                    step.seed
+                        .context("a bias correction draws from the step's seed")?,
+                    recordings,
+                    spec,
+                    &pipeline,
+                    predictions.predictions()?,
+                    &evaluation,
+                )
+                .with_context(|| format!("correcting the bias of {}", step.name()))?;
+            }
             Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
         }
     }
@@ -258,8 +283,21 @@ fn locate(
     model: Option<&Artefact>,
     microscope: Option<&crate::sim::SimParams>,
 ) -> anyhow::Result<Artefact> {
-    let frames = dataset.frames()?;
-    let progress = crate::progress::bar(frames.n as u64, &step.name());
+    let predictions = locate_frames(&step.name(), detector, dataset.frames()?, model, microscope)?;
+    Ok(Artefact::Predictions(Arc::new(predictions)))
+}
+
+/// `detector`'s localisations in `frames` (with its trained `model`; the
+/// `microscope` the frames were made with, for the likelihood detector),
+/// its progress shown as `label`.
+pub(super) fn locate_frames(
+    label: &str,
+    detector: &DetectorEntry,
+    frames: &crate::types::FrameStack,
+    model: Option<&Artefact>,
+    microscope: Option<&crate::sim::SimParams>,
+) -> anyhow::Result<Vec<crate::types::Prediction>> {
+    let progress = crate::progress::bar(frames.n as u64, label);
     let predictions = match &detector.spec {
         DetectorSpec::CrockerGrier(params) => {
             let features = crate::detect::crocker_grier::locate_stack(frames, params, &progress)
@@ -288,7 +326,7 @@ fn locate(
         }
     };
     progress.finish_and_clear();
-    Ok(Artefact::Predictions(Arc::new(predictions)))
+    Ok(predictions)
 }
 
 /// Scores `predictions` against the truth of `dataset`, the score read as

@@ -68,6 +68,10 @@ pub struct TrackingRow {
     pub diffusion: f64,
     pub tracking: crate::metrics::tracking::TrackingScore,
     pub estimators: Vec<EstimatorRow>,
+    /// The ML ensemble corrected for the pipeline's bias by simulation,
+    /// where the scoring asked for it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub corrected_ensemble: Option<crate::track::pipeline::CorrectedEnsemble>,
     pub evaluation_key: String,
 }
 
@@ -119,6 +123,7 @@ impl TrackingRow {
                     per_track: e.per_track,
                 })
                 .collect(),
+            corrected_ensemble: evaluation.corrected_ensemble,
             evaluation_key: evaluation_key.to_string(),
         }
     }

@@ -14,6 +14,7 @@
 //! it `unfinished`.
 
 pub mod artefacts;
+mod bias;
 pub mod calibrate;
 mod compute;
 pub mod cross_validation;

@@ -16,10 +16,12 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use anyhow::Context;
 use serde::Serialize;
 use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
+use super::bias::BIAS_CORRECTION_VERSION;
 use crate::manifest::{
     DatasetSpec, DetectorEntry, LinkerEntry, Manifest, MetricsSpec, RecordingSpec,
 };
@@ -28,7 +30,8 @@ use crate::registry::hashing::{canonical_json, content_key};
 use crate::registry::{ArtefactKind, StepId};
 use crate::sim::GENERATOR_VERSION;
 use crate::sim::recording::RECORDING_VERSION;
-use crate::track::pipeline::{LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring};
+use crate::track::pipeline::{BiasCorrection, LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring};
+use crate::types::derive_seed;
 
 /// Version of the frame-subset step (cross-validation folds).
 pub const SUBSET_VERSION: &str = "scanloc-subset/1";
@@ -98,7 +101,24 @@ pub enum Action {
         recording: usize,
         tracks: usize,
         scoring: TrackScoring,
+        /// With a bias correction by simulation: the pipeline a simulated
+        /// recording is put through.
+        bias: Option<PipelineSteps>,
     },
+}
+
+/// What a bias correction by simulation repeats of a tracking pipeline
+/// ([`BiasCorrection::Simulated`]): its localiser (and the step that
+/// trained its model), its score threshold and linker, and the step of its
+/// localisations on the recording, whose count per frame the simulated
+/// recording is made to match.
+#[derive(Debug, Clone)]
+pub struct PipelineSteps {
+    pub detector: DetectorEntry,
+    pub model: Option<usize>,
+    pub min_score: Option<f64>,
+    pub linker: LinkerEntry,
+    pub predictions: usize,
 }
 
 /// One step of a plan.
@@ -155,8 +175,18 @@ impl Step {
                 ..
             } => vec![*recording, *predictions],
             Action::ScoreTracks {
-                recording, tracks, ..
-            } => vec![*recording, *tracks],
+                recording,
+                tracks,
+                bias,
+                ..
+            } => {
+                let mut inputs = vec![*recording, *tracks];
+                if let Some(bias) = bias {
+                    inputs.push(bias.predictions);
+                    inputs.extend(bias.model);
+                }
+                inputs
+            }
         }
     }
 }
@@ -454,21 +484,39 @@ impl Plan {
     }
 
     /// Adds the step that scores the tracks of step `tracks` (pipeline
-    /// `pipeline`) against the recording of step `recording`.
+    /// `pipeline`) against the recording of step `recording`; `bias` is
+    /// the pipeline a bias correction by simulation repeats (needed with
+    /// [`BiasCorrection::Simulated`], not read otherwise).
     pub fn add_track_score(
         &mut self,
         pipeline: &str,
         recording: usize,
         tracks: usize,
         scoring: &TrackScoring,
+        bias: Option<PipelineSteps>,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{TRACK_METRIC_VERSION}+{FORMAT_VERSION}");
-        let description = json!({
+        let mut description = json!({
             "kind": "evaluation",
             "code": code_version,
             "recording": self.steps[recording].key,
             "tracks": self.steps[tracks].key,
             "scoring": scoring,
+        });
+        // The tracks' key holds the localiser, its model and the linker,
+        // so the correction adds only its own version (and an evaluation
+        // without one keeps its key).
+        let bias = match scoring.bias_correction {
+            BiasCorrection::None => None,
+            BiasCorrection::Simulated { .. } => {
+                description["bias_correction_code"] = json!(BIAS_CORRECTION_VERSION);
+                Some(bias.context("a bias correction needs the pipeline's steps")?)
+            }
+        };
+        let seed = bias.as_ref().and_then(|_| {
+            self.steps[recording]
+                .seed
+                .map(|seed| derive_seed(seed, "bias-correction", pipeline))
         });
         let recording_name = self.steps[recording].name();
         let id = StepId::Evaluation {
@@ -478,7 +526,7 @@ impl Plan {
         let step = make_step(
             id,
             code_version,
-            None,
+            seed,
             &description,
             Action::ScoreTracks {
                 pipeline: pipeline.to_string(),
@@ -486,6 +534,7 @@ impl Plan {
                 recording,
                 tracks,
                 scoring: *scoring,
+                bias,
             },
         )?;
         Ok(self.push(step))
@@ -530,11 +579,25 @@ impl Plan {
                 recording_step,
                 predictions,
             )?;
+            let pipeline = PipelineSteps {
+                detector: detector.clone(),
+                model,
+                min_score: evaluation.min_score,
+                linker: linker.clone(),
+                predictions,
+            };
+            let scoring = TrackScoring {
+                bias_correction: evaluation
+                    .bias_correction
+                    .unwrap_or(tracking.scoring.bias_correction),
+                ..tracking.scoring
+            };
             self.add_track_score(
                 &evaluation.pipeline(),
                 recording_step,
                 tracks,
-                &tracking.scoring,
+                &scoring,
+                Some(pipeline),
             )?;
         }
         Ok(())

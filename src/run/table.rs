@@ -276,6 +276,23 @@ pub fn tracking_tables(rows: &[TrackingRow]) -> Vec<CellTable<10>> {
                 per_track.map_or("-".to_string(), |p| format!("{:.3}", p.coverage)),
             ]);
         }
+        if let Some(corrected) = &row.corrected_ensemble {
+            cells.push([
+                display_cell(&row.pipeline).into_owned(),
+                display_cell(&row.recording).into_owned(),
+                format!("{}", row.diffusion),
+                "ml, bias-corrected".to_string(),
+                format!(
+                    "{:.3} ({:.3})",
+                    corrected.estimate.d, corrected.estimate.standard_error
+                ),
+                format!("{:+.1} %", 100.0 * corrected.relative_error),
+                "-".to_string(),
+                "-".to_string(),
+                "-".to_string(),
+                "-".to_string(),
+            ]);
+        }
     }
     let diffusion = CellTable {
         title: "diffusion coefficient, µm²/s (per track: tracks whose estimator's condition holds; bias and RMSE relative to D; coverage of the 95 % intervals)".to_string(),

@@ -71,6 +71,11 @@ pub struct RecordingParams {
     pub frames: usize,
     /// QDs per µm³ of the volume (their number is Poisson-drawn once).
     pub density_per_um3: f64,
+    /// A set number of QDs in the volume instead of the Poisson draw of
+    /// `density_per_um3` × volume (which is then not used): for a recording
+    /// that must hold as many QDs as another, as when a pipeline's bias is
+    /// measured on a recording like the one it estimated.
+    pub qd_count: Option<u64>,
     /// How far the volume reaches beyond the field on every side, µm.
     pub lateral_margin_um: f64,
     /// The volume spans depths `[−depth, depth]` µm around the focal plane.
@@ -135,6 +140,14 @@ impl RecordingParams {
             self.microscope.height,
             self.microscope.width,
         )?;
+        if let Some(count) = self.qd_count
+            && count > MAX_RECORDING_QDS / 2
+        {
+            return Err(FieldError::new(
+                "qd_count",
+                format!("must be at most {}, got {count}", MAX_RECORDING_QDS / 2),
+            ));
+        }
         let expected = self.density_per_um3 * self.volume_um3();
         if expected.is_nan() || expected > MAX_RECORDING_QDS as f64 / 2.0 {
             return Err(FieldError::new(
@@ -172,7 +185,9 @@ impl RecordingParams {
             .saturating_mul(self.microscope.height as u64)
             .saturating_mul(self.microscope.width as u64)
             .saturating_mul(std::mem::size_of::<u32>() as u64);
-        let qds = (self.density_per_um3 * self.volume_um3()).ceil().max(0.0) as u64;
+        let qds = self
+            .qd_count
+            .unwrap_or((self.density_per_um3 * self.volume_um3()).ceil().max(0.0) as u64);
         let truth_bytes = frames
             .saturating_mul(qds.min(MAX_RECORDING_QDS))
             .saturating_mul(std::mem::size_of::<RecordingTruthRow>() as u64);
@@ -312,10 +327,12 @@ impl<'a> Walk<'a> {
         let amplitude = pre.amplitude(micro, brightness);
         let mut rng = frame_rng(seed, 0);
         let expected = params.density_per_um3 * params.volume_um3();
-        let count = if expected > 0.0 {
-            super::noise::poisson(&mut rng, expected).min(MAX_RECORDING_QDS)
-        } else {
-            0
+        let count = match params.qd_count {
+            Some(count) => count.min(MAX_RECORDING_QDS),
+            None if expected > 0.0 => {
+                super::noise::poisson(&mut rng, expected).min(MAX_RECORDING_QDS)
+            }
+            None => 0,
         };
         let bounds = params.bounds_um();
         let mut qds = Vec::with_capacity(count as usize);
@@ -627,6 +644,7 @@ mod tests {
             microscope: SimParams::default(),
             frames: 2,
             density_per_um3: 1.0,
+            qd_count: None,
             lateral_margin_um: 1.0,
             half_depth_um: 2.0,
             blinking: None,

@@ -305,6 +305,65 @@ pub struct TrackScoring {
     /// 0 (the default, left out of the JSON): the whole field.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub ensemble_margin_px: f64,
+    /// Whether the ML ensemble is also given corrected for the pipeline's
+    /// own bias ([`BiasCorrection`]); none by default (left out of the
+    /// JSON).
+    #[serde(
+        default,
+        skip_serializing_if = "BiasCorrection::is_none",
+        with = "serde_yaml::with::singleton_map"
+    )]
+    pub bias_correction: BiasCorrection,
+}
+
+/// How a tracking pipeline's ML ensemble D is corrected for the bias of
+/// the pipeline itself (localiser, linker and estimator together).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum BiasCorrection {
+    /// The ensemble as estimated.
+    #[default]
+    None,
+    /// Measured on simulated recordings like the one scored (its scan,
+    /// blinking and number of QDs, at the D the pipeline read) put through
+    /// the same localiser, linker and estimator, and divided out
+    /// (docs/tracking.md, "Bias correction by simulation").
+    Simulated {
+        /// How many recordings as long as the scored one are simulated:
+        /// their noise adds to the corrected D's, by `1/recordings` of the
+        /// recording's own variance.
+        #[serde(default = "default_bias_recordings")]
+        recordings: usize,
+    },
+}
+
+/// At most this many simulated recordings per bias correction (each as
+/// long as the recording scored).
+pub const MAX_BIAS_RECORDINGS: usize = 16;
+
+fn default_bias_recordings() -> usize {
+    2
+}
+
+impl BiasCorrection {
+    fn is_none(&self) -> bool {
+        *self == BiasCorrection::None
+    }
+
+    /// Checks the number of recordings; the error names `bias_correction`.
+    pub fn validate(&self) -> Result<(), crate::error::FieldError> {
+        match *self {
+            BiasCorrection::Simulated { recordings }
+                if !(1..=MAX_BIAS_RECORDINGS).contains(&recordings) =>
+            {
+                Err(crate::error::FieldError::new(
+                    "bias_correction",
+                    format!("recordings must be 1 to {MAX_BIAS_RECORDINGS}, got {recordings}"),
+                ))
+            }
+            _ => Ok(()),
+        }
+    }
 }
 
 fn is_zero(value: &f64) -> bool {
@@ -367,6 +426,7 @@ impl Default for TrackScoring {
             min_points: default_min_points(),
             ensemble_gate: default_ensemble_gate(),
             ensemble_margin_px: 0.0,
+            bias_correction: BiasCorrection::None,
         }
     }
 }
@@ -402,6 +462,7 @@ impl TrackScoring {
                 ),
             ));
         }
+        self.bias_correction.validate()?;
         if !valid_ensemble_gate(self.ensemble_gate) {
             return Err(FieldError::new(
                 "ensemble_gate",
@@ -526,6 +587,73 @@ pub struct TrackEvaluation {
     pub scoring: TrackScoring,
     /// One entry per estimator (CVE, MSD fit, ML).
     pub diffusion: Vec<EstimatorScore>,
+    /// The ML ensemble corrected for the pipeline's bias, with
+    /// [`BiasCorrection::Simulated`] (absent otherwise, and where the
+    /// pipeline gave no ensemble).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub corrected_ensemble: Option<CorrectedEnsemble>,
+}
+
+/// The ML ensemble corrected for a pipeline's bias by simulation
+/// ([`BiasCorrection::Simulated`]): the pipeline read `D̂` on the recording
+/// and `D̂ₛ` on a simulated one at D = `D̂`, so it reads D high by `D̂ₛ/D̂`
+/// there, and the corrected D is `D̂ · D̂/D̂ₛ`, its relative standard error
+/// the two estimates' added in quadrature.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CorrectedEnsemble {
+    /// The corrected D with its standard error and 95 % interval
+    /// (`D ± 1.96 SE`); its localisation variance and steps are the
+    /// recording's ensemble's.
+    pub estimate: StoredEstimate,
+    /// `D/D_true − 1` of the corrected D.
+    pub relative_error: f64,
+    /// QDs in each simulated recording: as many as give them the
+    /// recording's localisations per frame, by a pilot with `pilot_qds`.
+    pub simulated_qds: u64,
+    pub pilot_qds: u64,
+    /// The simulated recordings' frames, all together.
+    pub simulated_frames: usize,
+    /// The ML ensemble the pipeline read on the simulated recordings' tracks
+    /// together, whose true D is the recording's ensemble D̂.
+    pub simulated: StoredEstimate,
+}
+
+impl CorrectedEnsemble {
+    /// The correction of `recording`'s ensemble estimate (true D `true_d`)
+    /// by `simulated`, the pipeline's estimate on a recording simulated at
+    /// D = `recording.d`; `None` where either is not a positive finite D.
+    pub fn new(
+        recording: &StoredEstimate,
+        simulated: &StoredEstimate,
+        true_d: f64,
+        qds: (u64, u64),
+        simulated_frames: usize,
+    ) -> Option<Self> {
+        let positive = |e: &StoredEstimate| e.d.is_finite() && e.d > 0.0;
+        if !(positive(recording) && positive(simulated)) {
+            return None;
+        }
+        let d = recording.d * recording.d / simulated.d;
+        let relative_se =
+            (recording.standard_error / recording.d).hypot(simulated.standard_error / simulated.d);
+        let standard_error = d * relative_se;
+        let half_width = 1.96 * standard_error;
+        let estimate = StoredEstimate {
+            d,
+            standard_error: finite_or_nan(standard_error),
+            low: finite_or_nan(d - half_width),
+            high: (d + half_width).is_finite().then_some(d + half_width),
+            ..*recording
+        };
+        Some(Self {
+            estimate,
+            relative_error: d / true_d - 1.0,
+            simulated_qds: qds.1,
+            pilot_qds: qds.0,
+            simulated_frames,
+            simulated: *simulated,
+        })
+    }
 }
 
 impl TrackEvaluation {
@@ -596,7 +724,25 @@ pub fn evaluate(
         true_diffusion_um2_s: true_d,
         scoring: *scoring,
         diffusion,
+        corrected_ensemble: None,
     })
+}
+
+/// The ML ensemble of `tracks` as [`evaluate`] takes it under `scoring`
+/// (its gate share and margin), without the truth: what a bias correction
+/// measures on a simulated recording.
+pub fn ml_ensemble_of(
+    tracks: &[Track],
+    geometry: &ScanGeometry,
+    scoring: &TrackScoring,
+) -> Option<StoredEstimate> {
+    let series = series_of(tracks, geometry);
+    let (estimate, _) = super::diffusion::ml_ensemble(
+        &series,
+        scoring.ensemble_gate,
+        scoring.ensemble_margin_px * geometry.pixel_size_um,
+    )?;
+    Some(estimate.into())
 }
 
 #[cfg(test)]
@@ -629,6 +775,7 @@ mod tests {
             },
             frames: 1500,
             density_per_um3: 0.05,
+            qd_count: None,
             lateral_margin_um: 0.3,
             half_depth_um: 4.0,
             blinking: None,

@@ -38,6 +38,7 @@ fn recording(height: usize, width: usize, d: f64, frames: usize, qds: f64) -> Re
         },
         frames,
         density_per_um3: qds / (area * 100.0),
+        qd_count: None,
         lateral_margin_um: margin,
         half_depth_um: 50.0,
         blinking: None,
@@ -629,6 +630,35 @@ fn a_recording_keeps_its_density_and_is_deterministic() {
 }
 
 #[test]
+fn a_set_qd_count_replaces_the_density_draw() {
+    // By density the number of QDs is a Poisson draw, different from seed
+    // to seed; a set count is that count for every seed.
+    let by_density = recording(16, 18, 1.0, 1, 6.0);
+    let drawn: std::collections::BTreeSet<usize> = (0..20)
+        .map(|seed| simulate_recording(&by_density, seed, false).unwrap().qds)
+        .collect();
+    assert!(drawn.len() > 2, "{drawn:?}");
+    let counted = RecordingParams {
+        qd_count: Some(13),
+        ..by_density
+    };
+    for seed in 0..20 {
+        assert_eq!(simulate_recording(&counted, seed, false).unwrap().qds, 13);
+    }
+    let too_many = RecordingParams {
+        qd_count: Some(u64::MAX),
+        ..counted
+    };
+    assert!(
+        too_many
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("qd_count")
+    );
+}
+
+#[test]
 fn a_long_recording_holds_its_set_density() {
     // The mean number of QDs in the field per frame is the number of QDs
     // in the volume (drawn once) times the field's share of its area,
@@ -1037,6 +1067,7 @@ fn the_command_line_recipe_gives_the_experiments_d_from_a_locate_table() {
     let params = RecordingParams {
         half_depth_um: 2.0,
         density_per_um3: 2.0 / (2.35 * 2.28 * 4.0),
+        qd_count: None,
         ..recording(24, 25, 1.0, 3000, 2.0)
     };
     let truth = simulate_recording(&params, 41, false).unwrap().truth;

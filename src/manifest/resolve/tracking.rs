@@ -16,9 +16,10 @@ use crate::track::pipeline::LinkerSpec;
 use crate::types::derive_seed;
 
 /// A recording's own fields, beside the microscope's.
-const RECORDING_FIELDS: [&str; 7] = [
+const RECORDING_FIELDS: [&str; 8] = [
     "frames",
     "qd_density",
+    "qd_count",
     "lateral_margin_um",
     "half_depth_um",
     "dead_time_ms",
@@ -96,6 +97,15 @@ fn resolve_recording(
         microscope: apply_sim_overrides(path, microscope, entry, &RECORDING_FIELDS)?,
         frames,
         density_per_um3: number("qd_density", Some(0.05))?.unwrap_or_default(),
+        qd_count: match entry.get("qd_count") {
+            None => None,
+            Some(value) => Some(value.as_u64().ok_or_else(|| {
+                FieldError::at(
+                    &super::field(path, "qd_count"),
+                    "must be a whole number ≥ 0",
+                )
+            })?),
+        },
         lateral_margin_um: number("lateral_margin_um", Some(1.5))?.unwrap_or_default(),
         half_depth_um: number("half_depth_um", Some(4.0))?.unwrap_or_default(),
         blinking,
@@ -167,6 +177,9 @@ pub(super) fn resolve_tracking(
                 format!("`{}` is not a linker of this manifest", entry.linker),
             ));
         }
+        if let Some(correction) = entry.bias_correction {
+            correction.validate().map_err(|e| e.under(&entry_path))?;
+        }
         if let Some(score) = entry.min_score
             && !score.is_finite()
         {
@@ -207,6 +220,7 @@ pub(super) fn resolve_tracking(
                 linker: entry.linker.clone(),
                 recording: recording.clone(),
                 min_score: entry.min_score,
+                bias_correction: entry.bias_correction,
             };
             if evaluations
                 .iter()

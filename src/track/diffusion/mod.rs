@@ -302,25 +302,14 @@ pub fn estimate_recording(
     // it is: the linker's full gate truncates a step's distribution too
     // little to matter (0.5 % per axis at 3 σ), and conditioned on it a
     // short track's likelihood is nearly flat towards large D.
-    let whole: Vec<Series> = series
-        .iter()
-        .map(|s| Series {
-            gates: [vec![f64::INFINITY; s.len()], vec![f64::INFINITY; s.len()]],
-            ..s.clone()
-        })
-        .collect();
+    let whole: Vec<Series> = series.iter().map(Series::ungated).collect();
     let of = |series: &[Series]| -> Option<Estimate> {
         let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
         method.estimate(&all)
     };
     let (ensemble, ensemble_dispersion, whole_ensemble) = match method {
         Method::Ml => {
-            let runs = match ensemble_gate <= MAX_ENSEMBLE_GATE {
-                true => within_margin(&within_gates(series, ensemble_gate), ensemble_margin),
-                false => within_margin(&whole, ensemble_margin),
-            };
-            let runs: Vec<&Series> = runs.iter().filter(|s| s.len() > 1).collect();
-            let (ensemble, phi) = ml::ensemble(&runs).unzip();
+            let (ensemble, phi) = ml_ensemble(series, ensemble_gate, ensemble_margin).unzip();
             // The tracks' σ² comes from the likelihood of every step of
             // the whole tracks, as each track's own estimate takes them
             // (the ensemble leaves out first steps and steps beyond its
@@ -374,7 +363,40 @@ pub fn estimate_recording(
     }
 }
 
+/// The ML ensemble over `series` as [`estimate_recording`] takes it: the
+/// runs of steps within `ensemble_gate` of each link's gate (every step
+/// for a share of 1) and `ensemble_margin` µm inside the field, each
+/// conditioned on its box; with the runs' dispersion where it was
+/// measured.
+pub fn ml_ensemble(
+    series: &[Series],
+    ensemble_gate: f64,
+    ensemble_margin: f64,
+) -> Option<(Estimate, Option<f64>)> {
+    let runs = match ensemble_gate <= MAX_ENSEMBLE_GATE {
+        true => within_margin(&within_gates(series, ensemble_gate), ensemble_margin),
+        false => {
+            let whole: Vec<Series> = series.iter().map(Series::ungated).collect();
+            within_margin(&whole, ensemble_margin)
+        }
+    };
+    let runs: Vec<&Series> = runs.iter().filter(|s| s.len() > 1).collect();
+    let (ensemble, phi) = ml::ensemble(&runs)?;
+    Some((ensemble, phi))
+}
+
 impl Series {
+    /// The series with no gates: every step taken as it is.
+    fn ungated(&self) -> Series {
+        Series {
+            gates: [
+                vec![f64::INFINITY; self.len()],
+                vec![f64::INFINITY; self.len()],
+            ],
+            ..self.clone()
+        }
+    }
+
     /// `track` (ordered by frame, one localisation per frame) with each
     /// localisation's time stamp and blur from `geometry` under `exposure`;
     /// a `time` the table gave replaces the scan's time stamp.
