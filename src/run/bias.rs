@@ -57,16 +57,14 @@ impl Pipeline<'_> {
             self.model,
             Some(&spec.params.microscope),
         )?;
-        Ok(kept(predictions, self.min_score))
+        Ok(predictions.into_iter().filter(|p| self.keeps(p)).collect())
     }
-}
 
-/// The localisations scoring at least `min_score`.
-fn kept(predictions: Vec<Prediction>, min_score: Option<f64>) -> Vec<Prediction> {
-    predictions
-        .into_iter()
-        .filter(|p| min_score.is_none_or(|least| p.score >= least))
-        .collect()
+    /// Whether the pipeline links `prediction` (it scores at least the
+    /// threshold).
+    fn keeps(&self, prediction: &Prediction) -> bool {
+        self.min_score.is_none_or(|least| prediction.score >= least)
+    }
 }
 
 /// The ML ensemble of `evaluation` (the pipeline's scores on recording
@@ -91,7 +89,10 @@ pub(super) fn correct_ensemble(
     }
     let frames = spec.params.frames;
     let per_frame = |count: usize, frames: usize| count as f64 / frames.max(1) as f64;
-    let recorded_rate = per_frame(kept(predictions.to_vec(), pipeline.min_score).len(), frames);
+    let recorded_rate = per_frame(
+        predictions.iter().filter(|p| pipeline.keeps(p)).count(),
+        frames,
+    );
 
     // The pilot: the volume's expected number of QDs, a quarter as long.
     let pilot_qds = spec.params.qd_count.unwrap_or_else(|| {

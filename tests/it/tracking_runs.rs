@@ -680,4 +680,15 @@ fn a_bias_correction_by_simulation_divides_out_what_the_pipeline_reads_on_record
     assert_eq!(second["tracking"][0]["corrected_ensemble"], *corrected);
     let (text, _) = run_text(&manifest, &registry);
     assert!(text.contains("ml, bias-corrected"), "{text}");
+    // The report's table and figure show it beside the uncorrected one.
+    let out = dir.path().join("report");
+    let markdown = report_markdown(&registry, "latest", &out);
+    let section = report_section(&markdown, "Tracking");
+    assert!(
+        section.contains("| cg+memory | dense | 1 | ml, bias-corrected |"),
+        "{section}"
+    );
+    let svg = svg_text(&out.join("diffusion_estimates.svg"));
+    assert!(svg.contains("cg+memory, ML bias-corrected"), "{svg}");
+    assert!(!svg.contains("cg+lap, ML bias-corrected"), "{svg}");
 }

@@ -16,6 +16,7 @@ use crate::report::figures::{
 use crate::run::table::{CellTable, tracking_tables};
 use crate::run::{RecordedTracking, load_artefact};
 use crate::track::diffusion::Method;
+use crate::track::pipeline::StoredEstimate;
 use crate::types::Track;
 
 /// Frames either side of the shown frame whose track points are drawn.
@@ -67,7 +68,9 @@ pub(super) fn write_tracking_section(
         "**D estimated against true D**: per pipeline, the ML ensemble estimate on each \
          recording with its 95 % interval (bars, cut at the top of the chart), the per-track ML \
          estimates as light dots (those above the chart left out), and the line where the \
-         estimate equals the truth; pipelines are set slightly apart along x.\n\n\
+         estimate equals the truth; pipelines are set slightly apart along x. A pipeline whose \
+         ensemble is corrected for its bias by simulation has a second series, `ML \
+         bias-corrected`.\n\n\
          ![D estimated against true D]({DIFFUSION_FIGURE}.png)\n"
     )?;
     Ok(())
@@ -205,36 +208,52 @@ fn paths_in(
     (paths, now)
 }
 
+/// The series of `series` labelled `label`, added where it is new.
+fn series_named(series: &mut Vec<EstimateSeries>, label: String) -> &mut EstimateSeries {
+    let index = match series.iter().position(|s| s.label == label) {
+        Some(index) => index,
+        None => {
+            series.push(EstimateSeries {
+                label,
+                points: Vec::new(),
+                scatter: Vec::new(),
+            });
+            series.len() - 1
+        }
+    };
+    &mut series[index]
+}
+
+impl EstimateSeries {
+    /// An ensemble estimate at true D `truth`, with its interval (none
+    /// where there is no estimate).
+    fn add(&mut self, truth: f64, estimate: Option<&StoredEstimate>) {
+        if let Some(e) = estimate {
+            self.points
+                .push((truth, e.d, e.low, e.high.unwrap_or(f64::INFINITY)));
+        }
+    }
+}
+
 /// The ML estimates of D against each recording's true D, one series per
-/// pipeline.
+/// pipeline (and one more for a pipeline's bias-corrected ensemble).
 fn diffusion_figure(out: &Path, tracking: &[RecordedTracking]) -> anyhow::Result<()> {
     let mut series: Vec<EstimateSeries> = Vec::new();
     for t in tracking {
         let Some(ml) = t.evaluation.estimator(Method::Ml) else {
             continue;
         };
-        let label = format!("{}, ML", crate::limits::display_cell(&t.row.pipeline));
-        let index = match series.iter().position(|s| s.label == label) {
-            Some(index) => index,
-            None => {
-                series.push(EstimateSeries {
-                    label,
-                    points: Vec::new(),
-                    scatter: Vec::new(),
-                });
-                series.len() - 1
-            }
-        };
+        let pipeline = crate::limits::display_cell(&t.row.pipeline);
         let truth = t.row.diffusion;
-        let entry = &mut series[index];
-        if let Some(e) = ml.ensemble {
-            entry
-                .points
-                .push((truth, e.d, e.low, e.high.unwrap_or(f64::INFINITY)));
-        }
+        let entry = series_named(&mut series, format!("{pipeline}, ML"));
+        entry.add(truth, ml.ensemble.as_ref());
         entry
             .scatter
             .extend(ml.tracks.iter().map(|track| (truth, track.estimate.d)));
+        if let Some(corrected) = &t.evaluation.corrected_ensemble {
+            series_named(&mut series, format!("{pipeline}, ML bias-corrected"))
+                .add(truth, Some(&corrected.estimate));
+        }
     }
     let finite_max = |values: &mut dyn Iterator<Item = f64>| {
         values
