@@ -504,20 +504,22 @@ impl Plan {
             "scoring": scoring,
         });
         // The tracks' key holds the localiser, its model and the linker,
-        // so the correction adds only its own version (and an evaluation
-        // without one keeps its key).
-        let bias = match scoring.bias_correction {
-            BiasCorrection::None => None,
+        // so the correction adds only its own version and seed (which the
+        // pipeline's name derives: renamed, it draws other recordings); an
+        // evaluation without one keeps its key.
+        let (bias, seed) = match scoring.bias_correction {
+            BiasCorrection::None => (None, None),
             BiasCorrection::Simulated { .. } => {
+                let seed = self.steps[recording]
+                    .seed
+                    .map(|seed| derive_seed(seed, "bias-correction", pipeline))
+                    .context("a bias correction needs a simulated recording's seed")?;
                 description["bias_correction_code"] = json!(BIAS_CORRECTION_VERSION);
-                Some(bias.context("a bias correction needs the pipeline's steps")?)
+                description["bias_correction_seed"] = json!(seed);
+                let bias = bias.context("a bias correction needs the pipeline's steps")?;
+                (Some(bias), Some(seed))
             }
         };
-        let seed = bias.as_ref().and_then(|_| {
-            self.steps[recording]
-                .seed
-                .map(|seed| derive_seed(seed, "bias-correction", pipeline))
-        });
         let recording_name = self.steps[recording].name();
         let id = StepId::Evaluation {
             detector: pipeline.to_string(),

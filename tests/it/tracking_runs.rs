@@ -692,3 +692,50 @@ fn a_bias_correction_by_simulation_divides_out_what_the_pipeline_reads_on_record
     assert!(svg.contains("cg+memory, ML bias-corrected"), "{svg}");
     assert!(!svg.contains("cg+lap, ML bias-corrected"), "{svg}");
 }
+
+#[test]
+fn a_bias_correction_is_keyed_by_the_seed_its_pipeline_name_derives() {
+    // Renaming a linker keeps its tracks' key (the same linking) and, with
+    // no correction, its evaluation's; a correction draws its recordings
+    // from a seed the pipeline's name derives, so its key changes with it.
+    let dir = tempfile::tempdir().unwrap();
+    let keys = |name: &str, text: &str| -> Vec<(String, String)> {
+        let manifest = write_manifest(dir.path(), name, text);
+        let listed = ok(&["check", manifest.to_str().unwrap()]);
+        let lines: Vec<&str> = listed.lines().collect();
+        lines
+            .windows(2)
+            .filter_map(|pair| {
+                let step = pair[0].strip_prefix("- step: ")?;
+                let key = pair[1].trim().strip_prefix("key: ")?;
+                Some((step.to_string(), key.to_string()))
+            })
+            .collect()
+    };
+    let renamed_text = BIASED
+        .replace("  memory: {trackpy", "  mem: {trackpy")
+        .replace("linker: memory", "linker: mem")
+        .replace("  lap: {lap", "  gaps: {lap")
+        .replace("linker: lap", "linker: gaps");
+    let original = keys("original.yaml", BIASED);
+    let renamed = keys("renamed.yaml", &renamed_text);
+    let key = |list: &[(String, String)], step: &str| -> String {
+        list.iter()
+            .find(|(s, _)| s == step)
+            .unwrap_or_else(|| panic!("no step {step}: {list:?}"))
+            .1
+            .clone()
+    };
+    assert_eq!(
+        key(&original, "predictions/cg+memory@dense"),
+        key(&renamed, "predictions/cg+mem@dense")
+    );
+    assert_eq!(
+        key(&original, "evaluation/cg+lap@dense"),
+        key(&renamed, "evaluation/cg+gaps@dense")
+    );
+    assert_ne!(
+        key(&original, "evaluation/cg+memory@dense"),
+        key(&renamed, "evaluation/cg+mem@dense")
+    );
+}
