@@ -20,6 +20,7 @@ use crate::sim::recording::{MAX_RECORDING_QDS, RecordingParams, simulate_recordi
 use crate::track::diffusion::Method;
 use crate::track::pipeline::{
     CorrectedEnsemble, LinkerSpec, TrackEvaluation, link_predictions, ml_ensemble_of,
+    scores_at_least,
 };
 use crate::types::{FrameStack, Prediction, derive_seed};
 
@@ -57,13 +58,10 @@ impl Pipeline<'_> {
             self.model,
             Some(&spec.params.microscope),
         )?;
-        Ok(predictions.into_iter().filter(|p| self.keeps(p)).collect())
-    }
-
-    /// Whether the pipeline links `prediction` (it scores at least the
-    /// threshold).
-    fn keeps(&self, prediction: &Prediction) -> bool {
-        self.min_score.is_none_or(|least| prediction.score >= least)
+        Ok(predictions
+            .into_iter()
+            .filter(|p| scores_at_least(p, self.min_score))
+            .collect())
     }
 }
 
@@ -90,7 +88,10 @@ pub(super) fn correct_ensemble(
     let frames = spec.params.frames;
     let per_frame = |count: usize, frames: usize| count as f64 / frames.max(1) as f64;
     let recorded_rate = per_frame(
-        predictions.iter().filter(|p| pipeline.keeps(p)).count(),
+        predictions
+            .iter()
+            .filter(|p| scores_at_least(p, pipeline.min_score))
+            .count(),
         frames,
     );
 

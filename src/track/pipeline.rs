@@ -247,6 +247,12 @@ fn tracks_of(detections: &[Detection], linking: &Linking) -> Vec<Track> {
         .collect()
 }
 
+/// Whether `prediction` is linked under the score threshold `min_score`
+/// (it scores at least that; every prediction without one).
+pub fn scores_at_least(prediction: &Prediction, min_score: Option<f64>) -> bool {
+    min_score.is_none_or(|least| prediction.score >= least)
+}
+
 /// Links the predictions scoring at least `min_score` (all when `None`)
 /// into tracks: one per particle, labelled 0, 1, … in the linker's order,
 /// points in frame order with the predictions' uncertainty.
@@ -258,7 +264,7 @@ pub fn link_predictions(
 ) -> anyhow::Result<Vec<Track>> {
     let kept: Vec<&Prediction> = predictions
         .iter()
-        .filter(|p| min_score.is_none_or(|least| p.score >= least))
+        .filter(|p| scores_at_least(p, min_score))
         .collect();
     let detections: Vec<Detection> = kept
         .iter()
