@@ -355,7 +355,9 @@ fn write_table(out: &mut dyn Write, score: &Score) -> anyhow::Result<()> {
             per_eps.false_positives,
             maybe(headroom.map(|h| h.oracle_auc)),
             maybe(headroom.map(|h| h.random_auc)),
-            maybe(headroom.and_then(|h| h.share_used)),
+            maybe(headroom.and_then(|h| {
+                h.share_used_by_best_guesses(per_eps.auc, per_eps.auc_best_per_frame)
+            })),
             maybe(headroom.and_then(|h| h.fraction_top_within_eps)),
         )?;
     }

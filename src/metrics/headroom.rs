@@ -28,14 +28,43 @@ pub struct Headroom {
     /// order (every one of the `n!` orders equally likely), in closed form:
     /// see [`expected_random_rank_auc`].
     pub random_auc: f64,
-    /// The share of the headroom the detector's score uses:
-    /// `(AUC − random) / (oracle − random)`, where AUC is the detector's
-    /// own AUC over all its predictions (so it can exceed 1 when
-    /// predictions other than the top ones find QDs). `None` when
+    /// `(AUC − random) / (oracle − random)` as stored, where AUC is the
+    /// detector's own AUC over all its predictions: it exceeds 1 when
+    /// predictions other than the top ones find QDs (a ranked list's
+    /// lower guesses), where it is no share of anything. What the tables
+    /// print is [`Headroom::share_of`] the best guesses' AUC, the share of
+    /// the headroom the score's ranking of these same top predictions
+    /// uses. `None` when
     /// `oracle − random` is below [`MIN_HEADROOM`] (no top prediction, or
     /// all of them, within ε): a share of no headroom is undefined, and
     /// dividing by a difference of rounding errors would give any number.
     pub share_used: Option<f64>,
+}
+
+impl Headroom {
+    /// The share of the headroom an AUC of these top predictions uses,
+    /// `(auc − random) / (oracle − random)`; `None` when `oracle − random`
+    /// is below [`MIN_HEADROOM`]. Given the AUC of each frame's best guess
+    /// alone (`auc_best_per_frame`: the same top predictions in the score's
+    /// order), it lies between 0 and 1 up to the random order's being an
+    /// expectation: the oracle's order is the best order of them, and the
+    /// random one what a score that knows nothing gets on average. This is
+    /// the share for ranked lists and single guesses alike.
+    pub fn share_of(&self, auc: f64) -> Option<f64> {
+        let gap = self.oracle_auc - self.random_auc;
+        (gap >= MIN_HEADROOM).then(|| (auc - self.random_auc) / gap)
+    }
+
+    /// [`Headroom::share_of`] the best guesses' AUC where the evaluation
+    /// has it, else of `auc` (evaluations stored before the best guess's
+    /// AUC existed, whose top predictions were all their predictions).
+    pub fn share_used_by_best_guesses(
+        &self,
+        auc: f64,
+        auc_best_per_frame: Option<f64>,
+    ) -> Option<f64> {
+        self.share_of(auc_best_per_frame.unwrap_or(auc))
+    }
 }
 
 /// The smallest `oracle − random` a share of the headroom is computed
@@ -77,15 +106,16 @@ pub(super) fn headroom(
     // The expectation lies between 0 and the oracle's; clamped so that
     // rounding cannot put it outside.
     let random_auc = expected_random_rank_auc(n, m, ground_truths).clamp(0.0, oracle_auc);
-    let gap = oracle_auc - random_auc;
-    Headroom {
+    let mut headroom = Headroom {
         top_predictions: n,
         top_within_eps: m,
         fraction_top_within_eps: (n > 0).then(|| m as f64 / n as f64),
         oracle_auc,
         random_auc,
-        share_used: (gap >= MIN_HEADROOM).then(|| (auc - random_auc) / gap),
-    }
+        share_used: None,
+    };
+    headroom.share_used = headroom.share_of(auc);
+    headroom
 }
 
 /// The expected AUC of `n` predictions, one per frame, `m` of them true

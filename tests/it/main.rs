@@ -24,6 +24,7 @@ mod cli_simulate;
 mod cnn;
 mod crocker_grier;
 mod diffusion;
+mod docs;
 mod empty_frames;
 mod figures;
 mod hostile_bounds;

@@ -43,6 +43,9 @@ struct Evaluation {
     /// The kind of its manifest detector (unknown if the manifest no
     /// longer names it).
     detector_kind: Option<DetectorKind>,
+    /// Whether its guesses are ranked lists (the AUC table then gives its
+    /// best guess alone a row of its own, as `scanloc run` prints it).
+    ranks_candidates: bool,
     dataset: String,
     diffusion: Option<f64>,
     dataset_key: String,
@@ -196,15 +199,14 @@ fn load_evaluations(
         let score = load_artefact(registry, key)?.evaluation()?.as_ref().clone();
         // Fold models of a cross-validation are not manifest detectors:
         // their kind is their detector's.
-        let detector_kind = resolved
-            .detector(&row.detector)
-            .or_else(|| {
-                let cv = record.cross_validation.as_ref()?;
-                resolved.detector(&cv.detector)
-            })
-            .map(|d| d.spec.kind());
+        let detector = resolved.detector(&row.detector).or_else(|| {
+            let cv = record.cross_validation.as_ref()?;
+            resolved.detector(&cv.detector)
+        });
+        let detector_kind = detector.map(|d| d.spec.kind());
         evaluations.push(Evaluation {
             detector_kind,
+            ranks_candidates: detector.is_some_and(|d| d.spec.ranks_candidates()),
             detector: row.detector,
             dataset: row.dataset,
             diffusion: row.diffusion,

@@ -12,6 +12,7 @@ use crate::metrics::paired::{AucSpread, bootstrap_auc};
 use crate::registry::RunRecord;
 use crate::report::recorded::RecordedManifest;
 use crate::run::cross_validation;
+use crate::run::table::{blocks, frames_scored, sets_per_block};
 use crate::sim::Distribution;
 use crate::types::DetectorKind;
 
@@ -78,8 +79,12 @@ pub(super) fn write_cross_validation_table(
     Ok(())
 }
 
-/// The AUC table in the paper's layout: rows detectors, columns D × ε, each
-/// cell ours with the reference value and the difference.
+/// The AUC table in the paper's layout: rows detectors (a ranked list's
+/// best guess alone a row of its own, the reference's rows after their
+/// detector with the difference, ours − theirs), columns D × ε. Evaluations of a set's first N
+/// frames (`DATASET+firstN`, as the bound runs) follow in a table per N,
+/// every detector scored on those frames side by side. Tables of more than
+/// [`crate::run::table::MAX_FIGURE_COLUMNS`] figures are split by test set.
 pub(super) fn write_auc_table(
     markdown: &mut String,
     evaluations: &[Evaluation],
@@ -89,19 +94,69 @@ pub(super) fn write_auc_table(
         markdown,
         "## AUC (precision–recall), ours vs the reference\n"
     )?;
+    // A set of empty frames has no AUC: it has no column here, and its
+    // false localisations are in the scene table.
+    let scored: Vec<&Evaluation> = evaluations
+        .iter()
+        .filter(|e| !e.score.per_eps.is_empty())
+        .collect();
+    if scored.is_empty() {
+        writeln!(
+            markdown,
+            "No test set with ground truth was scored, so there is no AUC (sets of empty frames: see the table at the score threshold)."
+        )?;
+        return Ok(());
+    }
     if let Some(reference) = reference {
         writeln!(
             markdown,
-            "Reference: {}. Cells: ours (reference, difference).\n",
+            "Reference: {}. Under each detector its reference row and the difference, ours − \
+             theirs. A detector that gives a ranked list of guesses per frame has a second row, \
+             its best guess alone (docs/metric.md, \"A ranked list of guesses\").\n",
             reference.source
         )?;
     }
+    let mut subsets: Vec<Option<usize>> = Vec::new();
+    for e in &scored {
+        let first = frames_scored(&e.dataset).1;
+        if !subsets.contains(&first) {
+            subsets.push(first);
+        }
+    }
+    subsets.sort_by_key(|first| first.unwrap_or(0));
+    for first in subsets {
+        let group: Vec<&Evaluation> = scored
+            .iter()
+            .copied()
+            .filter(|e| frames_scored(&e.dataset).1 == first)
+            .collect();
+        match first {
+            None => write_auc_group(markdown, &group, reference)?,
+            Some(n) => {
+                writeln!(
+                    markdown,
+                    "\n### On the first {n} frames of each test set\n\n\
+                     Every detector scored on these frames, side by side (the bound is run on \
+                     them; the others on the whole sets too, above).\n"
+                )?;
+                write_auc_group(markdown, &group, None)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One AUC table of `evaluations` (all of one subset), split into blocks
+/// of at most [`crate::run::table::MAX_FIGURE_COLUMNS`] figures.
+fn write_auc_group(
+    markdown: &mut String,
+    evaluations: &[&Evaluation],
+    reference: Option<&Reference>,
+) -> anyhow::Result<()> {
     let mut datasets: Vec<(&str, Option<f64>)> = Vec::new();
     let mut detectors: Vec<&str> = Vec::new();
     let mut eps: Vec<f64> = Vec::new();
-    // A set of empty frames has no AUC: it has no column here, and its
-    // false localisations are in the scene table.
-    for e in evaluations.iter().filter(|e| !e.score.per_eps.is_empty()) {
+    for e in evaluations {
         if !datasets.iter().any(|(d, _)| *d == e.dataset) {
             datasets.push((&e.dataset, e.diffusion));
         }
@@ -114,55 +169,107 @@ pub(super) fn write_auc_table(
             }
         }
     }
-    if datasets.is_empty() {
-        writeln!(
-            markdown,
-            "No test set with ground truth was scored, so there is no AUC (sets of empty frames: see the table at the score threshold)."
-        )?;
-        return Ok(());
-    }
-    let mut header = String::from("| detector |");
-    let mut rule = String::from("|---|");
-    for (dataset, diffusion) in &datasets {
-        for e in &eps {
-            match diffusion {
-                Some(d) => write!(header, " D={d} ε={e} |")?,
-                None => write!(header, " {dataset} ε={e} |")?,
-            }
-            rule.push_str("---|");
+    let score = |detector: &str, dataset: &str, e: f64| {
+        evaluations
+            .iter()
+            .find(|x| x.detector == detector && x.dataset == dataset)
+            .and_then(|x| x.score.per_eps.iter().find(|s| s.eps_px == e))
+    };
+    let best_guess_differs = |detector: &str| {
+        evaluations
+            .iter()
+            .filter(|x| x.detector == detector && x.ranks_candidates)
+            .flat_map(|x| &x.score.per_eps)
+            .any(|s| s.auc_best_per_frame.is_some_and(|best| best != s.auc))
+    };
+    for (b, block) in blocks(&datasets, sets_per_block(eps.len())).enumerate() {
+        if b > 0 {
+            writeln!(markdown)?;
         }
-    }
-    writeln!(markdown, "{header}\n{rule}")?;
-    for detector in &detectors {
-        let mut line = format!("| {detector} |");
-        for (dataset, _) in &datasets {
+        let mut header = String::from("| detector |");
+        let mut rule = String::from("|---|");
+        for (dataset, diffusion) in block {
             for e in &eps {
-                let ours = evaluations
-                    .iter()
-                    .find(|x| x.detector == *detector && x.dataset == *dataset)
-                    .and_then(|x| x.score.auc(*e));
-                let theirs = reference.and_then(|r| r.auc(detector, dataset, *e));
-                match (ours, theirs) {
-                    (Some(o), Some(t)) => write!(line, " {o:.2} ({t:.2}, {:+.2}) |", o - t)?,
-                    (Some(o), None) => write!(line, " {o:.2} |")?,
-                    _ => line.push_str(" — |"),
+                // Two lines per heading, so the columns stay as narrow as
+                // their figures.
+                match diffusion {
+                    Some(d) if (d * 100.0).round() == d * 100.0 => {
+                        write!(header, " D = {d:.2}<br>ε = {e} |")?
+                    }
+                    Some(d) => write!(header, " D = {d}<br>ε = {e} |")?,
+                    None => write!(header, " {}<br>ε = {e} |", frames_scored(dataset).0)?,
                 }
+                rule.push_str("---|");
             }
         }
-        writeln!(markdown, "{line}")?;
-    }
-    if let Some(reference) = reference {
-        for row in &reference.rows {
-            let mut line = format!("| {} (reference) |", row.label);
-            for (dataset, _) in &datasets {
-                for e in &eps {
-                    match row.auc(dataset, *e) {
-                        Some(auc) => write!(line, " {auc:.2} |")?,
+        writeln!(markdown, "{header}\n{rule}")?;
+        let row = |label: &str,
+                   value: &dyn Fn(&str, f64) -> Option<f64>,
+                   shown: &dyn Fn(f64) -> String| {
+            let mut line = format!("| {label} |");
+            for (dataset, _) in block {
+                for &e in &eps {
+                    match value(dataset, e) {
+                        Some(v) => line.push_str(&format!(" {} |", shown(v))),
                         None => line.push_str(" — |"),
                     }
                 }
             }
-            writeln!(markdown, "{line}")?;
+            line
+        };
+        let ours = |v: f64| format!("{v:.3}");
+        // A published figure as printed: two decimals.
+        let theirs = |v: f64| format!("{v:.2}");
+        // A difference to the reference's precision, with no "-0.00".
+        let difference = |v: f64| {
+            let v = if v.abs() < 0.005 { 0.0 } else { v };
+            format!("{v:+.2}")
+        };
+        for detector in &detectors {
+            let own = |dataset: &str, e: f64| score(detector, dataset, e).map(|s| s.auc);
+            writeln!(markdown, "{}", row(detector, &own, &ours))?;
+            if best_guess_differs(detector) {
+                let best = |dataset: &str, e: f64| {
+                    score(detector, dataset, e).and_then(|s| s.auc_best_per_frame)
+                };
+                writeln!(
+                    markdown,
+                    "{}",
+                    row(&format!("{detector}, best guess"), &best, &ours)
+                )?;
+            }
+            if let Some(reference) = reference {
+                for r in reference.rows.iter().filter(|r| r.detector == *detector) {
+                    let published = |dataset: &str, e: f64| r.auc(frames_scored(dataset).0, e);
+                    writeln!(
+                        markdown,
+                        "{}",
+                        row(&format!("{} (reference)", r.label), &published, &theirs)
+                    )?;
+                    let apart =
+                        |dataset: &str, e: f64| Some(own(dataset, e)? - published(dataset, e)?);
+                    writeln!(
+                        markdown,
+                        "{}",
+                        row(&format!("{detector} − {}", r.label), &apart, &difference)
+                    )?;
+                }
+            }
+        }
+        // Reference rows for no detector of the run.
+        if let Some(reference) = reference {
+            for r in reference
+                .rows
+                .iter()
+                .filter(|r| !detectors.contains(&r.detector.as_str()))
+            {
+                let published = |dataset: &str, e: f64| r.auc(frames_scored(dataset).0, e);
+                writeln!(
+                    markdown,
+                    "{}",
+                    row(&format!("{} (reference)", r.label), &published, &theirs)
+                )?;
+            }
         }
     }
     Ok(())
@@ -268,10 +375,12 @@ pub(super) fn write_headroom_table(
     writeln!(
         markdown,
         "Each frame's top prediction ranked by its true distance to the truth (oracle) and in a \
-         random order (the expectation over all orders), through the same metric; the share \
-         of that headroom the score uses is (AUC − random) / (oracle − random) (docs/metric.md, \
-         \"Headroom\"). The AUC is that of every prediction (a ranked list of guesses whole); \
-         beside it the AUC of each frame's best guess alone (its rank 1, or its top score).\n"
+         random order (the expectation over all orders), through the same metric. The AUC is \
+         that of every prediction (a ranked list of guesses whole); beside it the AUC of each \
+         frame's best guess alone (its rank 1, or its top score), which ranks those same top \
+         predictions in the score's order: the share of the headroom the score uses is \
+         (best-guess AUC − random) / (oracle − random), between 0 and 1 for a ranked list as for \
+         a single guess (docs/metric.md, \"Headroom\").\n"
     )?;
     writeln!(
         markdown,
@@ -295,7 +404,7 @@ pub(super) fn write_headroom_table(
             headroom.oracle_auc,
             headroom.random_auc,
             headroom
-                .share_used
+                .share_used_by_best_guesses(per_eps.auc, per_eps.auc_best_per_frame)
                 .map_or("—".to_string(), |s| format!("{:.0} %", 100.0 * s)),
             headroom
                 .fraction_top_within_eps
@@ -828,6 +937,7 @@ mod tests {
         Evaluation {
             detector: detector.to_string(),
             detector_kind: kind.parse().ok(),
+            ranks_candidates: false,
             dataset: "test-1.00".to_string(),
             diffusion: Some(1.0),
             dataset_key: String::new(),
@@ -847,6 +957,99 @@ mod tests {
                 uncertainty: None,
             },
         }
+    }
+
+    /// The paper manifest's evaluations (the run table's fixture, made-up
+    /// figures in the paper run's shape), with a headroom per cell.
+    fn paper_evaluations() -> Vec<Evaluation> {
+        use crate::metrics::EpsScore;
+        use crate::metrics::headroom::Headroom;
+        use crate::run::table::tests::{SETS, paper_evaluations};
+        let mut out = Vec::new();
+        for (detector, first, ranked, auc, best) in paper_evaluations() {
+            for (s, (set, d)) in SETS.iter().enumerate() {
+                let mut e = evaluation(
+                    detector,
+                    if detector == "trackpy" {
+                        "crocker_grier"
+                    } else {
+                        "cnn"
+                    },
+                );
+                e.ranks_candidates = ranked;
+                e.dataset = match first {
+                    Some(n) => format!("{set}+first{n}"),
+                    None => set.to_string(),
+                };
+                e.diffusion = Some(*d);
+                e.score.per_eps = (0..3)
+                    .map(|i| {
+                        // Top guesses within ε: halfway from the best
+                        // guesses' AUC to 1; the random order below both.
+                        let within = best[s][i] + (1.0 - best[s][i]) / 2.0;
+                        let random = within * best[s][i];
+                        EpsScore {
+                            eps_px: (i + 1) as f64,
+                            auc: auc[s][i],
+                            auc_best_per_frame: Some(best[s][i]),
+                            true_positives: 0,
+                            false_positives: 0,
+                            curve: Vec::new(),
+                            headroom: Some(Headroom {
+                                top_predictions: 1000,
+                                top_within_eps: (1000.0 * within) as usize,
+                                fraction_top_within_eps: Some(within),
+                                oracle_auc: within,
+                                random_auc: random,
+                                share_used: Some((auc[s][i] - random) / (within - random)),
+                            }),
+                            at_threshold: None,
+                        }
+                    })
+                    .collect();
+                out.push(e);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_paper_reports_auc_table_keeps_nine_cells_a_row_and_the_bound_subsets_apart() {
+        let evaluations = paper_evaluations();
+        let reference = crate::run::table::tests::paper_reference();
+        let mut markdown = String::new();
+        write_auc_table(&mut markdown, &evaluations, Some(&reference)).unwrap();
+        for line in markdown.lines().filter(|l| l.starts_with('|')) {
+            let columns = line.matches('|').count() - 1;
+            assert!(columns <= 13, "{columns} columns: {line}");
+        }
+        insta::assert_snapshot!(markdown);
+    }
+
+    #[test]
+    fn the_headroom_tables_share_is_that_of_the_best_guesses_for_ranked_lists_too() {
+        let evaluations: Vec<Evaluation> = paper_evaluations()
+            .into_iter()
+            .filter(|e| !e.dataset.contains("+first"))
+            .collect();
+        let mut markdown = String::new();
+        write_headroom_table(&mut markdown, &evaluations).unwrap();
+        // Every share printed is a share: 0 to 100 %.
+        for line in markdown
+            .lines()
+            .filter(|l| l.starts_with("| cnn") || l.starts_with("| trackpy"))
+        {
+            let share: f64 = line
+                .split('|')
+                .nth(8)
+                .unwrap()
+                .trim()
+                .trim_end_matches(" %")
+                .parse()
+                .unwrap();
+            assert!((0.0..=100.0).contains(&share), "{line}");
+        }
+        insta::assert_snapshot!(markdown);
     }
 
     fn row(detector: &str, label: &str) -> ReferenceRow {
