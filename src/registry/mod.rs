@@ -85,6 +85,18 @@ impl ArtefactKind {
         }
     }
 
+    /// The table of this kind's typed facts (`schema.sql`), one row per
+    /// artefact keyed by `key`: the one place its name is spelt for SQL
+    /// built by the code.
+    pub fn table(self) -> &'static str {
+        match self {
+            ArtefactKind::Dataset => "datasets",
+            ArtefactKind::Model => "models",
+            ArtefactKind::Predictions => "predictions",
+            ArtefactKind::Evaluation => "evaluations",
+        }
+    }
+
     fn parse(text: &str) -> anyhow::Result<Self> {
         Ok(match text {
             "dataset" => ArtefactKind::Dataset,
@@ -837,8 +849,11 @@ fn insert_details(
             params_json,
         } => {
             tx.execute(
-                "INSERT INTO datasets (key, name, frames, height, width, seed, diffusion, brightness, params)
+                &format!(
+                    "INSERT INTO {} (key, name, frames, height, width, seed, diffusion, brightness, params)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
+                    ArtefactKind::Dataset.table()
+                ),
                 params![
                     key,
                     name,
@@ -859,8 +874,11 @@ fn insert_details(
             seed,
         } => {
             tx.execute(
-                "INSERT INTO models (key, detector, detector_kind, training_dataset_key, seed)
+                &format!(
+                    "INSERT INTO {} (key, detector, detector_kind, training_dataset_key, seed)
                  VALUES (?1, ?2, ?3, ?4, ?5)",
+                    ArtefactKind::Model.table()
+                ),
                 params![
                     key,
                     detector,
@@ -877,8 +895,11 @@ fn insert_details(
             count,
         } => {
             tx.execute(
-                "INSERT INTO predictions (key, detector, dataset_key, model_key, count)
+                &format!(
+                    "INSERT INTO {} (key, detector, dataset_key, model_key, count)
                  VALUES (?1, ?2, ?3, ?4, ?5)",
+                    ArtefactKind::Predictions.table()
+                ),
                 params![key, detector, dataset_key, model_key, *count as i64],
             )?;
         }
@@ -892,8 +913,11 @@ fn insert_details(
             auc,
         } => {
             tx.execute(
-                "INSERT INTO evaluations (key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction)
+                &format!(
+                    "INSERT INTO {} (key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                    ArtefactKind::Evaluation.table()
+                ),
                 params![
                     key,
                     detector,
@@ -1202,6 +1226,21 @@ fn is_busy(error: &rusqlite::Error) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_kinds_table_is_in_the_schema_keyed_by_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let registry = Registry::open(dir.path()).unwrap();
+        for kind in [
+            ArtefactKind::Dataset,
+            ArtefactKind::Model,
+            ArtefactKind::Predictions,
+            ArtefactKind::Evaluation,
+        ] {
+            let sql = format!("SELECT key FROM {} LIMIT 0", kind.table());
+            registry.connection().prepare(&sql).unwrap();
+        }
+    }
 
     #[test]
     fn blobs_round_trip_and_damage_is_detected() {

@@ -18,6 +18,7 @@ mod bias;
 pub mod calibrate;
 mod compute;
 pub mod cross_validation;
+mod descriptions;
 mod details;
 mod execution;
 pub mod plan;

@@ -22,6 +22,7 @@ mod cli_locate;
 mod cli_microscope;
 mod cli_simulate;
 mod cnn;
+mod content_keys;
 mod crocker_grier;
 mod diffusion;
 mod empty_frames;
