@@ -227,10 +227,10 @@ impl Execution {
         let mut waited = false;
         while let Some(holder) = registry.claim_step(&step.key, &self.run_id)? {
             if !waited {
-                eprintln!(
+                crate::progress::note(format_args!(
                     "waiting for {}: run {} (pid {} on {}) is computing it",
                     step.id, holder.run_id, holder.pid, holder.host
-                );
+                ));
                 waited = true;
             }
             std::thread::sleep(CLAIM_POLL);
@@ -323,7 +323,7 @@ impl Execution {
     fn report_damage(&mut self, step: &Step, problems: &[String]) {
         for problem in problems {
             let message = format!("{} ({}): {problem}; rebuilding it", step.id, step.key);
-            eprintln!("warning: {message}");
+            crate::progress::note(format_args!("warning: {message}"));
             self.damaged.push(message);
         }
     }
@@ -346,7 +346,7 @@ impl Execution {
             "{} ({}): recomputed blobs {:?} differ from the stored {:?}",
             step.id, step.key, ours, stored
         );
-        eprintln!("error: {message}");
+        crate::progress::note(format_args!("error: {message}"));
         self.mismatches.push(message);
         Recomputed::Differs
     }

@@ -27,7 +27,6 @@ mod stored;
 pub mod table;
 pub mod test_sets;
 
-use std::io::IsTerminal;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -117,9 +116,7 @@ pub fn run_manifest(
 
 /// A progress line on standard error, for people watching a terminal.
 fn log(message: impl AsRef<str>) {
-    if std::io::stderr().is_terminal() {
-        eprintln!("{}", message.as_ref());
-    }
+    crate::progress::note_on_terminal(message.as_ref());
 }
 
 /// Executes `plan` (made from `manifest`) on `registry`, recording the run:
@@ -148,10 +145,10 @@ pub fn execute(
         .context("recording the end of the run")?;
     result?;
     if registry.is_read_only() {
-        eprintln!(
+        crate::progress::note(format_args!(
             "warning: {} is read-only: every step was served from its cache, but run {run_id} could not be recorded there",
             registry.dir().display()
-        );
+        ));
     }
     if let Some(error) = error {
         return Err(anyhow::Error::new(CheckFailed(format!(
