@@ -23,6 +23,7 @@ mod details;
 mod execution;
 pub mod plan;
 pub mod reproduce;
+mod rows;
 mod stored;
 pub mod table;
 pub mod test_sets;
@@ -34,8 +35,9 @@ use serde::Serialize;
 
 pub use artefacts::Artefact;
 pub use compute::subset;
-pub use execution::{EmptyFramesRow, EstimatorRow, TrackingRow, score_rows};
+pub use execution::score_rows;
 pub use plan::{Action, Plan, Step};
+pub use rows::{EmptyFramesRow, EstimatorRow, TrackingRow};
 pub use stored::{RecordedTracking, load_artefact, read_blobs, recorded_tracking};
 
 use crate::error::CheckFailed;

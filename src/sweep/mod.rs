@@ -751,3 +751,24 @@ pub fn import_and_aggregate(registry: &mut Registry, dir: &Path) -> anyhow::Resu
         .collect();
     aggregate(registry, &file, &base, &points, Some(known))
 }
+
+impl SweepKind {
+    /// The front end that sweeps this kind: the one place a kind is told
+    /// apart (the kind itself is what `sweep.json` records).
+    pub fn front_end(&self) -> Box<dyn FrontEnd + '_> {
+        match self {
+            SweepKind::Cv { detector, folds } => Box::new(cv::CvSweep {
+                detector,
+                folds: *folds,
+            }),
+            SweepKind::Calibrate {
+                detector,
+                brightness,
+            } => Box::new(calibrate::CalibrateSweep {
+                detector,
+                brightness,
+            }),
+            SweepKind::Grid => Box::new(grid::GridSweep),
+        }
+    }
+}
