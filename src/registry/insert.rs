@@ -135,6 +135,25 @@ fn insert_artefact(tx: &Connection, artefact: &NewArtefact, now: &str) -> anyhow
     insert_details(tx, &artefact.key, &artefact.name, &artefact.details)
 }
 
+/// The AUC rows of evaluation `key`, one per matching radius.
+fn insert_auc_rows(tx: &Connection, key: &str, auc: &[EvaluationAuc]) -> rusqlite::Result<()> {
+    for row in auc {
+        tx.execute(
+            "INSERT INTO auc (evaluation_key, eps_px, auc, auc_best_per_frame, true_positives, false_positives)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            params![
+                key,
+                row.eps_px,
+                row.auc,
+                row.auc_best_per_frame,
+                row.true_positives as i64,
+                row.false_positives as i64
+            ],
+        )?;
+    }
+    Ok(())
+}
+
 /// The row of artefact `key` (named `name`) in its kind's table.
 fn insert_details(
     tx: &Connection,
@@ -151,62 +170,50 @@ fn insert_details(
             diffusion,
             brightness,
             params_json,
-        } => {
-            tx.execute(
-                &format!(
-                    "INSERT INTO {} (key, name, frames, height, width, seed, diffusion, brightness, params)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
-                    ArtefactKind::Dataset.table()
-                ),
-                params![
-                    key,
-                    name,
-                    *frames as i64,
-                    *height as i64,
-                    *width as i64,
-                    seed.to_string(),
-                    diffusion,
-                    per_frame_column(brightness),
-                    params_json
-                ],
-            )?;
-        }
+        } => insert_row(
+            tx,
+            ArtefactKind::Dataset,
+            "key, name, frames, height, width, seed, diffusion, brightness, params",
+            params![
+                key,
+                name,
+                *frames as i64,
+                *height as i64,
+                *width as i64,
+                seed.to_string(),
+                diffusion,
+                per_frame_column(brightness),
+                params_json
+            ],
+        )?,
         ArtefactDetails::Model {
             detector,
             detector_kind,
             training_dataset_key,
             seed,
-        } => {
-            tx.execute(
-                &format!(
-                    "INSERT INTO {} (key, detector, detector_kind, training_dataset_key, seed)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
-                    ArtefactKind::Model.table()
-                ),
-                params![
-                    key,
-                    detector,
-                    detector_kind.as_str(),
-                    training_dataset_key,
-                    seed.to_string()
-                ],
-            )?;
-        }
+        } => insert_row(
+            tx,
+            ArtefactKind::Model,
+            "key, detector, detector_kind, training_dataset_key, seed",
+            params![
+                key,
+                detector,
+                detector_kind.as_str(),
+                training_dataset_key,
+                seed.to_string()
+            ],
+        )?,
         ArtefactDetails::Predictions {
             detector,
             dataset_key,
             model_key,
             count,
-        } => {
-            tx.execute(
-                &format!(
-                    "INSERT INTO {} (key, detector, dataset_key, model_key, count)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
-                    ArtefactKind::Predictions.table()
-                ),
-                params![key, detector, dataset_key, model_key, *count as i64],
-            )?;
-        }
+        } => insert_row(
+            tx,
+            ArtefactKind::Predictions,
+            "key, detector, dataset_key, model_key, count",
+            params![key, detector, dataset_key, model_key, *count as i64],
+        )?,
         ArtefactDetails::Evaluation {
             detector,
             dataset,
@@ -216,12 +223,10 @@ fn insert_details(
             fraction_without_prediction,
             auc,
         } => {
-            tx.execute(
-                &format!(
-                    "INSERT INTO {} (key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-                    ArtefactKind::Evaluation.table()
-                ),
+            insert_row(
+                tx,
+                ArtefactKind::Evaluation,
+                "key, detector, dataset, dataset_key, predictions_key, rmse_top_px, fraction_without_prediction",
                 params![
                     key,
                     detector,
@@ -232,22 +237,31 @@ fn insert_details(
                     fraction_without_prediction
                 ],
             )?;
-            for row in auc {
-                tx.execute(
-                    "INSERT INTO auc (evaluation_key, eps_px, auc, auc_best_per_frame, true_positives, false_positives)
-                     VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-                    params![
-                        key,
-                        row.eps_px,
-                        row.auc,
-                        row.auc_best_per_frame,
-                        row.true_positives as i64,
-                        row.false_positives as i64
-                    ],
-                )?;
-            }
+            insert_auc_rows(tx, key, auc)?;
         }
     }
+    Ok(())
+}
+
+/// Inserts `values` as the `columns` (comma-separated) of a new row of
+/// `kind`'s table.
+fn insert_row(
+    tx: &Connection,
+    kind: ArtefactKind,
+    columns: &str,
+    values: &[&dyn rusqlite::ToSql],
+) -> rusqlite::Result<()> {
+    let placeholders = (1..=values.len())
+        .map(|i| format!("?{i}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    tx.execute(
+        &format!(
+            "INSERT INTO {} ({columns}) VALUES ({placeholders})",
+            kind.table()
+        ),
+        values,
+    )?;
     Ok(())
 }
 

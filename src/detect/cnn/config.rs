@@ -386,6 +386,51 @@ impl TrainingSettings {
     /// Checks every field; the error names the field and says what is
     /// allowed.
     pub fn validate(&self) -> Result<(), FieldError> {
+        self.check_schedule()?;
+        if !(self.score_floor.is_finite() && (0.0..1.0).contains(&self.score_floor)) {
+            return Err(FieldError::new(
+                "training.score_floor",
+                format!("must be in [0, 1), got {}", self.score_floor),
+            ));
+        }
+        if !(self.heatmap_sigma_px.is_finite() && self.heatmap_sigma_px > 0.0) {
+            return Err(FieldError::new(
+                "training.heatmap_sigma_px",
+                format!("must be a finite number > 0, got {}", self.heatmap_sigma_px),
+            ));
+        }
+        crate::limits::check_feature_px("training.heatmap_sigma_px", self.heatmap_sigma_px)?;
+        if !(1..=MAX_MEMBERS).contains(&self.members) {
+            return Err(FieldError::new(
+                "training.members",
+                format!("must be in 1..={MAX_MEMBERS}, got {}", self.members),
+            ));
+        }
+        self.check_teacher()?;
+        if self.offset_radius_px > 16 {
+            return Err(FieldError::new(
+                "training.offset_radius_px",
+                format!("must be in 0..=16, got {}", self.offset_radius_px),
+            ));
+        }
+        for (field, weight) in [
+            ("training.offset_loss_weight", self.offset_loss_weight),
+            ("training.sigma_loss_weight", self.sigma_loss_weight),
+            ("training.within_loss_weight", self.within_loss_weight),
+        ] {
+            if !(weight.is_finite() && weight >= 0.0) {
+                return Err(FieldError::new(
+                    field,
+                    format!("must be a finite number ≥ 0, got {weight}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks the epochs, batches and frames of the training, and its
+    /// learning rate.
+    fn check_schedule(&self) -> Result<(), FieldError> {
         if self.epochs == 0 {
             return Err(FieldError::new("training.epochs", "must be ≥ 1, got 0"));
         }
@@ -426,25 +471,11 @@ impl TrainingSettings {
                 format!("must be in [0, 1], got {}", self.validation_fraction),
             ));
         }
-        if !(self.score_floor.is_finite() && (0.0..1.0).contains(&self.score_floor)) {
-            return Err(FieldError::new(
-                "training.score_floor",
-                format!("must be in [0, 1), got {}", self.score_floor),
-            ));
-        }
-        if !(self.heatmap_sigma_px.is_finite() && self.heatmap_sigma_px > 0.0) {
-            return Err(FieldError::new(
-                "training.heatmap_sigma_px",
-                format!("must be a finite number > 0, got {}", self.heatmap_sigma_px),
-            ));
-        }
-        crate::limits::check_feature_px("training.heatmap_sigma_px", self.heatmap_sigma_px)?;
-        if !(1..=MAX_MEMBERS).contains(&self.members) {
-            return Err(FieldError::new(
-                "training.members",
-                format!("must be in 1..={MAX_MEMBERS}, got {}", self.members),
-            ));
-        }
+        Ok(())
+    }
+
+    /// Checks the teacher's particles and which frames it teaches.
+    fn check_teacher(&self) -> Result<(), FieldError> {
         if self.teacher_particles != 0
             && !(2..=crate::detect::likelihood::MAX_PARTICLES).contains(&self.teacher_particles)
         {
@@ -469,24 +500,6 @@ impl TrainingSettings {
                 return Err(FieldError::new(
                     "training.teacher_fresh_frames",
                     format!("cannot teach the fresh frames: {missing}"),
-                ));
-            }
-        }
-        if self.offset_radius_px > 16 {
-            return Err(FieldError::new(
-                "training.offset_radius_px",
-                format!("must be in 0..=16, got {}", self.offset_radius_px),
-            ));
-        }
-        for (field, weight) in [
-            ("training.offset_loss_weight", self.offset_loss_weight),
-            ("training.sigma_loss_weight", self.sigma_loss_weight),
-            ("training.within_loss_weight", self.within_loss_weight),
-        ] {
-            if !(weight.is_finite() && weight >= 0.0) {
-                return Err(FieldError::new(
-                    field,
-                    format!("must be a finite number ≥ 0, got {weight}"),
                 ));
             }
         }

@@ -151,28 +151,10 @@ pub(super) fn batch_loss(
     let offset_map = (offset - offset_target.clone()).abs() * offset_mask;
     let offset_count = masked.max(1) as f64;
     let offset_loss = offset_map.clone().sum().div_scalar(offset_count);
-    // Gaussian NLL of the offsets' error at each target centre's pixel, per
-    // axis: ln σ + e² / 2σ² (DECODE's σ maps). Only there: over the whole
-    // offset window the error mostly says how far a pixel is from the
-    // centre, which is not what the σ of a peak should tell.
-    let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
-    let squared_error = (realised_offset.clone() - offset_target).powi_scalar(2);
-    let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
-    let sigma_map = (log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre;
     let sigma_count = (2 * positives).max(1) as f64;
+    let sigma_map = sigma_nll_map(log_sigma, realised_offset.clone(), offset_target, centre);
     let sigma_loss = sigma_map.clone().sum().div_scalar(sigma_count);
-    // Cross-entropy of the within-1-px head against whether each pixel's
-    // localisation did land within 1 px of a centroid, per target centre
-    // (as the focal loss).
-    let realised = realised_offset
-        .into_data()
-        .try_to_vec::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
-    let true_centroids: Vec<&[(f64, f64)]> =
-        items.iter().map(|(source, i)| source.truth(*i)).collect();
-    let within = map(within_targets(&realised, &true_centroids, height, width), 1);
-    let within_map = log_sigmoid(within_logit.clone()) * within.clone()
-        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0);
+    let within_map = within_map(within_logit, realised_offset, items, map)?;
     let within_loss = within_map.clone().sum().neg().div_scalar(score_count);
     let total = score_loss
         + offset_loss.mul_scalar(settings.offset_loss_weight)
@@ -194,6 +176,45 @@ pub(super) fn batch_loss(
         values,
         network_step,
     })
+}
+
+/// The Gaussian negative log-likelihood of the offsets' error at each
+/// target centre's pixel (`centre`), per axis: ln σ + e² / 2σ² (DECODE's σ
+/// maps). Only there: over the whole offset window the error mostly says
+/// how far a pixel is from the centre, which is not what the σ of a peak
+/// should tell.
+fn sigma_nll_map(
+    log_sigma: Tensor<4>,
+    realised_offset: Tensor<4>,
+    offset_target: Tensor<4>,
+    centre: Tensor<4>,
+) -> Tensor<4> {
+    let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
+    let squared_error = (realised_offset - offset_target).powi_scalar(2);
+    let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
+    (log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre
+}
+
+/// The log-likelihood map of the within-1-px head (`within_logit`) against
+/// whether each pixel's localisation (its `realised_offset`) did land
+/// within 1 px of one of its frame's true centroids; `map` makes a batch
+/// tensor of `channels` maps.
+fn within_map(
+    within_logit: Tensor<4>,
+    realised_offset: Tensor<4>,
+    items: &[(&Source, usize)],
+    map: impl Fn(Vec<f32>, usize) -> Tensor<4>,
+) -> anyhow::Result<Tensor<4>> {
+    let [_, _, height, width] = within_logit.dims();
+    let realised = realised_offset
+        .into_data()
+        .try_to_vec::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
+    let true_centroids: Vec<&[(f64, f64)]> =
+        items.iter().map(|(source, i)| source.truth(*i)).collect();
+    let within = map(within_targets(&realised, &true_centroids, height, width), 1);
+    Ok(log_sigmoid(within_logit.clone()) * within.clone()
+        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0))
 }
 
 /// The focal loss of the peaks head (CenterNet, α = 2, β = 4), from
