@@ -130,6 +130,23 @@ pub fn hidden() -> ProgressBar {
     ProgressBar::hidden()
 }
 
+/// A line for the person running scanloc, on standard error: a step waited
+/// for, a shard imported, a damaged blob being rebuilt. Library code tells
+/// its user things through this, its progress bars and `tracing`, never by
+/// printing itself, so what reaches standard error is decided here. A
+/// standard error that cannot be written is not an error of the work.
+pub fn note(line: impl std::fmt::Display) {
+    let _ = writeln!(std::io::stderr().lock(), "{line}");
+}
+
+/// [`note`] when standard error is a terminal only: a line for someone
+/// watching, which a log file need not keep.
+pub fn note_on_terminal(line: impl std::fmt::Display) {
+    if std::io::stderr().is_terminal() {
+        note(line);
+    }
+}
+
 /// indicatif's terminal, turned into a log. A redraw writes the lines
 /// printed above the bar (`ProgressBar::println`: an epoch's summary, a
 /// finished task) and then the bar's own line, and ends with a flush: the

@@ -546,31 +546,26 @@ pub fn write_sweep(
     floor: Option<f64>,
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir)?;
-    crate::io::write_atomically(&dir.join(format!("{name}.csv")), |writer| {
-        let mut csv = csv::Writer::from_writer(writer);
-        let mut header = vec![
-            "setting".to_string(),
-            "frames_per_second".into(),
-            "error".into(),
-            "pareto".into(),
+    let mut header = vec![
+        "setting".to_string(),
+        "frames_per_second".into(),
+        "error".into(),
+        "pareto".into(),
+    ];
+    if let Some(first) = points.first() {
+        header.extend(first.extra.iter().map(|(k, _)| k.clone()));
+    }
+    let rows = points.iter().map(|p| {
+        let mut record = vec![
+            p.setting.clone(),
+            p.frames_per_second.to_string(),
+            p.error.to_string(),
+            p.pareto.to_string(),
         ];
-        if let Some(first) = points.first() {
-            header.extend(first.extra.iter().map(|(k, _)| k.clone()));
-        }
-        csv.write_record(&header)?;
-        for p in points {
-            let mut record = vec![
-                p.setting.clone(),
-                p.frames_per_second.to_string(),
-                p.error.to_string(),
-                p.pareto.to_string(),
-            ];
-            record.extend(p.extra.iter().map(|(_, v)| v.to_string()));
-            csv.write_record(&record)?;
-        }
-        csv.flush()?;
-        Ok(())
-    })?;
+        record.extend(p.extra.iter().map(|(_, v)| v.to_string()));
+        record
+    });
+    crate::io::csv_tables::write_table(&dir.join(format!("{name}.csv")), &header, rows)?;
     let flags: Vec<bool> = points.iter().map(|p| p.pareto).collect();
     plot_sweep(
         &dir.join(name),

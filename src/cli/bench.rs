@@ -93,8 +93,8 @@ impl TradeoffArgs {
     /// returns the brightness.
     fn validate(&self) -> anyhow::Result<f64> {
         use scanloc::error::input_error;
-        paper_sized("--frames", self.frames)?;
-        paper_sized("--static-frames", self.static_frames)?;
+        super::microscope::paper_sized("--frames", self.frames)?;
+        super::microscope::paper_sized("--static-frames", self.static_frames)?;
         let brightness = self
             .brightness
             .require_fixed("--brightness", "the Cramér–Rao bound")
@@ -105,7 +105,7 @@ impl TradeoffArgs {
             )));
         }
         if self.stages.contains(&Stage::Cnn) {
-            paper_sized("--cnn-train-frames", self.cnn_train_frames)?;
+            super::microscope::paper_sized("--cnn-train-frames", self.cnn_train_frames)?;
             if self.cnn_epochs.contains(&0) {
                 return Err(input_error("--cnn-epochs: each must be ≥ 1"));
             }
@@ -182,37 +182,9 @@ pub fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
     }
 }
 
-/// The microscope of a bench's `flags`, checked, with `frames` of its size
-/// (the flag `frames_flag`) checked against the limits a manifest's
-/// datasets have.
-pub(super) fn bench_microscope(
-    flags: &super::MicroscopeArgs,
-    frames_flag: &str,
-    frames: usize,
-) -> anyhow::Result<SimParams> {
-    let params = flags.params()?;
-    params
-        .validate()
-        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
-    scanloc::limits::check_dataset_size(frames_flag, frames, params.height, params.width)?;
-    Ok(params)
-}
-
-/// Checks a frame count flag of paper-sized frames against the limits a
-/// manifest's datasets have.
-pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
-    let paper = SimParams::default();
-    Ok(scanloc::limits::check_dataset_size(
-        flag,
-        frames,
-        paper.height,
-        paper.width,
-    )?)
-}
-
 fn locate(args: LocateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let params = bench_microscope(&args.microscope, "--frames", args.frames)?;
-    bench_microscope(
+    let params = super::microscope::bench_microscope(&args.microscope, "--frames", args.frames)?;
+    super::microscope::bench_microscope(
         &args.microscope,
         "--reference-frames",
         args.reference_frames,
@@ -253,7 +225,7 @@ fn locate(args: LocateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode>
 }
 
 fn simulate(args: SimulateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let params = bench_microscope(&args.microscope, "--frames", args.frames)?;
+    let params = super::microscope::bench_microscope(&args.microscope, "--frames", args.frames)?;
     let timing = bench::simulate::time_simulator(&params, args.frames, args.repeats)?;
     writeln!(
         stdout,
@@ -403,7 +375,7 @@ fn crocker_grier_tradeoff(
     )?;
     tradeoff::write_sweep(
         &args.out,
-        "crocker_grier",
+        scanloc::types::DetectorKind::CrockerGrier.as_str(),
         "RMSE of top prediction, D = 1 (px)",
         &locator,
         Some(floor),

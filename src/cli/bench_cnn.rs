@@ -75,8 +75,8 @@ const MAX_BENCH_THREADS: usize = 256;
 const MAX_REPEATS: usize = 100;
 
 pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    super::bench::paper_sized("--samples", args.samples)?;
-    super::bench::paper_sized("--locate-frames", args.locate_frames)?;
+    super::microscope::paper_sized("--samples", args.samples)?;
+    super::microscope::paper_sized("--locate-frames", args.locate_frames)?;
     if args.samples == 0 || args.locate_frames == 0 {
         scanloc::bail_input!("--samples and --locate-frames: must be ≥ 1");
     }
@@ -241,7 +241,7 @@ pub struct BenchLocateArgs {
 }
 
 pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let params = super::bench::bench_microscope(&args.microscope, "--frames", args.frames)?;
+    let params = super::microscope::bench_microscope(&args.microscope, "--frames", args.frames)?;
     args.test_diffusion.checked()?;
     let mut model = TrainedCnn::load(&args.model)?;
     if let Some(r) = args.peak_radius_px {

@@ -36,24 +36,8 @@ pub struct MicroscopeFlags {
     /// command's defaults.
     #[arg(long = "microscope", value_name = "FILE.yaml")]
     pub file: Option<PathBuf>,
-    /// Frame height in pixels (rows).
-    #[arg(long, default_value_t = 24)]
-    pub height: usize,
-    /// Frame width in pixels (columns).
-    #[arg(long, default_value_t = 25)]
-    pub width: usize,
-    /// Pixel size in µm.
-    #[arg(long, default_value_t = 0.07)]
-    pub pixel_size_um: f64,
-    /// Pixel dwell time in µs.
-    #[arg(long, default_value_t = 2.0)]
-    pub dwell_us: f64,
-    /// Line retrace time in ms.
-    #[arg(long, default_value_t = 1.1)]
-    pub retrace_ms: f64,
-    /// Lateral PSF standard deviation in µm.
-    #[arg(long, default_value_t = 0.21)]
-    pub sigma_xy_um: f64,
+    #[command(flatten)]
+    pub scan: ScanFlags,
     /// Axial PSF standard deviation in µm.
     #[arg(long, default_value_t = 1.36)]
     pub sigma_z_um: f64,
@@ -95,48 +79,127 @@ pub struct MicroscopeFlags {
     pub psf_cutoff_sigma: Cutoff,
 }
 
-/// Each flag's clap id (its field name above) and the manifest field it sets.
-const FIELDS: [(&str, &str); 16] = [
-    ("height", "height"),
-    ("width", "width"),
-    ("pixel_size_um", "pixel_size_um"),
-    ("dwell_us", "dwell_us"),
-    ("retrace_ms", "retrace_ms"),
-    ("sigma_xy_um", "sigma_xy_um"),
-    ("sigma_z_um", "sigma_z_um"),
-    ("diffusion", "diffusion_um2_s"),
-    ("brightness", "brightness"),
-    ("background", "background"),
-    ("z_start", "z_start"),
-    ("margin_px", "margin_px"),
-    ("substeps", "substeps"),
-    ("emitters", "emitters"),
-    ("detector_noise", "detector_noise"),
-    ("psf_cutoff_sigma", "psf_cutoff_sigma"),
-];
+/// The scan geometry's flags, one group shared by the microscope's flags
+/// and [`ScanGeometryArgs`]: what decides when the beam sees each pixel,
+/// and the PSF's lateral width.
+#[derive(Debug, Clone, Args)]
+pub struct ScanFlags {
+    /// Frame height in pixels (rows).
+    #[arg(long, default_value_t = 24)]
+    pub height: usize,
+    /// Frame width in pixels (columns).
+    #[arg(long, default_value_t = 25)]
+    pub width: usize,
+    /// Pixel size in µm.
+    #[arg(long, default_value_t = 0.07)]
+    pub pixel_size_um: f64,
+    /// Pixel dwell time in µs.
+    #[arg(long, default_value_t = 2.0)]
+    pub dwell_us: f64,
+    /// Line retrace time in ms.
+    #[arg(long, default_value_t = 1.1)]
+    pub retrace_ms: f64,
+    /// Lateral PSF standard deviation in µm.
+    #[arg(long, default_value_t = 0.21)]
+    pub sigma_xy_um: f64,
+}
+
+/// A microscope field a flag sets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Field {
+    Height,
+    Width,
+    PixelSizeUm,
+    DwellUs,
+    RetraceMs,
+    SigmaXyUm,
+    SigmaZUm,
+    Diffusion,
+    Brightness,
+    Background,
+    ZStart,
+    MarginPx,
+    Substeps,
+    Emitters,
+    DetectorNoise,
+    PsfCutoffSigma,
+}
+
+impl Field {
+    /// Every field, in the flags' order.
+    const ALL: [Field; 16] = [
+        Field::Height,
+        Field::Width,
+        Field::PixelSizeUm,
+        Field::DwellUs,
+        Field::RetraceMs,
+        Field::SigmaXyUm,
+        Field::SigmaZUm,
+        Field::Diffusion,
+        Field::Brightness,
+        Field::Background,
+        Field::ZStart,
+        Field::MarginPx,
+        Field::Substeps,
+        Field::Emitters,
+        Field::DetectorNoise,
+        Field::PsfCutoffSigma,
+    ];
+
+    /// The flag's clap id (its field name in [`MicroscopeFlags`] or
+    /// [`ScanFlags`]), by which clap says whether it was given.
+    fn id(self) -> &'static str {
+        match self {
+            Field::Diffusion => "diffusion",
+            other => other.manifest_name(),
+        }
+    }
+
+    /// The name of the manifest's `microscope` field it sets.
+    fn manifest_name(self) -> &'static str {
+        match self {
+            Field::Height => "height",
+            Field::Width => "width",
+            Field::PixelSizeUm => "pixel_size_um",
+            Field::DwellUs => "dwell_us",
+            Field::RetraceMs => "retrace_ms",
+            Field::SigmaXyUm => "sigma_xy_um",
+            Field::SigmaZUm => "sigma_z_um",
+            Field::Diffusion => "diffusion_um2_s",
+            Field::Brightness => "brightness",
+            Field::Background => "background",
+            Field::ZStart => "z_start",
+            Field::MarginPx => "margin_px",
+            Field::Substeps => "substeps",
+            Field::Emitters => "emitters",
+            Field::DetectorNoise => "detector_noise",
+            Field::PsfCutoffSigma => "psf_cutoff_sigma",
+        }
+    }
+}
 
 impl MicroscopeFlags {
-    /// Sets field `id` (a clap id of [`FIELDS`]) of `params` to this flag's
-    /// value: the one conversion of a flag into a simulator parameter.
-    fn set(&self, params: &mut SimParams, id: &str) {
-        match id {
-            "height" => params.height = self.height,
-            "width" => params.width = self.width,
-            "pixel_size_um" => params.pixel_size_um = self.pixel_size_um,
-            "dwell_us" => params.dwell_us = self.dwell_us,
-            "retrace_ms" => params.retrace_ms = self.retrace_ms,
-            "sigma_xy_um" => params.sigma_xy_um = self.sigma_xy_um,
-            "sigma_z_um" => params.sigma_z_um = self.sigma_z_um,
-            "diffusion" => params.diffusion_um2_s = self.diffusion,
-            "brightness" => params.brightness = self.brightness,
-            "background" => params.background = self.background,
-            "z_start" => params.z_start = self.z_start,
-            "margin_px" => params.margin_px = self.margin_px,
-            "substeps" => params.substeps = self.substeps,
-            "emitters" => params.emitters = self.emitters.clone(),
-            "detector_noise" => params.detector_noise = self.detector_noise,
-            "psf_cutoff_sigma" => params.psf_cutoff_sigma = self.psf_cutoff_sigma,
-            other => unreachable!("{other} is not a microscope flag"),
+    /// Sets `field` of `params` to this flag's value: the one conversion of
+    /// a flag into a simulator parameter.
+    fn set(&self, params: &mut SimParams, field: Field) {
+        let scan = &self.scan;
+        match field {
+            Field::Height => params.height = scan.height,
+            Field::Width => params.width = scan.width,
+            Field::PixelSizeUm => params.pixel_size_um = scan.pixel_size_um,
+            Field::DwellUs => params.dwell_us = scan.dwell_us,
+            Field::RetraceMs => params.retrace_ms = scan.retrace_ms,
+            Field::SigmaXyUm => params.sigma_xy_um = scan.sigma_xy_um,
+            Field::SigmaZUm => params.sigma_z_um = self.sigma_z_um,
+            Field::Diffusion => params.diffusion_um2_s = self.diffusion,
+            Field::Brightness => params.brightness = self.brightness,
+            Field::Background => params.background = self.background,
+            Field::ZStart => params.z_start = self.z_start,
+            Field::MarginPx => params.margin_px = self.margin_px,
+            Field::Substeps => params.substeps = self.substeps,
+            Field::Emitters => params.emitters = self.emitters.clone(),
+            Field::DetectorNoise => params.detector_noise = self.detector_noise,
+            Field::PsfCutoffSigma => params.psf_cutoff_sigma = self.psf_cutoff_sigma,
         }
     }
 }
@@ -175,8 +238,8 @@ fn parse_cutoff(text: &str) -> Result<Cutoff, String> {
 #[derive(Debug, Clone)]
 pub struct MicroscopeArgs {
     flags: MicroscopeFlags,
-    /// Clap ids of the flags given on the command line.
-    given: Vec<&'static str>,
+    /// The fields whose flags were given on the command line.
+    given: Vec<Field>,
 }
 
 /// A resolved microscope: the simulator parameters, and the manifest names
@@ -200,8 +263,8 @@ impl MicroscopeArgs {
     /// given.
     pub fn resolve(&self) -> anyhow::Result<Microscope> {
         let mut params = SimParams::default();
-        for (id, _) in FIELDS {
-            self.flags.set(&mut params, id);
+        for field in Field::ALL {
+            self.flags.set(&mut params, field);
         }
         let mut stated = BTreeSet::new();
         if let Some(file) = &self.flags.file {
@@ -209,11 +272,9 @@ impl MicroscopeArgs {
             params = from_file;
             stated.extend(fields);
         }
-        for (id, name) in FIELDS {
-            if self.given.contains(&id) {
-                self.flags.set(&mut params, id);
-                stated.insert(name.to_string());
-            }
+        for &field in &self.given {
+            self.flags.set(&mut params, field);
+            stated.insert(field.manifest_name().to_string());
         }
         Ok(Microscope { params, stated })
     }
@@ -242,10 +303,9 @@ impl Microscope {
 impl FromArgMatches for MicroscopeArgs {
     fn from_arg_matches(matches: &ArgMatches) -> Result<Self, clap::Error> {
         let flags = MicroscopeFlags::from_arg_matches(matches)?;
-        let given = FIELDS
-            .iter()
-            .map(|&(id, _)| id)
-            .filter(|id| matches.value_source(id) == Some(ValueSource::CommandLine))
+        let given = Field::ALL
+            .into_iter()
+            .filter(|field| matches.value_source(field.id()) == Some(ValueSource::CommandLine))
             .collect();
         Ok(Self { flags, given })
     }
@@ -264,6 +324,34 @@ impl Args for MicroscopeArgs {
     fn augment_args_for_update(command: Command) -> Command {
         MicroscopeFlags::augment_args_for_update(command)
     }
+}
+
+/// The microscope of a bench's `flags`, checked, with `frames` of its size
+/// (the flag `frames_flag`) checked against the limits a manifest's
+/// datasets have.
+pub(super) fn bench_microscope(
+    flags: &MicroscopeArgs,
+    frames_flag: &str,
+    frames: usize,
+) -> anyhow::Result<SimParams> {
+    let params = flags.params()?;
+    params
+        .validate()
+        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
+    scanloc::limits::check_dataset_size(frames_flag, frames, params.height, params.width)?;
+    Ok(params)
+}
+
+/// Checks a frame count flag of paper-sized frames against the limits a
+/// manifest's datasets have.
+pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
+    let paper = SimParams::default();
+    Ok(scanloc::limits::check_dataset_size(
+        flag,
+        frames,
+        paper.height,
+        paper.width,
+    )?)
 }
 
 #[cfg(test)]
@@ -307,7 +395,7 @@ mod tests {
         ])
         .unwrap();
         let microscope = probe.microscope.resolve().unwrap();
-        assert_eq!(microscope.stated.len(), FIELDS.len());
+        assert_eq!(microscope.stated.len(), Field::ALL.len());
         let params = microscope.params;
         let paper = SimParams::default();
         // Every field differs from the paper's.
@@ -341,28 +429,12 @@ mod tests {
 /// sees each pixel and how long a localisation's exposure lasts.
 #[derive(Debug, Clone, Args)]
 pub struct ScanGeometryArgs {
-    /// Frame height in pixels (rows).
-    #[arg(long, default_value_t = 24)]
-    pub height: usize,
-    /// Frame width in pixels (columns).
-    #[arg(long, default_value_t = 25)]
-    pub width: usize,
-    /// Pixel size in µm.
-    #[arg(long, default_value_t = 0.07)]
-    pub pixel_size_um: f64,
-    /// Pixel dwell time in µs.
-    #[arg(long, default_value_t = 2.0)]
-    pub dwell_us: f64,
-    /// Line retrace time in ms.
-    #[arg(long, default_value_t = 1.1)]
-    pub retrace_ms: f64,
+    #[command(flatten)]
+    pub flags: ScanFlags,
     /// Dead time between the flyback after a frame and the next frame, ms
     /// (at most 60,000).
     #[arg(long, default_value_t = 0.0)]
     pub dead_time_ms: f64,
-    /// Lateral PSF standard deviation in µm.
-    #[arg(long, default_value_t = 0.21)]
-    pub sigma_xy_um: f64,
 }
 
 impl ScanGeometryArgs {
@@ -372,11 +444,11 @@ impl ScanGeometryArgs {
         // and their squares stay well inside f64 (1e300 px would make every
         // estimate NaN).
         let checks = [
-            ("--pixel-size-um", self.pixel_size_um, false, 1e3),
-            ("--dwell-us", self.dwell_us, false, 1e6),
-            ("--retrace-ms", self.retrace_ms, true, 1e6),
+            ("--pixel-size-um", self.flags.pixel_size_um, false, 1e3),
+            ("--dwell-us", self.flags.dwell_us, false, 1e6),
+            ("--retrace-ms", self.flags.retrace_ms, true, 1e6),
             ("--dead-time-ms", self.dead_time_ms, true, MAX_DEAD_TIME_MS),
-            ("--sigma-xy-um", self.sigma_xy_um, false, 1e3),
+            ("--sigma-xy-um", self.flags.sigma_xy_um, false, 1e3),
         ];
         for (name, value, zero_ok, max) in checks {
             if !value.is_finite() || value < 0.0 || (value == 0.0 && !zero_ok) || value > max {
@@ -387,20 +459,22 @@ impl ScanGeometryArgs {
             }
         }
         let max_side = scanloc::limits::MAX_FRAME_SIDE;
-        if !(1..=max_side).contains(&self.height) || !(1..=max_side).contains(&self.width) {
+        if !(1..=max_side).contains(&self.flags.height)
+            || !(1..=max_side).contains(&self.flags.width)
+        {
             return Err(input_error(format!(
                 "--height, --width: must be 1 to {max_side}, got {} × {}",
-                self.height, self.width
+                self.flags.height, self.flags.width
             )));
         }
         Ok(ScanGeometry {
-            height: self.height,
-            width: self.width,
-            pixel_size_um: self.pixel_size_um,
-            dwell_us: self.dwell_us,
-            retrace_ms: self.retrace_ms,
+            height: self.flags.height,
+            width: self.flags.width,
+            pixel_size_um: self.flags.pixel_size_um,
+            dwell_us: self.flags.dwell_us,
+            retrace_ms: self.flags.retrace_ms,
             dead_time_ms: self.dead_time_ms,
-            sigma_xy_um: self.sigma_xy_um,
+            sigma_xy_um: self.flags.sigma_xy_um,
         })
     }
 }

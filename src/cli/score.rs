@@ -247,24 +247,18 @@ fn resample(
 
 /// The precision–recall curve points as CSV (eps_px,k,score,precision,recall).
 fn write_curve(path: &std::path::Path, score: &Score) -> anyhow::Result<()> {
-    io::write_atomically(path, |writer| {
-        let mut csv = csv::Writer::from_writer(writer);
-        csv.write_record(["eps_px", "k", "score", "precision", "recall"])?;
-        for per_eps in &score.per_eps {
-            for point in &per_eps.curve {
-                csv.write_record([
-                    per_eps.eps_px.to_string(),
-                    point.k.to_string(),
-                    point.score.to_string(),
-                    point.precision.to_string(),
-                    point.recall.to_string(),
-                ])?;
-            }
-        }
-        csv.flush()?;
-        Ok(())
-    })?;
-    Ok(())
+    let rows = score.per_eps.iter().flat_map(|per_eps| {
+        per_eps.curve.iter().map(|point| {
+            vec![
+                per_eps.eps_px.to_string(),
+                point.k.to_string(),
+                point.score.to_string(),
+                point.precision.to_string(),
+                point.recall.to_string(),
+            ]
+        })
+    });
+    csv_tables::write_table(path, &["eps_px", "k", "score", "precision", "recall"], rows)
 }
 
 /// `score` as one JSON object on one line, without the curve points, with

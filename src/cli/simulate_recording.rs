@@ -76,12 +76,12 @@ pub struct SimulateRecordingArgs {
 pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let params = RecordingParams {
         microscope: SimParams {
-            height: args.scan.height,
-            width: args.scan.width,
-            pixel_size_um: args.scan.pixel_size_um,
-            dwell_us: args.scan.dwell_us,
-            retrace_ms: args.scan.retrace_ms,
-            sigma_xy_um: args.scan.sigma_xy_um,
+            height: args.scan.flags.height,
+            width: args.scan.flags.width,
+            pixel_size_um: args.scan.flags.pixel_size_um,
+            dwell_us: args.scan.flags.dwell_us,
+            retrace_ms: args.scan.flags.retrace_ms,
+            sigma_xy_um: args.scan.flags.sigma_xy_um,
             sigma_z_um: args.sigma_z_um,
             substeps: args.substeps,
             brightness: args.brightness.into(),

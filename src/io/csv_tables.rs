@@ -273,6 +273,26 @@ fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<
         .map_err(|_| serde::de::Error::custom(format!("expected a number, got {}", quoted(text))))
 }
 
+/// Writes a table of text cells to `path` as CSV, atomically: `header`,
+/// then each of `rows` (as many cells as the header has). For tables whose
+/// columns the caller decides (a precision–recall curve, a bench's sweep);
+/// the fixed formats have writers of their own above and below.
+pub fn write_table<H: AsRef<str>>(
+    path: &Path,
+    header: &[H],
+    rows: impl IntoIterator<Item = Vec<String>>,
+) -> anyhow::Result<()> {
+    write_atomically(path, |writer| {
+        let mut csv = csv::Writer::from_writer(writer);
+        csv.write_record(header.iter().map(AsRef::as_ref))?;
+        for row in rows {
+            csv.write_record(&row)?;
+        }
+        csv.flush()?;
+        Ok(())
+    })
+}
+
 /// Writes predictions as `frame,x,y,score` (with `sigma_x,sigma_y` before
 /// `score` if any has an uncertainty) to `path` atomically.
 pub fn write_predictions(path: &Path, predictions: &[Prediction]) -> anyhow::Result<()> {

@@ -237,15 +237,9 @@ impl Registry {
             .artefact(key)?
             .map(|a| a.kind)
             .ok_or_else(|| input_error(format!("{key}: no such artefact")))?;
-        let typed_table = match kind {
-            super::ArtefactKind::Dataset => "datasets",
-            super::ArtefactKind::Model => "models",
-            super::ArtefactKind::Predictions => "predictions",
-            super::ArtefactKind::Evaluation => "evaluations",
-        };
         record["details"] = query(
             self.connection(),
-            &format!("SELECT * FROM {typed_table} WHERE key = ?1"),
+            &format!("SELECT * FROM {} WHERE key = ?1", kind.table()),
             &[&key],
         )?
         .to_json()

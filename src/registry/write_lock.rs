@@ -120,7 +120,7 @@ impl<'c> WriteTransaction<'c> {
                 Ok(()) => break Ok(()),
                 Err(e) if is_busy(&e) && started.elapsed() < timeout => {
                     if !said {
-                        eprintln!("{}", waiting_message(live_holder(dir).as_ref()));
+                        crate::progress::note(waiting_message(live_holder(dir).as_ref()));
                         said = true;
                     }
                 }
@@ -233,7 +233,10 @@ impl BlobLock {
                 Ok(()) => return Ok(Self { _file: file }),
                 Err(std::fs::TryLockError::WouldBlock) if started.elapsed() < timeout => {
                     if !said {
-                        eprintln!("{}: waiting for {waiting_for} to finish", dir.display());
+                        crate::progress::note(format_args!(
+                            "{}: waiting for {waiting_for} to finish",
+                            dir.display()
+                        ));
                         said = true;
                     }
                     std::thread::sleep(POLL);

@@ -686,6 +686,39 @@ fn draw_tradeoff_chart<DB: DrawingBackend>(
     }
 }
 
+/// What a trade-off chart draws on its log axes: its points, its front and
+/// its static-QD points (those with both coordinates finite and > 0), and
+/// the range of the y axis.
+struct TradeoffSeries {
+    points: Vec<(f64, f64)>,
+    front: Vec<(f64, f64)>,
+    static_points: Vec<(f64, f64)>,
+    y_range: (f64, f64),
+}
+
+impl TradeoffSeries {
+    fn of(chart: &TradeoffChart) -> Self {
+        let positive = |&(x, y): &(f64, f64)| x.is_finite() && y.is_finite() && x > 0.0 && y > 0.0;
+        let kept = |series: &[(f64, f64)]| series.iter().copied().filter(positive).collect();
+        let points: Vec<(f64, f64)> = kept(&chart.points);
+        let static_points: Vec<(f64, f64)> = kept(&chart.static_points);
+        let (y0, y1) = log_range(
+            points
+                .iter()
+                .chain(&static_points)
+                .map(|p| p.1)
+                .chain(chart.floor.as_ref().map(|f| f.1)),
+        );
+        Self {
+            front: kept(&chart.front),
+            points,
+            static_points,
+            // Headroom above the data for the legend.
+            y_range: (y0, y1 * (y1 / y0).powf(0.35)),
+        }
+    }
+}
+
 fn draw_tradeoff_chart_on<DB, X>(
     root: &DrawingArea<DB, Shift>,
     chart: &TradeoffChart,
@@ -696,24 +729,12 @@ where
     X: AsRangedCoord<Value = f64>,
     X::CoordDescType: ValueFormatter<f64>,
 {
-    let positive = |&(x, y): &(f64, f64)| x.is_finite() && y.is_finite() && x > 0.0 && y > 0.0;
-    let points: Vec<(f64, f64)> = chart.points.iter().copied().filter(positive).collect();
-    let front: Vec<(f64, f64)> = chart.front.iter().copied().filter(positive).collect();
-    let static_points: Vec<(f64, f64)> = chart
-        .static_points
-        .iter()
-        .copied()
-        .filter(positive)
-        .collect();
-    let (y0, y1) = log_range(
-        points
-            .iter()
-            .chain(&static_points)
-            .map(|p| p.1)
-            .chain(chart.floor.as_ref().map(|f| f.1)),
-    );
-    // Headroom above the data for the legend.
-    let y1 = y1 * (y1 / y0).powf(0.35);
+    let TradeoffSeries {
+        points,
+        front,
+        static_points,
+        y_range: (y0, y1),
+    } = TradeoffSeries::of(chart);
     let mut plot = ChartBuilder::on(root)
         .caption(&chart.title, ("sans-serif", 18))
         .margin(12)

@@ -36,13 +36,14 @@ pub fn run_summary_json(
     Ok(value)
 }
 
-fn write_summary(
-    out: &mut String,
-    record: &RunRecord,
-    tracking: anyhow::Result<Vec<TrackingRow>>,
-) -> std::fmt::Result {
+/// One labelled field of the summary.
+fn field(out: &mut String, label: &str, value: &str) -> std::fmt::Result {
+    writeln!(out, "  {label:<10} {value}")
+}
+
+/// The run's own fields, its manifest and the code that ran it.
+fn write_run_fields(out: &mut String, record: &RunRecord) -> std::fmt::Result {
     writeln!(out, "run {}: {}", record.id, record.status)?;
-    let field = |out: &mut String, label: &str, value: &str| writeln!(out, "  {label:<10} {value}");
     field(out, "kind", record.kind.as_str())?;
     if let Some(parent) = &record.parent_run {
         field(out, "of run", parent)?;
@@ -98,7 +99,15 @@ fn write_summary(
             record.host, record.pid, record.threads
         ),
     )?;
+    Ok(())
+}
 
+fn write_summary(
+    out: &mut String,
+    record: &RunRecord,
+    tracking: anyhow::Result<Vec<TrackingRow>>,
+) -> std::fmt::Result {
+    write_run_fields(out, record)?;
     writeln!(out, "seeds")?;
     // Step names are cut to a bounded width: a recorded name of any length
     // can make no format width overflow.

@@ -156,6 +156,29 @@ pub fn training_set<'a>(manifest: &'a Manifest, detector: &str) -> anyhow::Resul
     })
 }
 
+/// Refuses as bad input a fold count `cv.folds` outside its range or
+/// larger than the `training` set's frames, and a fold `cv.fold` that is
+/// not one of them.
+fn check_fold_counts(training: &DatasetSpec, cv: &CrossValidationPlan) -> anyhow::Result<()> {
+    let folds = cv.folds;
+    CrossValidation::check_folds(folds)
+        .map_err(|message| input_error(format!("folds: {message}")))?;
+    if folds > training.frames {
+        return Err(input_error(format!(
+            "folds: must be at most the {} training frames, got {folds}",
+            training.frames
+        )));
+    }
+    if let Some(fold) = cv.fold
+        && !(1..=folds).contains(&fold)
+    {
+        return Err(input_error(format!(
+            "fold: must be between 1 and the {folds} folds, got {fold}"
+        )));
+    }
+    Ok(())
+}
+
 /// The steps of the k-fold cross-validation `cv` (all folds, or only fold
 /// `cv.fold`): the training and test datasets, each fold's training and
 /// held-out subsets, its model, and its predictions and scores on the
@@ -175,21 +198,7 @@ pub fn plan(manifest: &Manifest, cv: &CrossValidationPlan) -> anyhow::Result<Pla
             manifest.source
         ))
     })?;
-    CrossValidation::check_folds(folds)
-        .map_err(|message| input_error(format!("folds: {message}")))?;
-    if folds > training.frames {
-        return Err(input_error(format!(
-            "folds: must be at most the {} training frames, got {folds}",
-            training.frames
-        )));
-    }
-    if let Some(fold) = cv.fold
-        && !(1..=folds).contains(&fold)
-    {
-        return Err(input_error(format!(
-            "fold: must be between 1 and the {folds} folds, got {fold}"
-        )));
-    }
+    check_fold_counts(training, cv)?;
     let permutation_seed = derive_seed(manifest.seed, "cv-permutation", detector);
     let parts = fold_frames(training.frames, folds, permutation_seed);
 

@@ -18,15 +18,16 @@ mod bias;
 pub mod calibrate;
 mod compute;
 pub mod cross_validation;
+mod descriptions;
 mod details;
 mod execution;
 pub mod plan;
 pub mod reproduce;
+mod rows;
 mod stored;
 pub mod table;
 pub mod test_sets;
 
-use std::io::IsTerminal;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -34,8 +35,9 @@ use serde::Serialize;
 
 pub use artefacts::Artefact;
 pub use compute::subset;
-pub use execution::{EmptyFramesRow, EstimatorRow, TrackingRow, score_rows};
+pub use execution::score_rows;
 pub use plan::{Action, Plan, Step};
+pub use rows::{EmptyFramesRow, EstimatorRow, TrackingRow};
 pub use stored::{RecordedTracking, load_artefact, read_blobs, recorded_tracking};
 
 use crate::error::CheckFailed;
@@ -116,9 +118,7 @@ pub fn run_manifest(
 
 /// A progress line on standard error, for people watching a terminal.
 fn log(message: impl AsRef<str>) {
-    if std::io::stderr().is_terminal() {
-        eprintln!("{}", message.as_ref());
-    }
+    crate::progress::note_on_terminal(message.as_ref());
 }
 
 /// Executes `plan` (made from `manifest`) on `registry`, recording the run:
@@ -147,10 +147,10 @@ pub fn execute(
         .context("recording the end of the run")?;
     result?;
     if registry.is_read_only() {
-        eprintln!(
+        crate::progress::note(format_args!(
             "warning: {} is read-only: every step was served from its cache, but run {run_id} could not be recorded there",
             registry.dir().display()
-        );
+        ));
     }
     if let Some(error) = error {
         return Err(anyhow::Error::new(CheckFailed(format!(

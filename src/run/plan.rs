@@ -17,11 +17,15 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use anyhow::Context;
-use serde::Serialize;
 use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
 use super::bias::BIAS_CORRECTION_VERSION;
+use super::descriptions::{
+    Describes, Keyed, LinkDescription, LocateDescription, MetricDescription, RecordingDescription,
+    ScoreDescription, SimulateDescription, SubsetDescription, TrackScoreDescription,
+    TrainDescription,
+};
 use crate::manifest::{
     DatasetSpec, DetectorEntry, LinkerEntry, Manifest, MetricsSpec, RecordingSpec,
 };
@@ -197,18 +201,26 @@ pub struct Plan {
     pub steps: Vec<Step>,
 }
 
-fn make_step(
+/// The step `id` whose key is the hash of `description` with its kind,
+/// which must be the kind of artefact `id` names.
+fn make_step<T: Describes>(
     id: StepId,
-    code_version: String,
+    code_version: &str,
     seed: Option<u64>,
-    description: &impl Serialize,
+    description: &T,
     action: Action,
 ) -> anyhow::Result<Step> {
+    assert_eq!(
+        id.kind(),
+        T::KIND,
+        "step {id} is described as making another kind of artefact"
+    );
+    let description = Keyed::new(description);
     Ok(Step {
-        key: content_key(description)?,
-        spec: canonical_json(description)?,
+        key: content_key(&description)?,
+        spec: canonical_json(&description)?,
         id,
-        code_version,
+        code_version: code_version.to_string(),
         seed,
         action,
     })
@@ -233,16 +245,15 @@ impl Plan {
     /// Adds the step that simulates `dataset`.
     pub fn add_dataset(&mut self, dataset: &DatasetSpec) -> anyhow::Result<usize> {
         let code_version = format!("{GENERATOR_VERSION}+{FORMAT_VERSION}");
-        let description = json!({
-            "kind": "dataset",
-            "code": code_version,
-            "params": dataset.params,
-            "frames": dataset.frames,
-            "seed": dataset.seed,
-        });
+        let description = SimulateDescription {
+            code: &code_version,
+            params: &dataset.params,
+            frames: dataset.frames,
+            seed: dataset.seed,
+        };
         let step = make_step(
             StepId::Dataset(dataset.name.clone()),
-            code_version,
+            &code_version,
             Some(dataset.seed),
             &description,
             Action::Simulate {
@@ -270,17 +281,16 @@ impl Plan {
             .map(|f| f.to_string())
             .collect::<Vec<_>>()
             .join(",");
-        let spec = json!({
-            "kind": "dataset",
-            "code": code_version,
-            "source": self.steps[source].key,
-            "frames": frames.len(),
-            "frames_sha256": crate::registry::hashing::sha256_hex(list.as_bytes()),
-            "chosen_by": description,
-        });
+        let spec = SubsetDescription {
+            code: &code_version,
+            source: &self.steps[source].key,
+            frames: frames.len(),
+            frames_sha256: crate::registry::hashing::sha256_hex(list.as_bytes()),
+            chosen_by: &description,
+        };
         let step = make_step(
             StepId::Dataset(name.to_string()),
-            code_version,
+            &code_version,
             None,
             &spec,
             Action::Subset {
@@ -301,29 +311,25 @@ impl Plan {
         validation: Option<usize>,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.code_version());
-        let mut description = json!({
-            "kind": "model",
-            "code": code_version,
-            "detector": detector.spec,
-            "training": self.steps[training].key,
-            "seed": detector.seed,
-        });
-        // Only present when given, so that models selected on a split of
-        // their training set keep the keys they always had.
-        if let Some(validation) = validation {
-            description["validation"] = json!(self.steps[validation].key);
-            // Since 2026-12-01 such a model (a cross-validation's fold
-            // model) trains on fresh frames only, none of `training`'s,
-            // when the detector's recipe says so; it keeps a key apart
-            // from the models trained on both before. The key of every
-            // other model is as it always was.
-            if detector.spec.trains_on_fresh_frames_only() {
-                description["trains_on"] = json!("fresh frames only");
-            }
-        }
+        // The validation set only when given, so that models selected on
+        // a split of their training set keep the keys they always had.
+        // Since 2026-12-01 such a model (a cross-validation's fold model)
+        // trains on fresh frames only, none of `training`'s, when the
+        // detector's recipe says so; it keeps a key apart from the models
+        // trained on both before. The key of every other model is as it
+        // always was.
+        let description = TrainDescription {
+            code: &code_version,
+            detector: &detector.spec,
+            training: &self.steps[training].key,
+            seed: detector.seed,
+            validation: validation.map(|v| self.steps[v].key.as_str()),
+            trains_on: (validation.is_some() && detector.spec.trains_on_fresh_frames_only())
+                .then_some("fresh frames only"),
+        };
         let step = make_step(
             StepId::Model(detector.name.clone()),
-            code_version,
+            &code_version,
             Some(detector.seed),
             &description,
             Action::Train {
@@ -345,26 +351,23 @@ impl Plan {
     ) -> anyhow::Result<usize> {
         let code_version = format!("{}+{FORMAT_VERSION}", detector.spec.locate_code_version());
         let dataset_step = &self.steps[dataset];
-        let mut description = json!({
-            "kind": "predictions",
-            "code": code_version,
-            "detector": detector.spec,
-            "dataset": dataset_step.key,
-            "model": model.map(|m| self.steps[m].key.clone()),
-        });
-        // Only for detectors that draw while locating, so that the others
-        // keep the keys they always had.
+        // A seed only for detectors that draw while locating, so that the
+        // others keep the keys they always had.
         let seed = detector.spec.locates_at_random().then_some(detector.seed);
-        if let Some(seed) = seed {
-            description["seed"] = json!(seed);
-        }
+        let description = LocateDescription {
+            code: &code_version,
+            detector: &detector.spec,
+            dataset: &dataset_step.key,
+            model: model.map(|m| self.steps[m].key.as_str()),
+            seed,
+        };
         let id = StepId::Predictions {
             detector: detector.name.clone(),
             dataset: dataset_step.name(),
         };
         let step = make_step(
             id,
-            code_version,
+            &code_version,
             seed,
             &description,
             Action::Locate {
@@ -390,14 +393,16 @@ impl Plan {
         reading: ScoreReading,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{METRIC_VERSION}+{FORMAT_VERSION}");
-        let description = json!({
-            "kind": "evaluation",
-            "code": code_version,
-            "dataset": self.steps[dataset].key,
-            "predictions": self.steps[predictions].key,
-            "metric": {"eps_px": metrics.eps_px, "keep_curves": metrics.keep_curves},
-            "reading": reading,
-        });
+        let description = ScoreDescription {
+            code: &code_version,
+            dataset: &self.steps[dataset].key,
+            predictions: &self.steps[predictions].key,
+            metric: MetricDescription {
+                eps_px: &metrics.eps_px,
+                keep_curves: metrics.keep_curves,
+            },
+            reading,
+        };
         let dataset_name = self.steps[dataset].name();
         let id = StepId::Evaluation {
             detector: detector.to_string(),
@@ -405,7 +410,7 @@ impl Plan {
         };
         let step = make_step(
             id,
-            code_version,
+            &code_version,
             None,
             &description,
             Action::Score {
@@ -424,15 +429,14 @@ impl Plan {
     /// Adds the step that simulates `recording`.
     pub fn add_recording(&mut self, recording: &RecordingSpec) -> anyhow::Result<usize> {
         let code_version = format!("{RECORDING_VERSION}+{FORMAT_VERSION}");
-        let description = json!({
-            "kind": "dataset",
-            "code": code_version,
-            "recording": recording.params_json(),
-            "seed": recording.seed,
-        });
+        let description = RecordingDescription {
+            code: &code_version,
+            recording: recording.params_json(),
+            seed: recording.seed,
+        };
         let step = make_step(
             StepId::Dataset(recording.name.clone()),
-            code_version,
+            &code_version,
             Some(recording.seed),
             &description,
             Action::SimulateRecording {
@@ -455,21 +459,20 @@ impl Plan {
     ) -> anyhow::Result<usize> {
         let code_version = format!("{LINK_VERSION}+{FORMAT_VERSION}");
         let pipeline = format!("{detector}+{}", linker.name);
-        let description = json!({
-            "kind": "predictions",
-            "code": code_version,
-            "linker": linker.spec,
-            "min_score": min_score,
-            "recording": self.steps[recording].key,
-            "predictions": self.steps[predictions].key,
-        });
+        let description = LinkDescription {
+            code: &code_version,
+            linker: &linker.spec,
+            min_score,
+            recording: &self.steps[recording].key,
+            predictions: &self.steps[predictions].key,
+        };
         let id = StepId::Predictions {
             detector: pipeline.clone(),
             dataset: self.steps[recording].name(),
         };
         let step = make_step(
             id,
-            code_version,
+            &code_version,
             None,
             &description,
             Action::Link {
@@ -496,13 +499,14 @@ impl Plan {
         bias: Option<PipelineSteps>,
     ) -> anyhow::Result<usize> {
         let code_version = format!("{TRACK_METRIC_VERSION}+{FORMAT_VERSION}");
-        let mut description = json!({
-            "kind": "evaluation",
-            "code": code_version,
-            "recording": self.steps[recording].key,
-            "tracks": self.steps[tracks].key,
-            "scoring": scoring,
-        });
+        let mut description = TrackScoreDescription {
+            code: &code_version,
+            recording: &self.steps[recording].key,
+            tracks: &self.steps[tracks].key,
+            scoring,
+            bias_correction_code: None,
+            bias_correction_seed: None,
+        };
         // The tracks' key holds the localiser, its model and the linker,
         // so the correction adds only its own version and seed (which the
         // pipeline's name derives: renamed, it draws other recordings); an
@@ -514,8 +518,8 @@ impl Plan {
                     .seed
                     .map(|seed| derive_seed(seed, "bias-correction", pipeline))
                     .context("a bias correction needs a simulated recording's seed")?;
-                description["bias_correction_code"] = json!(BIAS_CORRECTION_VERSION);
-                description["bias_correction_seed"] = json!(seed);
+                description.bias_correction_code = Some(BIAS_CORRECTION_VERSION);
+                description.bias_correction_seed = Some(seed);
                 let bias = bias.context("a bias correction needs the pipeline's steps")?;
                 (Some(bias), Some(seed))
             }
@@ -527,7 +531,7 @@ impl Plan {
         };
         let step = make_step(
             id,
-            code_version,
+            &code_version,
             seed,
             &description,
             Action::ScoreTracks {

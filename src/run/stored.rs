@@ -8,8 +8,8 @@ use anyhow::Context;
 use rayon::prelude::*;
 
 use super::artefacts::{self, Artefact};
-use super::execution::TrackingRow;
 use super::plan::{Action, Plan, Step};
+use super::rows::TrackingRow;
 use crate::registry::{
     ArtefactKind, BlobRef, BlobRole, BlobState, BlobStore, Registry, RunRecord, StepId,
 };

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use serde_json::Value;
 
-use super::{Point, PointState, SweepFile, SweepKind, SweepSpec};
+use super::{Point, PointState, SweepFile, SweepSpec};
 use crate::manifest::Manifest;
 use crate::registry::Registry;
 
@@ -48,26 +48,5 @@ impl Finished<'_> {
             .iter()
             .filter(|p| self.states[p.index].status.is_done())
             .collect()
-    }
-}
-
-impl SweepKind {
-    /// The front end that sweeps this kind: the one place a kind is told
-    /// apart (the kind itself is what `sweep.json` records).
-    pub fn front_end(&self) -> Box<dyn FrontEnd + '_> {
-        match self {
-            SweepKind::Cv { detector, folds } => Box::new(super::cv::CvSweep {
-                detector,
-                folds: *folds,
-            }),
-            SweepKind::Calibrate {
-                detector,
-                brightness,
-            } => Box::new(super::calibrate::CalibrateSweep {
-                detector,
-                brightness,
-            }),
-            SweepKind::Grid => Box::new(super::grid::GridSweep),
-        }
     }
 }

@@ -562,19 +562,19 @@ pub fn task(dir: &Path, index: usize, direct: bool, force: bool) -> anyhow::Resu
         match shard::copy(&mut registry, &file.registry, &Selection::Artefacts(keys)) {
             Ok(report) => seeded = report.new_artefacts,
             // Inputs are recomputed when the main registry cannot give them.
-            Err(error) => eprintln!(
+            Err(error) => crate::progress::note(format_args!(
                 "warning: reading inputs from {}: {error:#}; computing them here",
                 file.registry.display()
-            ),
+            )),
         }
     }
-    eprintln!(
+    crate::progress::note(format_args!(
         "sweep {} point {index} ({}) into {} on {}",
         file.id,
         point.label,
         target.display(),
         crate::registry::host_name()
-    );
+    ));
     let outcome = run_point(&mut registry, point, force)?;
     Ok(TaskSummary {
         sweep: file.id.clone(),
@@ -607,7 +607,7 @@ pub fn import_shards(
         }
         match shard::copy(registry, &shard, &Selection::Everything) {
             Ok(report) => {
-                eprintln!("imported {}", report.summary());
+                crate::progress::note(format_args!("imported {}", report.summary()));
                 if !report.conflicts.is_empty() {
                     problems.push((point.index, report.summary()));
                 } else if point_is_stored(registry, point)? {
@@ -616,7 +616,7 @@ pub fn import_shards(
                 }
             }
             Err(error) => {
-                eprintln!("error: shard {}: {error:#}", shard.display());
+                crate::progress::note(format_args!("error: shard {}: {error:#}", shard.display()));
                 problems.push((point.index, format!("shard {}: {error:#}", shard.display())));
             }
         }
@@ -750,4 +750,25 @@ pub fn import_and_aggregate(registry: &mut Registry, dir: &Path) -> anyhow::Resu
         .map(|(index, problem)| failed_state(&points[index], problem, Some(&file.log(index))))
         .collect();
     aggregate(registry, &file, &base, &points, Some(known))
+}
+
+impl SweepKind {
+    /// The front end that sweeps this kind: the one place a kind is told
+    /// apart (the kind itself is what `sweep.json` records).
+    pub fn front_end(&self) -> Box<dyn FrontEnd + '_> {
+        match self {
+            SweepKind::Cv { detector, folds } => Box::new(cv::CvSweep {
+                detector,
+                folds: *folds,
+            }),
+            SweepKind::Calibrate {
+                detector,
+                brightness,
+            } => Box::new(calibrate::CalibrateSweep {
+                detector,
+                brightness,
+            }),
+            SweepKind::Grid => Box::new(grid::GridSweep),
+        }
+    }
 }

@@ -268,15 +268,15 @@ pub fn submit(
         }
     }
     if missing.is_empty() {
-        eprintln!(
+        crate::progress::note(format_args!(
             "sweep {}: every point is in the registry already; aggregating",
             file.id
-        );
+        ));
         let result = aggregate(registry, &file, base, points, None)?;
         return Ok((file, Some(result)));
     }
     let submission = submit_jobs(&file, missing, options)?;
-    eprintln!(
+    crate::progress::note(format_args!(
         "sweep {}: submitted array job {} ({} of {} points: {}) and aggregation job {}; logs in {}",
         file.id,
         submission.array_job,
@@ -285,7 +285,7 @@ pub fn submit(
         array_list(&submission.points),
         submission.aggregate_job,
         file.dir().join("logs").display()
-    );
+    ));
     file.submissions.push(submission.clone());
     file.save()?;
     if !options.wait {
@@ -431,10 +431,10 @@ fn wait_for_result(
             let why = other
                 .and_then(|r| r.first().map(|r| format!("{} ({})", r.state, r.reason)))
                 .unwrap_or_else(|| "gone".to_string());
-            eprintln!(
+            crate::progress::note(format_args!(
                 "sweep {}: the aggregation job {} is {why}: aggregating here",
                 file.id, submission.aggregate_job
-            );
+            ));
             import_and_aggregate(registry, &dir)?
         }
     })
@@ -471,7 +471,7 @@ fn follow(file: &SweepFile, submission: &Submission, total: usize) -> anyhow::Re
         );
         bar.set_position(done as u64);
         if !terminal && line != last_line {
-            eprintln!("{line}");
+            crate::progress::note(&line);
         }
         last_line = line;
         if aggregation == "GONE" || is_terminal(&aggregation) {

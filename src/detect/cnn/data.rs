@@ -181,6 +181,38 @@ pub fn truth_by_frame(truth: &[TruthRow], n_frames: usize) -> anyhow::Result<Vec
     Ok(grouped)
 }
 
+/// Frames and their emitters, the unit batches are drawn from.
+pub(super) struct Source<'a> {
+    pub(super) frames: &'a FrameStack,
+    /// Per frame, the positions the score map and the offsets learn: the
+    /// true centroids, or the teacher's posterior means.
+    pub(super) emitters: Vec<Vec<(f64, f64)>>,
+    /// Per frame, the true centroids when `emitters` are the teacher's
+    /// (the within-1-px head learns whether a localisation lands within
+    /// 1 px of the truth, not of the teacher); `None`: `emitters` are the
+    /// truth.
+    pub(super) true_centroids: Option<Vec<Vec<(f64, f64)>>>,
+    /// Per frame, the teacher's posterior of the centroid as the
+    /// categorical head's softmax learns it: the probability that the
+    /// centroid is nearest each pixel (row-major index), the pixels with
+    /// none left out; empty for a frame the teacher did not label (its
+    /// one true centroid's pixel is the target). `None`: no teacher, or
+    /// the peaks head (whose teacher moves `emitters`).
+    pub(super) posterior: Option<Vec<PixelPosterior>>,
+}
+
+/// A frame's posterior over its pixels: `(row-major pixel, probability)`,
+/// the probabilities summing to 1.
+pub(super) type PixelPosterior = Vec<(u32, f32)>;
+
+impl Source<'_> {
+    /// The true centroids of frame `i`, which the within-1-px head learns
+    /// against.
+    pub(super) fn truth(&self, i: usize) -> &[(f64, f64)] {
+        self.true_centroids.as_ref().unwrap_or(&self.emitters)[i].as_slice()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -250,7 +250,6 @@ pub(crate) fn locate_with(
     let mut predictions = Vec::new();
     crate::limits::check_frame_not_empty(height, width)?;
     let score_floor = settings.score_floor;
-    let sigma_source = SigmaSource::of(settings);
     // The floor compared on logits (sigmoid is monotone), so no pixel's
     // sigmoid needs computing unless it is a candidate.
     let logit_floor = if score_floor > 0.0 {
@@ -268,94 +267,17 @@ pub(crate) fn locate_with(
         }
         let combined = (outputs.len() > 1).then(|| combine_members(&outputs, len));
         let output = combined.as_deref().unwrap_or(&outputs[0]);
-        let frame_predictions = |(offset, maps): (usize, &[f32])| -> Vec<Prediction> {
-            let frame = start + offset;
-            let frame_start = offset * OUTPUT_CHANNELS * len;
-            let channel = |c: usize| &maps[c * len..(c + 1) * len];
-            let logits = channel(SCORE_CHANNEL);
-            let (dx, dy) = (channel(OFFSET_X_CHANNEL), channel(OFFSET_Y_CHANNEL));
-            let log_sigma_x = channel(LOG_SIGMA_X_CHANNEL);
-            let log_sigma_y = channel(LOG_SIGMA_Y_CHANNEL);
-            let within = channel(WITHIN_1PX_CHANNEL);
-            let sigma_at = |p: usize| match sigma_source {
-                SigmaSource::Maps => LocalisationSigma {
-                    x: (log_sigma_x[p] as f64).exp(),
-                    y: (log_sigma_y[p] as f64).exp(),
-                },
-                SigmaSource::Within1px => {
-                    let spread =
-                        |channel: usize| member_variance(&outputs, frame_start + channel * len + p);
-                    sigma_from_within(
-                        within[p] as f64,
-                        spread(OFFSET_X_CHANNEL),
-                        spread(OFFSET_Y_CHANNEL),
-                    )
-                }
-            };
-            if arch.head == CnnHead::Categorical {
-                let maps = CategoricalMaps {
-                    logits,
-                    dx,
-                    dy,
-                    log_sigma_x,
-                    log_sigma_y,
-                    width,
-                };
-                let guesses = categorical_guesses(&maps, arch)
-                    .into_iter()
-                    .filter(|guess| guess.mass >= score_floor);
-                return (1..)
-                    .zip(guesses)
-                    .map(|(rank, guess)| Prediction {
-                        frame,
-                        x: guess.x,
-                        y: guess.y,
-                        score: guess.mass,
-                        sigma: Some(sigma_at(nearest_pixel(guess.x, guess.y, height, width))),
-                        candidate: Some(rank),
-                    })
-                    .collect();
-            }
-            let mut found = Vec::new();
-            for (row, col) in local_maxima(logits, height, width, arch.peak_radius_px) {
-                let p = row * width + col;
-                let logit = logits[p] as f64;
-                if logit < logit_floor {
-                    continue;
-                }
-                let (x, y) = if arch.refine_radius_px == 0 {
-                    (col as f64 + dx[p] as f64, row as f64 + dy[p] as f64)
-                } else {
-                    refined_position(
-                        logits,
-                        dx,
-                        dy,
-                        width,
-                        height,
-                        (row, col),
-                        arch.refine_radius_px,
-                    )
-                };
-                let maps_sigma = LocalisationSigma {
-                    x: (log_sigma_x[p] as f64).exp(),
-                    y: (log_sigma_y[p] as f64).exp(),
-                };
-                let score = match arch.score {
-                    CnnScore::Heatmap => sigmoid(logit),
-                    CnnScore::Within1px => sigmoid(within[p] as f64),
-                    CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(maps_sigma),
-                };
-                found.push(Prediction {
-                    frame,
-                    x,
-                    y,
-                    score,
-                    sigma: Some(sigma_at(p)),
-                    candidate: None,
-                });
-            }
-            found
+        let decoder = FrameDecoder {
+            arch,
+            sigma_source: SigmaSource::of(settings),
+            score_floor,
+            logit_floor,
+            height,
+            width,
+            outputs: &outputs,
+            first_frame: start,
         };
+        let frame_predictions = |(offset, maps): (usize, &[f32])| decoder.predictions(offset, maps);
         // The cover of the categorical head costs far more than the peak
         // search, so its frames are decoded in parallel (each frame's on its
         // own: the order, and every bit, is the sequential one).
@@ -378,6 +300,154 @@ pub(crate) fn locate_with(
         }
     }
     Ok(predictions)
+}
+
+/// How the predictions of one batch's frames are read from their output
+/// maps.
+struct FrameDecoder<'a> {
+    arch: &'a CnnArchitecture,
+    sigma_source: SigmaSource,
+    score_floor: f64,
+    /// `score_floor` as a logit.
+    logit_floor: f64,
+    height: usize,
+    width: usize,
+    /// Every member's output maps of the batch (their spread is the σ of
+    /// an ensemble's within-1-px head).
+    outputs: &'a [Vec<f32>],
+    /// The frame number of the batch's first frame.
+    first_frame: usize,
+}
+
+/// One frame's output channels.
+struct FrameMaps<'a> {
+    logits: &'a [f32],
+    dx: &'a [f32],
+    dy: &'a [f32],
+    log_sigma_x: &'a [f32],
+    log_sigma_y: &'a [f32],
+    within: &'a [f32],
+}
+
+impl FrameDecoder<'_> {
+    /// The predictions of the batch's frame `offset`, whose (combined)
+    /// output channels are `maps`.
+    fn predictions(&self, offset: usize, maps: &[f32]) -> Vec<Prediction> {
+        let len = self.height * self.width;
+        let channel = |c: usize| &maps[c * len..(c + 1) * len];
+        let frame_maps = FrameMaps {
+            logits: channel(SCORE_CHANNEL),
+            dx: channel(OFFSET_X_CHANNEL),
+            dy: channel(OFFSET_Y_CHANNEL),
+            log_sigma_x: channel(LOG_SIGMA_X_CHANNEL),
+            log_sigma_y: channel(LOG_SIGMA_Y_CHANNEL),
+            within: channel(WITHIN_1PX_CHANNEL),
+        };
+        if self.arch.head == CnnHead::Categorical {
+            self.categorical(offset, &frame_maps)
+        } else {
+            self.peaks(offset, &frame_maps)
+        }
+    }
+
+    /// The uncertainty of the prediction at pixel `p` of the batch's frame
+    /// `offset`.
+    fn sigma_at(&self, offset: usize, maps: &FrameMaps<'_>, p: usize) -> LocalisationSigma {
+        match self.sigma_source {
+            SigmaSource::Maps => LocalisationSigma {
+                x: (maps.log_sigma_x[p] as f64).exp(),
+                y: (maps.log_sigma_y[p] as f64).exp(),
+            },
+            SigmaSource::Within1px => {
+                let len = self.height * self.width;
+                let frame_start = offset * OUTPUT_CHANNELS * len;
+                let spread =
+                    |channel: usize| member_variance(self.outputs, frame_start + channel * len + p);
+                sigma_from_within(
+                    maps.within[p] as f64,
+                    spread(OFFSET_X_CHANNEL),
+                    spread(OFFSET_Y_CHANNEL),
+                )
+            }
+        }
+    }
+
+    /// The categorical head's ranked guesses of the frame.
+    fn categorical(&self, offset: usize, maps: &FrameMaps<'_>) -> Vec<Prediction> {
+        let categorical = CategoricalMaps {
+            logits: maps.logits,
+            dx: maps.dx,
+            dy: maps.dy,
+            log_sigma_x: maps.log_sigma_x,
+            log_sigma_y: maps.log_sigma_y,
+            width: self.width,
+        };
+        let guesses = categorical_guesses(&categorical, self.arch)
+            .into_iter()
+            .filter(|guess| guess.mass >= self.score_floor);
+        (1..)
+            .zip(guesses)
+            .map(|(rank, guess)| {
+                let pixel = nearest_pixel(guess.x, guess.y, self.height, self.width);
+                Prediction {
+                    frame: self.first_frame + offset,
+                    x: guess.x,
+                    y: guess.y,
+                    score: guess.mass,
+                    sigma: Some(self.sigma_at(offset, maps, pixel)),
+                    candidate: Some(rank),
+                }
+            })
+            .collect()
+    }
+
+    /// The peaks head's predictions of the frame: its score map's local
+    /// maxima at or above the floor.
+    fn peaks(&self, offset: usize, maps: &FrameMaps<'_>) -> Vec<Prediction> {
+        let (arch, width, height) = (self.arch, self.width, self.height);
+        let mut found = Vec::new();
+        for (row, col) in local_maxima(maps.logits, height, width, arch.peak_radius_px) {
+            let p = row * width + col;
+            let logit = maps.logits[p] as f64;
+            if logit < self.logit_floor {
+                continue;
+            }
+            let (x, y) = if arch.refine_radius_px == 0 {
+                (
+                    col as f64 + maps.dx[p] as f64,
+                    row as f64 + maps.dy[p] as f64,
+                )
+            } else {
+                refined_position(
+                    maps.logits,
+                    maps.dx,
+                    maps.dy,
+                    width,
+                    height,
+                    (row, col),
+                    arch.refine_radius_px,
+                )
+            };
+            let maps_sigma = LocalisationSigma {
+                x: (maps.log_sigma_x[p] as f64).exp(),
+                y: (maps.log_sigma_y[p] as f64).exp(),
+            };
+            let score = match arch.score {
+                CnnScore::Heatmap => sigmoid(logit),
+                CnnScore::Within1px => sigmoid(maps.within[p] as f64),
+                CnnScore::GaussianWithin1px => sigmoid(logit) * gaussian_within_1px(maps_sigma),
+            };
+            found.push(Prediction {
+                frame: self.first_frame + offset,
+                x,
+                y,
+                score,
+                sigma: Some(self.sigma_at(offset, maps, p)),
+                candidate: None,
+            });
+        }
+        found
+    }
 }
 
 /// Where a prediction's `sigma_x`, `sigma_y` come from (docs/cnn.md,

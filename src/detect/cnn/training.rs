@@ -6,23 +6,22 @@
 //! optional posterior-mean targets from the likelihood detector (a
 //! teacher), and selection of the epoch with the best validation AUC.
 
-use anyhow::Context;
 use burn::optim::AdamConfig;
 use burn::prelude::*;
-use burn::tensor::activation::{log_sigmoid, sigmoid};
 use indicatif::ProgressBar;
-use rand::{RngExt, SeedableRng};
+use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 
-use super::data::{TargetShape, normalised_input, targets, truth_by_frame};
-use super::inference::{
-    NonFiniteOutput, frame_log_normaliser, inference_batch, locate_with, nearest_pixel, softmax,
+use super::data::{Source, truth_by_frame};
+use super::ensemble::{Member, member_seed};
+use super::inference::{NonFiniteOutput, inference_batch, locate_with};
+use super::loss::{BatchLoss, LossValues, batch_loss};
+use super::model::Net;
+use super::streams::{
+    STREAM_FRESH, STREAM_INIT, STREAM_SHUFFLE, STREAM_SPLIT, STREAM_TEACHER, stream,
 };
-use super::kernels::fixed_order_sum;
-use super::model::{
-    LOG_SIGMA_RANGE, LOG_SIGMA_X_CHANNEL, Net, NetworkStep, OFFSET_X_CHANNEL, SCORE_CHANNEL,
-    WITHIN_1PX_CHANNEL,
-};
+pub use super::teacher::teacher_targets;
+use super::teacher::{Lesson, Teacher, fixed_lesson};
 use super::{CnnArchitecture, CnnHead, EpochRecord, TrainedCnn, TrainingRecord, TrainingSettings};
 use crate::sim::{self, EmitterCount, SimParams};
 use crate::types::{Dataset, FrameStack, Prediction, TruthRow};
@@ -44,66 +43,17 @@ struct Selection<'a> {
     external: Option<&'a Dataset>,
 }
 
-/// Purposes of the random streams derived from the training seed.
-const STREAM_INIT: u64 = 1;
-const STREAM_SPLIT: u64 = 2;
-const STREAM_SHUFFLE: u64 = 3;
-const STREAM_FRESH: u64 = 4;
-/// The seeds of an ensemble's members 2, 3, … (index = 0-based member).
-const STREAM_MEMBER: u64 = 5;
-const STREAM_TEACHER: u64 = 6;
-
-/// A ChaCha8 stream for `purpose` (and `index`, e.g. the epoch) of `seed`.
-fn stream(seed: u64, purpose: u64, index: u64) -> ChaCha8Rng {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(purpose);
-    rng.set_word_pos(u128::from(index) << 32);
-    rng
-}
-
 /// Fisher–Yates shuffle driven by `rng` (explicit, so the order is fixed by
 /// this code and not by a library's implementation).
-fn shuffle<T>(items: &mut [T], rng: &mut ChaCha8Rng) {
+pub(super) fn shuffle<T>(items: &mut [T], rng: &mut ChaCha8Rng) {
     for i in (1..items.len()).rev() {
         let j = rng.random_range(0..=i);
         items.swap(i, j);
     }
 }
 
-/// Frames and their emitters, the unit batches are drawn from.
-struct Source<'a> {
-    frames: &'a FrameStack,
-    /// Per frame, the positions the score map and the offsets learn: the
-    /// true centroids, or the teacher's posterior means.
-    emitters: Vec<Vec<(f64, f64)>>,
-    /// Per frame, the true centroids when `emitters` are the teacher's
-    /// (the within-1-px head learns whether a localisation lands within
-    /// 1 px of the truth, not of the teacher); `None`: `emitters` are the
-    /// truth.
-    true_centroids: Option<Vec<Vec<(f64, f64)>>>,
-    /// Per frame, the teacher's posterior of the centroid as the
-    /// categorical head's softmax learns it: the probability that the
-    /// centroid is nearest each pixel (row-major index), the pixels with
-    /// none left out; empty for a frame the teacher did not label (its
-    /// one true centroid's pixel is the target). `None`: no teacher, or
-    /// the peaks head (whose teacher moves `emitters`).
-    posterior: Option<Vec<PixelPosterior>>,
-}
-
-/// A frame's posterior over its pixels: `(row-major pixel, probability)`,
-/// the probabilities summing to 1.
-type PixelPosterior = Vec<(u32, f32)>;
-
-impl Source<'_> {
-    /// The true centroids of frame `i`, which the within-1-px head learns
-    /// against.
-    fn truth(&self, i: usize) -> &[(f64, f64)] {
-        self.true_centroids.as_ref().unwrap_or(&self.emitters)[i].as_slice()
-    }
-}
-
 /// Frames `indices` of `dataset` as a new dataset, frames renumbered 0…
-fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
+pub(super) fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
     let frames = &dataset.frames;
     let mut data = Vec::with_capacity(indices.len() * frames.frame_len());
     let mut position = vec![usize::MAX; frames.n];
@@ -125,286 +75,6 @@ fn subset(dataset: &Dataset, indices: &[usize]) -> anyhow::Result<Dataset> {
         frames: FrameStack::from_vec(indices.len(), frames.height, frames.width, data)?,
         truth,
     })
-}
-
-/// The loss of one batch: the total to take the gradient of, its value
-/// and its parts' (each part before its weight), and the network's step
-/// that completes the backward pass.
-struct BatchLoss {
-    total: Tensor<1>,
-    values: LossValues,
-    network_step: NetworkStep,
-}
-
-/// A batch's loss values, each summed over its pixels in a fixed order
-/// ([`fixed_order_sum`]): the backend's own reductions sum in an order that
-/// depends on the CPU's vector width, and these values are recorded with
-/// the model.
-#[derive(Debug, Clone, Copy)]
-struct LossValues {
-    total: f64,
-    score: f64,
-    offset: f64,
-    sigma: f64,
-    within: f64,
-}
-
-/// The fixed-order sum of a loss map's elements.
-fn map_sum(map: &Tensor<4>) -> anyhow::Result<f64> {
-    let values = map
-        .clone()
-        .into_data()
-        .try_to_vec::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading a loss map: {e:?}"))?;
-    Ok(fixed_order_sum(&values))
-}
-
-/// Largest distance (pixels) between a localisation and a centroid for the
-/// within-1-px head's target to be 1.
-const WITHIN_RADIUS_PX: f64 = 1.0;
-
-/// The within-1-px target of every pixel of a batch, row-major `[n, 1, H,
-/// W]`: 1 where the pixel's localisation (pixel centre + its predicted
-/// offset, `offsets` row-major `[n, 2, H, W]`) lies within
-/// [`WITHIN_RADIUS_PX`] of any of its frame's `emitters`, else 0.
-fn within_targets(
-    offsets: &[f32],
-    emitters: &[&[(f64, f64)]],
-    height: usize,
-    width: usize,
-) -> Vec<f32> {
-    let len = height * width;
-    let mut out = vec![0.0f32; emitters.len() * len];
-    for (b, frame_emitters) in emitters.iter().enumerate() {
-        let (dx, dy) = offsets[2 * b * len..2 * (b + 1) * len].split_at(len);
-        for (p, target) in out[b * len..(b + 1) * len].iter_mut().enumerate() {
-            let x = (p % width) as f64 + dx[p] as f64;
-            let y = (p / width) as f64 + dy[p] as f64;
-            let hit = frame_emitters.iter().any(|&(ex, ey)| {
-                (x - ex).powi(2) + (y - ey).powi(2) <= WITHIN_RADIUS_PX * WITHIN_RADIUS_PX
-            });
-            *target = if hit { 1.0 } else { 0.0 };
-        }
-    }
-    out
-}
-
-/// The loss of one batch.
-fn batch_loss(
-    net: &Net,
-    arch: &CnnArchitecture,
-    settings: &TrainingSettings,
-    items: &[(&Source, usize)],
-    device: &Device,
-) -> anyhow::Result<BatchLoss> {
-    let frames0 = items[0].0.frames;
-    let (height, width) = (frames0.height, frames0.width);
-    let len = height * width;
-    let n = items.len();
-    let input = normalised_input(
-        items.iter().map(|(source, i)| source.frames.frame(*i)),
-        len,
-        arch.edge_channel,
-    );
-    let emitters: Vec<&[(f64, f64)]> = items
-        .iter()
-        .map(|(source, i)| source.emitters[*i].as_slice())
-        .collect();
-    let posteriors: Vec<&[(u32, f32)]> = items
-        .iter()
-        .map(|(source, i)| {
-            source
-                .posterior
-                .as_ref()
-                .map_or(&[][..], |posterior| posterior[*i].as_slice())
-        })
-        .collect();
-    let target = targets(
-        height,
-        width,
-        &emitters,
-        TargetShape {
-            sigma_px: settings.heatmap_sigma_px,
-            offset_radius_px: settings.offset_radius_px,
-        },
-    );
-    let positives = target.positive.iter().filter(|&&p| p > 0.0).count();
-    let masked = target.offset_mask.iter().filter(|&&m| m > 0.0).count();
-    let map = |values: Vec<f32>, channels: usize| {
-        Tensor::<4>::from_data(
-            TensorData::new(values, [n, channels, height, width]),
-            device,
-        )
-    };
-    let positive = map(target.positive, 1);
-    let centre = positive.clone();
-    let negative_weight = map(target.negative_weight, 1);
-    let offset_target = map(target.offset, 2);
-    let offset_mask = map(target.offset_mask, 1);
-
-    let (output, network_step) = net.forward_training(&input, [n, height, width], device);
-    let logit = output.clone().narrow(1, SCORE_CHANNEL, 1);
-    let score_count = positives.max(1) as f64;
-    let (score_loss, score_value) = match arch.head {
-        CnnHead::Peaks => focal_loss(logit, positive, negative_weight, score_count)?,
-        CnnHead::Categorical => {
-            categorical_loss(logit, &emitters, &posteriors, [n, height, width], device)?
-        }
-    };
-    let offset = output.clone().narrow(1, OFFSET_X_CHANNEL, 2);
-    let log_sigma = output.clone().narrow(1, LOG_SIGMA_X_CHANNEL, 2);
-    let within_logit = output.narrow(1, WITHIN_1PX_CHANNEL, 1);
-    // The uncertainty heads learn the error the offsets make, not the
-    // other way round: through detached offsets, the offsets keep the L1
-    // loss's gradient alone.
-    let realised_offset = offset.clone().detach();
-    // L1 offset loss per supervised pixel (|dx| + |dy|).
-    let offset_map = (offset - offset_target.clone()).abs() * offset_mask;
-    let offset_count = masked.max(1) as f64;
-    let offset_loss = offset_map.clone().sum().div_scalar(offset_count);
-    // Gaussian NLL of the offsets' error at each target centre's pixel, per
-    // axis: ln σ + e² / 2σ² (DECODE's σ maps). Only there: over the whole
-    // offset window the error mostly says how far a pixel is from the
-    // centre, which is not what the σ of a peak should tell.
-    let log_sigma = log_sigma.clamp(LOG_SIGMA_RANGE.0, LOG_SIGMA_RANGE.1);
-    let squared_error = (realised_offset.clone() - offset_target).powi_scalar(2);
-    let inverse_variance = log_sigma.clone().mul_scalar(-2.0).exp();
-    let sigma_map = (log_sigma + squared_error * inverse_variance.mul_scalar(0.5)) * centre;
-    let sigma_count = (2 * positives).max(1) as f64;
-    let sigma_loss = sigma_map.clone().sum().div_scalar(sigma_count);
-    // Cross-entropy of the within-1-px head against whether each pixel's
-    // localisation did land within 1 px of a centroid, per target centre
-    // (as the focal loss).
-    let realised = realised_offset
-        .into_data()
-        .try_to_vec::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading the offsets: {e:?}"))?;
-    let true_centroids: Vec<&[(f64, f64)]> =
-        items.iter().map(|(source, i)| source.truth(*i)).collect();
-    let within = map(within_targets(&realised, &true_centroids, height, width), 1);
-    let within_map = log_sigmoid(within_logit.clone()) * within.clone()
-        + log_sigmoid(within_logit.neg()) * within.neg().add_scalar(1.0);
-    let within_loss = within_map.clone().sum().neg().div_scalar(score_count);
-    let total = score_loss
-        + offset_loss.mul_scalar(settings.offset_loss_weight)
-        + sigma_loss.mul_scalar(settings.sigma_loss_weight)
-        + within_loss.mul_scalar(settings.within_loss_weight);
-    let mut values = LossValues {
-        total: 0.0,
-        score: score_value,
-        offset: map_sum(&offset_map)? / offset_count,
-        sigma: map_sum(&sigma_map)? / sigma_count,
-        within: -map_sum(&within_map)? / score_count,
-    };
-    values.total = values.score
-        + values.offset * settings.offset_loss_weight
-        + values.sigma * settings.sigma_loss_weight
-        + values.within * settings.within_loss_weight;
-    Ok(BatchLoss {
-        total,
-        values,
-        network_step,
-    })
-}
-
-/// The focal loss of the peaks head (CenterNet, α = 2, β = 4), from
-/// log-sigmoids for stability, per positive pixel: the tensor to
-/// differentiate and its value summed in a fixed order.
-fn focal_loss(
-    logit: Tensor<4>,
-    positive: Tensor<4>,
-    negative_weight: Tensor<4>,
-    positives: f64,
-) -> anyhow::Result<(Tensor<1>, f64)> {
-    let probability = sigmoid(logit.clone());
-    let log_p = log_sigmoid(logit.clone());
-    let log_not_p = log_sigmoid(logit.neg());
-    let positive_term = probability.clone().neg().add_scalar(1.0).powi_scalar(2) * log_p * positive;
-    let negative_term = probability.powi_scalar(2) * log_not_p * negative_weight;
-    let score_map = positive_term + negative_term;
-    let value = -map_sum(&score_map)? / positives;
-    Ok((score_map.sum().neg().div_scalar(positives), value))
-}
-
-/// The categorical head's loss: per frame, the cross-entropy of the
-/// softmax over its pixels against the pixel nearest its one centroid
-/// (`emitters`, clamped into the frame), or against the teacher's
-/// posterior over the pixels where `posteriors` has one for the frame,
-/// averaged over the frames.
-///
-/// The softmax is computed here in f64 with sums in raster order, not by
-/// the backend (whose reductions sum in an order that depends on the CPU's
-/// vector width): the tensor returned is `Σ logit · (softmax − onehot) / n`
-/// with the bracket detached, whose gradient with respect to the logits is
-/// exactly the cross-entropy's, so training stays bit-identical on every
-/// CPU. The value returned is the cross-entropy itself.
-fn categorical_loss(
-    logit: Tensor<4>,
-    emitters: &[&[(f64, f64)]],
-    posteriors: &[&[(u32, f32)]],
-    [n, height, width]: [usize; 3],
-    device: &Device,
-) -> anyhow::Result<(Tensor<1>, f64)> {
-    let logits = logit
-        .clone()
-        .into_data()
-        .try_to_vec::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading the score logits: {e:?}"))?;
-    let mut centroid_pixels = Vec::with_capacity(n);
-    for frame_emitters in emitters {
-        let &[(x, y)] = *frame_emitters else {
-            crate::bail_input!(
-                "training frames: the categorical head trains on frames of exactly one QD; a batch frame holds {}",
-                frame_emitters.len()
-            );
-        };
-        centroid_pixels.push([(nearest_pixel(x, y, height, width) as u32, 1.0)]);
-    }
-    let targets: Vec<&[(u32, f32)]> = posteriors
-        .iter()
-        .zip(&centroid_pixels)
-        .map(|(&posterior, centroid)| {
-            if posterior.is_empty() {
-                &centroid[..]
-            } else {
-                posterior
-            }
-        })
-        .collect();
-    let (value, gradient) = cross_entropy_and_gradient(&logits, &targets);
-    let gradient = Tensor::<4>::from_data(TensorData::new(gradient, [n, 1, height, width]), device);
-    Ok(((logit * gradient).sum(), value))
-}
-
-/// The mean over frames of the cross-entropy of each frame's softmax
-/// (`logits` row-major, one frame after another, `targets.len()` frames)
-/// against its target distribution over the pixels (`(pixel, probability)`
-/// pairs summing to 1: one pixel of probability 1 for a true centroid),
-/// and its gradient with respect to the logits, `(softmax − target) /
-/// frames`; in f64, summed in raster order (a target's terms in its
-/// order).
-fn cross_entropy_and_gradient(logits: &[f32], targets: &[&[(u32, f32)]]) -> (f64, Vec<f32>) {
-    let frames = targets.len();
-    let len = logits.len() / frames.max(1);
-    let mut gradient = vec![0.0f32; logits.len()];
-    let mut total = 0.0;
-    let mut target_map = vec![0.0f64; len];
-    for (b, target) in targets.iter().enumerate() {
-        let frame = &logits[b * len..(b + 1) * len];
-        let log_normaliser = frame_log_normaliser(frame);
-        for &(p, q) in *target {
-            target_map[p as usize] += f64::from(q);
-            total += f64::from(q) * (log_normaliser - frame[p as usize] as f64);
-        }
-        for ((g, q), t) in gradient[b * len..(b + 1) * len]
-            .iter_mut()
-            .zip(softmax(frame))
-            .zip(&mut target_map)
-        {
-            *g = ((q - std::mem::take(t)) / frames as f64) as f32;
-        }
-    }
-    (total / frames.max(1) as f64, gradient)
 }
 
 /// The validation score of `net` on `validation`, one value per matching
@@ -603,216 +273,6 @@ fn train_and_select(
         records.push(record);
     }
     TrainedCnn::from_members(arch.clone(), settings.clone(), nets, records)
-}
-
-/// What the score map and the offsets of `training`'s frames learn with a
-/// teacher (`settings.teacher_particles` > 0): for every frame that holds
-/// exactly one QD, the likelihood detector's posterior mean of its
-/// trajectory centroid given the frame (`particles` particles, under
-/// `microscope`, the simulator parameters the frames were made with, its
-/// distributions of D, brightness and background as the priors), in place
-/// of the true centroid; frames with none or several QDs keep their truth
-/// (and cost the teacher nothing).
-///
-/// The true centroid is one draw from the posterior around that mean, so
-/// the mean is the same target without the draw's noise (at D = 1.75 the
-/// draw scatters by ≈ 1.4 px): the network learns what the frame tells
-/// from fewer frames. Frame `i` draws from ChaCha8 stream `i` of a seed of
-/// its own derived from the training seed, so the targets, like the rest
-/// of the training, are fixed by the seed. `progress` counts the frames
-/// while they are computed, then is handed back as it was.
-pub fn teacher_targets(
-    training: &Dataset,
-    microscope: &SimParams,
-    particles: usize,
-    seed: u64,
-    progress: &ProgressBar,
-) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
-    match fixed_lesson(
-        CnnHead::Peaks,
-        training,
-        microscope,
-        particles,
-        seed,
-        progress,
-    )? {
-        Lesson::Means(means) => Ok(means),
-        Lesson::Pixels(_) => unreachable!("the peaks head's teacher gives means"),
-    }
-}
-
-/// What the teacher of `head` gives the fixed frames of `training` (see
-/// [`teacher_targets`]), under a progress message "posterior targets"
-/// after the training's name.
-fn fixed_lesson(
-    head: CnnHead,
-    training: &Dataset,
-    microscope: &SimParams,
-    particles: usize,
-    seed: u64,
-    progress: &ProgressBar,
-) -> anyhow::Result<Lesson> {
-    let truth = truth_by_frame(&training.truth, training.frames.n)?;
-    let teacher = Teacher {
-        head,
-        microscope,
-        particles,
-        filter_seed: stream(seed, STREAM_TEACHER, 0).random::<u64>(),
-    };
-    let task = progress.message();
-    let message = if task.is_empty() {
-        "posterior targets".to_string()
-    } else {
-        format!("{task}: posterior targets")
-    };
-    teacher.teach(&training.frames, &truth, &message, progress)
-}
-
-/// The likelihood detector as a teacher of one head: how many particles,
-/// under which simulator parameters (the frames' own, their distributions
-/// the priors), from which seed.
-struct Teacher<'a> {
-    head: CnnHead,
-    microscope: &'a SimParams,
-    particles: usize,
-    filter_seed: u64,
-}
-
-/// What a teacher gives a stack's frames (those with one QD; the others
-/// keep their truth).
-#[derive(Clone)]
-enum Lesson {
-    /// For the peaks head: per frame, the posterior mean of the centroid
-    /// (the truth for frames with none or several QDs), which the score
-    /// map and the offsets learn in place of the truth.
-    Means(Vec<Vec<(f64, f64)>>),
-    /// For the categorical head: per frame, the posterior of the centroid
-    /// over the pixels (empty for frames with none or several QDs), which
-    /// the softmax learns in place of the true centroid's pixel; the
-    /// offsets and σ maps still learn the truth.
-    Pixels(Vec<PixelPosterior>),
-}
-
-impl Teacher<'_> {
-    /// The lesson for `frames` (whose true centroids are `truth`): the
-    /// filter runs on the frames with one QD, frame `i` from ChaCha8
-    /// stream `i` of the teacher's seed. The progress bar counts those
-    /// frames under `message`, then shows what it showed.
-    fn teach(
-        &self,
-        frames: &FrameStack,
-        truth: &[Vec<(f64, f64)>],
-        message: &str,
-        progress: &ProgressBar,
-    ) -> anyhow::Result<Lesson> {
-        let settings = crate::detect::likelihood::LikelihoodParams {
-            particles: self.particles,
-            ..Default::default()
-        };
-        let taught: Vec<usize> = (0..truth.len()).filter(|&i| truth[i].len() == 1).collect();
-        let (length, position, shown) =
-            (progress.length(), progress.position(), progress.message());
-        progress.set_length(taught.len() as u64);
-        progress.set_position(0);
-        progress.set_message(message.to_string());
-        let lesson = match self.head {
-            CnnHead::Peaks => crate::detect::likelihood::locate_frames(
-                frames,
-                &taught,
-                self.microscope,
-                &settings,
-                self.filter_seed,
-                progress,
-            )
-            .map(|means| {
-                let mut targets = truth.to_vec();
-                for (&index, mean) in taught.iter().zip(means) {
-                    targets[index] = vec![(mean.x, mean.y)];
-                }
-                Lesson::Means(targets)
-            }),
-            CnnHead::Categorical => crate::detect::likelihood::posterior_clouds(
-                frames,
-                &taught,
-                self.microscope,
-                &settings,
-                self.filter_seed,
-                progress,
-            )
-            .map(|clouds| {
-                let mut targets = vec![PixelPosterior::new(); truth.len()];
-                for (&index, cloud) in taught.iter().zip(clouds) {
-                    targets[index] = pixel_posterior(&cloud, frames.height, frames.width);
-                }
-                Lesson::Pixels(targets)
-            }),
-        }
-        .context("training.teacher_particles: the teacher's posterior targets");
-        if let Some(length) = length {
-            progress.set_length(length);
-        }
-        progress.set_position(position);
-        progress.set_message(shown);
-        lesson
-    }
-}
-
-/// A posterior of the centroid given as weighted points `(x, y, weight)`
-/// (weights summing to 1) as the probability that the centroid is nearest
-/// each pixel of a `height × width` frame (points outside clamped to the
-/// border, as the categorical head's target is), in raster order.
-fn pixel_posterior(cloud: &[(f64, f64, f64)], height: usize, width: usize) -> PixelPosterior {
-    let mut mass = vec![0.0f64; height * width];
-    for &(x, y, weight) in cloud {
-        mass[nearest_pixel(x, y, height, width)] += weight;
-    }
-    (0..)
-        .zip(mass)
-        .filter(|&(_, m)| m > 0.0)
-        .map(|(pixel, m)| (pixel, m as f32))
-        .collect()
-}
-
-/// The seed ensemble member `index` (0-based) trains from: the training
-/// seed itself for member 0, so a single network trains exactly as it
-/// would without ensembles; a seed drawn from a stream of its own for the
-/// others.
-fn member_seed(seed: u64, index: usize) -> u64 {
-    if index == 0 {
-        seed
-    } else {
-        stream(seed, STREAM_MEMBER, index as u64).random::<u64>()
-    }
-}
-
-/// Which member of how many a training run is (0-based `index`), in the
-/// training the caller calls `task` (the progress bar's message when the
-/// training began; may be empty).
-#[derive(Clone, Copy)]
-struct Member<'a> {
-    task: &'a str,
-    index: usize,
-    count: usize,
-}
-
-impl Member<'_> {
-    /// The task and, for an ensemble's member, "member 2/3": "train cnn ·
-    /// member 2/3", "train cnn" for a single network; `None` when both are
-    /// missing.
-    fn name(self) -> Option<String> {
-        let member = (self.count > 1).then(|| format!("member {}/{}", self.index + 1, self.count));
-        match (self.task.is_empty(), member) {
-            (true, member) => member,
-            (false, None) => Some(self.task.to_string()),
-            (false, Some(member)) => Some(format!("{} · {member}", self.task)),
-        }
-    }
-
-    /// [`name`](Self::name) and ": " to start the member's messages (empty
-    /// when there is no name).
-    fn label(self) -> String {
-        self.name().map(|name| name + ": ").unwrap_or_default()
-    }
 }
 
 /// What every member of a training shares: the network's shape, the
@@ -1273,10 +733,10 @@ fn learning_rate(settings: &TrainingSettings, step: usize, total: usize) -> f64 
 
 #[cfg(test)]
 mod tests {
-    use super::{
-        CnnHead, FrameStack, Lesson, SimParams, Teacher, cross_entropy_and_gradient, member_seed,
-        pixel_posterior, sim, truth_by_frame,
-    };
+    use super::super::ensemble::member_seed;
+    use super::super::loss::cross_entropy_and_gradient;
+    use super::super::teacher::{Lesson, Teacher, pixel_posterior};
+    use super::{CnnHead, FrameStack, SimParams, sim, truth_by_frame};
 
     #[test]
     fn the_categorical_gradient_is_the_cross_entropys() {
