@@ -203,10 +203,10 @@ fn sets_of_empty_frames_are_scored_by_their_false_localisations() {
     assert!(!markdown.contains("errors_empty"), "{markdown}");
     let auc_header = markdown
         .lines()
-        .find(|l| l.starts_with("| detector | D=0.75 ε=1 |"))
+        .find(|l| l.starts_with("| detector | D = 0.75<br>ε = 1 |"))
         .unwrap_or_else(|| panic!("no AUC table: {markdown}"));
-    assert!(auc_header.contains("D=1.75 ε=2"), "{markdown}");
-    assert!(!auc_header.contains("D=1 "), "{markdown}");
+    assert!(auc_header.contains("D = 1.75<br>ε = 2"), "{markdown}");
+    assert!(!auc_header.contains("D = 1.00<br>"), "{markdown}");
     assert!(
         markdown.contains(&format!(
             "| trackpy | empty | none | — | — | — | — | — | 40 | {trackpy_row} |"

@@ -331,3 +331,27 @@ reference:
     // any localiser worth the name beats 0.01.
     assert_eq!(&verdicts[..2], &["behind", "ahead"], "{section}");
 }
+
+/// The tables a reader of the smoke run sees: `scanloc run`'s printed AUC
+/// table and the report's AUC and headroom tables, snapshotted (the run
+/// is bit-identical on any CPU, so are its figures); no line of the
+/// printed table is wider than a terminal's 120 characters.
+#[test]
+fn the_smoke_runs_printed_and_reported_tables_are_as_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let registry = dir.path().join("registry");
+    let (text, run) = crate::common::run_text(&crate::common::smoke(), &registry);
+    // The last line names the run and its timing: not part of the table.
+    let table: Vec<&str> = text.lines().filter(|l| !l.starts_with("run ")).collect();
+    assert!(table.iter().all(|l| l.chars().count() <= 120), "{text}");
+    insta::assert_snapshot!("smoke_run_table", table.join("\n"));
+    let markdown = report_markdown(&registry, &run, &dir.path().join("report"));
+    insta::assert_snapshot!(
+        "smoke_report_auc",
+        report_section(&markdown, "AUC (precision–recall), ours vs the reference")
+    );
+    insta::assert_snapshot!(
+        "smoke_report_headroom",
+        report_section(&markdown, "Where the AUC is lost")
+    );
+}
