@@ -50,5 +50,6 @@ mod report;
 mod score_tracks;
 mod simulator;
 mod stress;
+mod structure;
 mod sweep_cluster;
 mod tracking_runs;
