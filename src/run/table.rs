@@ -94,11 +94,12 @@ pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     out
 }
 
-/// One AUC table of `rows` (all of one subset), split into blocks of test
-/// sets that fit [`MAX_TABLE_CHARS`] and [`MAX_FIGURE_COLUMNS`].
-fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
+/// The rows' detectors, test sets (the set's name as the reference knows
+/// it, the scored name, D) and radii, each in the order rows first name it.
+type GroupAxes<'a> = (Vec<&'a str>, Vec<(&'a str, &'a str, Option<f64>)>, Vec<f64>);
+
+fn group_axes<'a>(rows: &[&'a AucRow]) -> GroupAxes<'a> {
     let mut detectors: Vec<&str> = Vec::new();
-    // (the set's name as the reference knows it, the scored name, D)
     let mut datasets: Vec<(&str, &str, Option<f64>)> = Vec::new();
     let mut eps: Vec<f64> = Vec::new();
     for row in rows {
@@ -112,6 +113,78 @@ fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
             eps.push(row.eps_px);
         }
     }
+    (detectors, datasets, eps)
+}
+
+/// The width of the label column: the longest detector label (with its
+/// best-guess suffix where it has that row) or reference label, at least 10.
+/// Labels are cut to a bounded width (`display_cell`), so no recorded name
+/// can make a format width overflow.
+fn label_width(
+    detectors: &[&str],
+    best_guess_differs: &dyn Fn(&str) -> bool,
+    reference: Option<&Reference>,
+) -> usize {
+    let mut width = detectors
+        .iter()
+        .map(|d| {
+            let extra = if best_guess_differs(d) {
+                BEST_GUESS.len()
+            } else {
+                0
+            };
+            display_cell(d).len() + extra
+        })
+        .max()
+        .unwrap_or(0)
+        .max(10);
+    if let Some(reference) = reference {
+        for row in reference
+            .rows
+            .iter()
+            .filter(|r| detectors.contains(&r.detector.as_str()))
+        {
+            width = width.max(display_cell(&row.label).len() + 9);
+        }
+    }
+    width
+}
+
+/// The two heading lines of a block: the sets' titles over their groups of
+/// columns, then the radii. Padded by hand: a group's width grows with the
+/// ε list, which a format width (at most 65,535) must not be trusted with.
+fn block_heading(
+    titles: &[(&str, usize)],
+    eps: &[f64],
+    label_width: usize,
+    cell: usize,
+    figures: usize,
+) -> String {
+    let mut header = format!("{:<label_width$}", "AUC");
+    let mut eps_line = format!("{:<label_width$}", "ε (px)");
+    for &(title, width) in titles {
+        header.push_str("  ");
+        header.push_str(title);
+        header.extend(std::iter::repeat_n(
+            ' ',
+            (width - 2).saturating_sub(title.chars().count()),
+        ));
+        eps_line.push_str("  ");
+        for e in eps {
+            eps_line.push_str(&format!("{:<cell$} ", format!("{e}")));
+        }
+        eps_line.extend(std::iter::repeat_n(
+            ' ',
+            (width - 2).saturating_sub(figures),
+        ));
+    }
+    format!("{}\n{}\n", header.trim_end(), eps_line.trim_end())
+}
+
+/// One AUC table of `rows` (all of one subset), split into blocks of test
+/// sets that fit [`MAX_TABLE_CHARS`] and [`MAX_FIGURE_COLUMNS`].
+fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
+    let (detectors, datasets, eps) = group_axes(rows);
     let best_guess_differs = |detector: &str| {
         rows.iter().any(|r| {
             r.detector == detector && r.auc_best_per_frame.is_some_and(|best| best != r.auc)
@@ -132,28 +205,7 @@ fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
     let group_width = |title: &str| figures.max(title.chars().count() + 1) + 2;
     // Labels are cut to a bounded width (`display_cell`), so no recorded
     // name can make a format width overflow.
-    let mut label_width = detectors
-        .iter()
-        .map(|d| {
-            let extra = if best_guess_differs(d) {
-                BEST_GUESS.len()
-            } else {
-                0
-            };
-            display_cell(d).len() + extra
-        })
-        .max()
-        .unwrap_or(0)
-        .max(10);
-    if let Some(reference) = reference {
-        for row in reference
-            .rows
-            .iter()
-            .filter(|r| detectors.contains(&r.detector.as_str()))
-        {
-            label_width = label_width.max(display_cell(&row.label).len() + 9);
-        }
-    }
+    let label_width = label_width(&detectors, &best_guess_differs, reference);
     let widest_group = titles.iter().map(|t| group_width(t)).max().unwrap_or(0);
     let fit = MAX_TABLE_CHARS.saturating_sub(label_width) / widest_group.max(1);
     let per_block = sets_per_block(eps.len()).min(fit.max(1));
@@ -163,32 +215,17 @@ fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
         if b > 0 {
             out.push('\n');
         }
-        let mut header = format!("{:<label_width$}", "AUC");
-        let mut eps_line = format!("{:<label_width$}", "ε (px)");
-        for &i in block {
-            let width = group_width(&titles[i]);
-            // Padded by hand: the group's width grows with the ε list,
-            // which a format width (at most 65,535) must not be trusted
-            // with.
-            header.push_str("  ");
-            header.push_str(&titles[i]);
-            header.extend(std::iter::repeat_n(
-                ' ',
-                (width - 2).saturating_sub(titles[i].chars().count()),
-            ));
-            eps_line.push_str("  ");
-            for e in &eps {
-                eps_line.push_str(&format!("{:<cell$} ", format!("{e}")));
-            }
-            eps_line.extend(std::iter::repeat_n(
-                ' ',
-                (width - 2).saturating_sub(figures),
-            ));
-        }
-        out.push_str(header.trim_end());
-        out.push('\n');
-        out.push_str(eps_line.trim_end());
-        out.push('\n');
+        let titles_in_block: Vec<(&str, usize)> = block
+            .iter()
+            .map(|&i| (titles[i].as_str(), group_width(&titles[i])))
+            .collect();
+        out.push_str(&block_heading(
+            &titles_in_block,
+            &eps,
+            label_width,
+            cell,
+            figures,
+        ));
         let line = |label: &str, value: &dyn Fn(&str, &str, f64) -> Option<f64>| -> String {
             let label = display_cell(label);
             let mut text = format!("{label:<label_width$}");

@@ -30,7 +30,6 @@ const KERNELS: &[&str] = &[
 const TO_BE_SPLIT: &[(&str, &str)] = &[
     ("src/cli/diffusion.rs", "run"),
     ("src/metrics/tracking.rs", "score_tracks"),
-    ("src/run/table.rs", "render"),
     ("src/run/compute.rs", "compute"),
 ];
 

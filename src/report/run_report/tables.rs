@@ -148,11 +148,11 @@ pub(super) fn write_auc_table(
 
 /// One AUC table of `evaluations` (all of one subset), split into blocks
 /// of at most [`crate::run::table::MAX_FIGURE_COLUMNS`] figures.
-fn write_auc_group(
-    markdown: &mut String,
-    evaluations: &[&Evaluation],
-    reference: Option<&Reference>,
-) -> anyhow::Result<()> {
+/// The datasets (with their D), detectors and radii of an AUC group, each
+/// in the order the evaluations first name it.
+type AucAxes<'a> = (Vec<(&'a str, Option<f64>)>, Vec<&'a str>, Vec<f64>);
+
+fn auc_group_axes<'a>(evaluations: &[&'a Evaluation]) -> AucAxes<'a> {
     let mut datasets: Vec<(&str, Option<f64>)> = Vec::new();
     let mut detectors: Vec<&str> = Vec::new();
     let mut eps: Vec<f64> = Vec::new();
@@ -169,6 +169,36 @@ fn write_auc_group(
             }
         }
     }
+    (datasets, detectors, eps)
+}
+
+/// The heading and rule lines of one block of an AUC group: a column per
+/// dataset and radius, each heading on two lines so the columns stay as
+/// narrow as their figures.
+fn auc_group_header(block: &[(&str, Option<f64>)], eps: &[f64]) -> anyhow::Result<String> {
+    let mut header = String::from("| detector |");
+    let mut rule = String::from("|---|");
+    for (dataset, diffusion) in block {
+        for e in eps {
+            match diffusion {
+                Some(d) if (d * 100.0).round() == d * 100.0 => {
+                    write!(header, " D = {d:.2}<br>ε = {e} |")?
+                }
+                Some(d) => write!(header, " D = {d}<br>ε = {e} |")?,
+                None => write!(header, " {}<br>ε = {e} |", frames_scored(dataset).0)?,
+            }
+            rule.push_str("---|");
+        }
+    }
+    Ok(format!("{header}\n{rule}"))
+}
+
+fn write_auc_group(
+    markdown: &mut String,
+    evaluations: &[&Evaluation],
+    reference: Option<&Reference>,
+) -> anyhow::Result<()> {
+    let (datasets, detectors, eps) = auc_group_axes(evaluations);
     let score = |detector: &str, dataset: &str, e: f64| {
         evaluations
             .iter()
@@ -186,23 +216,7 @@ fn write_auc_group(
         if b > 0 {
             writeln!(markdown)?;
         }
-        let mut header = String::from("| detector |");
-        let mut rule = String::from("|---|");
-        for (dataset, diffusion) in block {
-            for e in &eps {
-                // Two lines per heading, so the columns stay as narrow as
-                // their figures.
-                match diffusion {
-                    Some(d) if (d * 100.0).round() == d * 100.0 => {
-                        write!(header, " D = {d:.2}<br>ε = {e} |")?
-                    }
-                    Some(d) => write!(header, " D = {d}<br>ε = {e} |")?,
-                    None => write!(header, " {}<br>ε = {e} |", frames_scored(dataset).0)?,
-                }
-                rule.push_str("---|");
-            }
-        }
-        writeln!(markdown, "{header}\n{rule}")?;
+        writeln!(markdown, "{}", auc_group_header(block, &eps)?)?;
         let row = |label: &str,
                    value: &dyn Fn(&str, f64) -> Option<f64>,
                    shown: &dyn Fn(f64) -> String| {
