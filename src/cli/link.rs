@@ -96,6 +96,7 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
             "--min-score: must be a finite number, got {least}"
         )));
     }
+    scanloc::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
     let mut pending = PendingFile::create(&args.out)?;
     let mut table = localisation_table::read_localisation_table(&args.locs)?;
     let left_out = match args.min_score {
