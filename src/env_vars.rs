@@ -12,11 +12,12 @@
 /// `registry`).
 pub const SCANLOC_REGISTRY: &str = "SCANLOC_REGISTRY";
 
-/// `1` opens every existing registry read-only, as if its folder could not
+/// A true value (see [`flag`]) opens every existing registry read-only, as if its folder could not
 /// be written (a read-only mount): commands that only read work, commands
 /// that write refuse with exit code 2, and the database is opened as an
 /// immutable file. A new registry (`reproduce`'s scratch folder) is still
-/// made. To guard registries against writes, or to test.
+/// made. To guard registries against writes, or to test. Another value
+/// than [`flag`]'s spellings is refused before any command runs.
 pub const SCANLOC_REGISTRY_READ_ONLY: &str = "SCANLOC_REGISTRY_READ_ONLY";
 
 /// What the log on standard error shows, as a `tracing` filter
@@ -48,3 +49,48 @@ pub const SCANLOC_REQUIRE_SLURM: &str = "SCANLOC_REQUIRE_SLURM";
 /// above `limits::MAX_THREADS` (1,024) is refused before any command runs
 /// (exit code 2).
 pub const RAYON_NUM_THREADS: &str = "RAYON_NUM_THREADS";
+
+/// The boolean variables scanloc reads, each checked by [`flag`] before
+/// any command runs.
+pub const BOOLEAN_FLAGS: [&str; 1] = [SCANLOC_REGISTRY_READ_ONLY];
+
+/// The value of the boolean variable `name`: unset is false; `1`, `true`,
+/// `yes`, `on` are true and `0`, `false`, `no`, `off` false (in any case,
+/// blanks around ignored); anything else (an empty value too) is an error
+/// naming the variable and the spellings, so a typo never leaves a guard
+/// silently off.
+pub fn flag(name: &str) -> Result<bool, String> {
+    match std::env::var_os(name) {
+        None => Ok(false),
+        Some(value) => parse_flag(name, &value.to_string_lossy()),
+    }
+}
+
+fn parse_flag(name: &str, text: &str) -> Result<bool, String> {
+    match text.trim().to_ascii_lowercase().as_str() {
+        "1" | "true" | "yes" | "on" => Ok(true),
+        "0" | "false" | "no" | "off" => Ok(false),
+        _ => Err(format!(
+            "{name}={text:?}: not a boolean (1, true, yes, on or 0, false, no, off; any case)"
+        )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_flag;
+
+    #[test]
+    fn a_flag_takes_the_usual_spellings_and_refuses_others() {
+        for text in ["1", "true", "TRUE", "Yes", "on", " On "] {
+            assert_eq!(parse_flag("F", text), Ok(true), "{text}");
+        }
+        for text in ["0", "false", "False", "NO", "off"] {
+            assert_eq!(parse_flag("F", text), Ok(false), "{text}");
+        }
+        for text in ["", "2", "y", "enable", "truee"] {
+            let error = parse_flag("F", text).unwrap_err();
+            assert!(error.starts_with("F="), "{error}");
+        }
+    }
+}

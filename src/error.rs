@@ -45,6 +45,18 @@ pub fn input_error(message: impl Into<String>) -> anyhow::Error {
     anyhow::Error::new(InputError(message.into()))
 }
 
+/// A number as messages and tables show it: the shortest text that reads
+/// back as the same `f64`, in scientific notation outside 1e-4 ≤ |x| <
+/// 1e15 (so 1e300 is `1e300`, not 301 digits; 0.1 is `0.1`).
+pub fn readable(value: f64) -> String {
+    let magnitude = value.abs();
+    if value == 0.0 || !value.is_finite() || (1e-4..1e15).contains(&magnitude) {
+        format!("{value}")
+    } else {
+        format!("{value:e}")
+    }
+}
+
 /// Returns early with an [`InputError`] built from a format string.
 #[macro_export]
 macro_rules! bail_input {
@@ -169,7 +181,7 @@ pub fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
     } else {
         Err(FieldError::new(
             name,
-            format!("must be a finite number, got {value}"),
+            format!("must be a finite number, got {}", readable(value)),
         ))
     }
 }
@@ -178,7 +190,10 @@ pub fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
 pub fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value < 0.0 {
-        return Err(FieldError::new(name, format!("must be ≥ 0, got {value}")));
+        return Err(FieldError::new(
+            name,
+            format!("must be ≥ 0, got {}", readable(value)),
+        ));
     }
     Ok(value)
 }
@@ -187,7 +202,10 @@ pub fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
 pub fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value <= 0.0 {
-        return Err(FieldError::new(name, format!("must be > 0, got {value}")));
+        return Err(FieldError::new(
+            name,
+            format!("must be > 0, got {}", readable(value)),
+        ));
     }
     Ok(value)
 }
@@ -195,6 +213,25 @@ pub fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn readable_numbers_are_short_and_read_back_exactly() {
+        for (value, text) in [
+            (0.0, "0"),
+            (0.1, "0.1"),
+            (-2.5, "-2.5"),
+            (1e300, "1e300"),
+            (-1.5e-160, "-1.5e-160"),
+            (123456789.0, "123456789"),
+            (f64::INFINITY, "inf"),
+        ] {
+            assert_eq!(readable(value), text);
+        }
+        for value in [f64::MAX, f64::MIN_POSITIVE, 1.0 / 3.0, 7.1e-5, 2.0e15] {
+            assert_eq!(readable(value).parse::<f64>().unwrap(), value);
+            assert!(readable(value).len() < 25, "{}", readable(value));
+        }
+    }
 
     #[test]
     fn field_errors_take_the_path_of_the_value_that_holds_them() {

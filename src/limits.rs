@@ -31,6 +31,10 @@ pub const MAX_CELL_CHARS: usize = 200;
 /// localisations is a few hundred bytes, so a longer one is a file that is
 /// not such a table, refused before it is read into memory.
 pub const MAX_CSV_RECORD_BYTES: usize = 1 << 20;
+/// Largest manifest (YAML) read, in bytes: manifests are a few kilobytes,
+/// so a larger file (or a device such as `/dev/zero`) is refused after
+/// reading this much rather than read for ever.
+pub const MAX_MANIFEST_BYTES: u64 = 4 << 20;
 /// Most memory one command may plan to hold for a dataset it makes
 /// (`simulate`'s frames and ground truth), checked before allocating;
 /// [`check_memory`] also checks the machine's available memory.
@@ -81,13 +85,19 @@ pub fn check_positive_at_most(name: &str, value: f64, max: f64) -> Result<f64, F
     if !(value.is_finite() && value > 0.0) {
         return Err(FieldError::new(
             name,
-            format!("must be a finite number > 0, got {value}"),
+            format!(
+                "must be a finite number > 0, got {}",
+                crate::error::readable(value)
+            ),
         ));
     }
     if value > max {
         return Err(FieldError::new(
             name,
-            format!("must be at most {max:e}, got {value:e}"),
+            format!(
+                "must be at most {max:e}, got {}",
+                crate::error::readable(value)
+            ),
         ));
     }
     Ok(value)

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
-use scanloc::error::input_error;
+use scanloc::error::{input_error, readable};
 use scanloc::track::diffusion::{
     ENSEMBLE_GATE, Estimate, Exposure, Method, RecordingEstimates, Series,
     attach_detection_profile, estimate_recording,
@@ -47,7 +47,14 @@ enum ExposureArg {
 /// dispersion, measured over 20 tracks or more and named on stderr.
 /// Output: CSV on stdout, one row per track and method, then the ensemble
 /// rows (particle `ensemble`).
+///
+/// Tracks that cannot come from the stated scan are refused (exit code 2,
+/// nothing written): a localisation further outside the field (--height,
+/// --width) than the PSF reaches (3 σxy), or a `time` step that differs
+/// from its frames' distance on the frame clock by more than a frame
+/// period. An estimate that is not a finite number is refused too.
 #[derive(Debug, Args)]
+#[command(allow_negative_numbers = true)]
 pub struct DiffusionArgs {
     /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s: in every row
     /// of a track or in none, each step longer than its two localisations' blur).
@@ -61,7 +68,7 @@ pub struct DiffusionArgs {
     exposure: ExposureArg,
     /// Tracks with fewer localisations get no row of their own (they still
     /// count in the ensemble).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, value_parser = super::whole_number::<usize>)]
     min_points: usize,
     /// Condition ml on the field alone, not on where the localiser finds
     /// particles: for samples whose particles are not spread uniformly
@@ -76,7 +83,7 @@ pub struct DiffusionArgs {
     /// particle's own (docs/tracking.md, "Wrong links"). At most 0.707 (the
     /// box inside the elliptic gate), or 1 for every step. Tables without
     /// gates are used whole.
-    #[arg(long, default_value_t = ENSEMBLE_GATE)]
+    #[arg(long, default_value_t = ENSEMBLE_GATE, allow_hyphen_values = true)]
     ensemble_gate: f64,
     /// The ml ensemble takes its steps within the box this many pixels
     /// inside the field's edges, each run of localisations inside it a
@@ -85,7 +92,7 @@ pub struct DiffusionArgs {
     /// cost of the steps near the edges (docs/tracking.md, "Near the
     /// field's edges": 2 for the recordings' CNN). 0: the whole field;
     /// less than half the field's shorter side.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     ensemble_margin_px: f64,
     /// Take the table's sigma_x, sigma_y as each localisation's known
     /// standard error (ml then reads D through the blur), for a localiser
@@ -108,11 +115,11 @@ fn row(
         out,
         "{label},{points},{},{},{},{},{},{},{}",
         method.name(),
-        e.d,
-        e.standard_error,
-        e.low,
-        e.high,
-        e.localisation_variance,
+        readable(e.d),
+        readable(e.standard_error),
+        readable(e.low),
+        readable(e.high),
+        readable(e.localisation_variance),
         e.interval_valid
     )
 }
@@ -133,7 +140,7 @@ pub fn run(
     if !(args.ensemble_margin_px.is_finite() && args.ensemble_margin_px >= 0.0) {
         return Err(input_error(format!(
             "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
-            args.ensemble_margin_px
+            readable(args.ensemble_margin_px)
         )));
     }
     scanloc::track::pipeline::check_ensemble_margin(
@@ -146,10 +153,11 @@ pub fn run(
     if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
         return Err(input_error(format!(
             "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
-            args.ensemble_gate
+            readable(args.ensemble_gate)
         )));
     }
     let mut tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    refuse_foreign_tracks(&args.tracks, &tracks, &geometry)?;
     if !args.given_sigma && tracks.iter().any(|t| t.has_sigma()) {
         tracks = tracks.iter().map(|t| t.without_sigma()).collect();
         writeln!(
@@ -169,8 +177,8 @@ pub fn run(
                 track.particle,
                 s.frames[i],
                 s.frames[i + 1],
-                s.times[i + 1] - s.times[i],
-                s.blur[i] + s.blur[i + 1],
+                readable(s.times[i + 1] - s.times[i]),
+                readable(s.blur[i] + s.blur[i + 1]),
             )));
         }
     }
@@ -183,10 +191,6 @@ pub fn run(
     if !args.no_detection_profile {
         attach_detection_profile(&mut series, geometry.pixel_size_um);
     }
-    writeln!(
-        stdout,
-        "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
-    )?;
     let estimates: Vec<(Method, RecordingEstimates)> = Method::ALL
         .into_iter()
         .map(|method| {
@@ -202,6 +206,11 @@ pub fn run(
             )
         })
         .collect();
+    refuse_non_finite(&args.tracks, &tracks, &estimates)?;
+    writeln!(
+        stdout,
+        "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
+    )?;
     // One row per track and method, tracks in table order.
     for (index, track) in tracks.iter().enumerate() {
         for (method, e) in &estimates {
@@ -249,4 +258,102 @@ pub fn run(
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// How far outside the field a localisation may lie, in σxy of the PSF:
+/// beyond it no pixel of the field sees the particle.
+const FIELD_REACH_SIGMAS: f64 = 3.0;
+
+/// Refuses tracks that cannot come from the scan `geometry` describes: a
+/// localisation further outside the field than the PSF reaches (tracks of a
+/// larger field analysed as a smaller one, whose D would come out far too
+/// low), or a step whose `time` stamps differ from its frames' distance on
+/// the frame clock by more than a frame period.
+fn refuse_foreign_tracks(
+    source: &std::path::Path,
+    tracks: &[scanloc::types::Track],
+    geometry: &scanloc::track::diffusion::ScanGeometry,
+) -> anyhow::Result<()> {
+    let reach = FIELD_REACH_SIGMAS * geometry.sigma_xy_um / geometry.pixel_size_um;
+    let period = geometry.frame_period_s();
+    for track in tracks {
+        for point in &track.points {
+            for (name, value, size, flag) in [
+                ("x", point.x, geometry.width, "--width"),
+                ("y", point.y, geometry.height, "--height"),
+            ] {
+                let (low, high) = (-0.5 - reach, size as f64 - 0.5 + reach);
+                if !(low..=high).contains(&value) {
+                    return Err(input_error(format!(
+                        "{}: particle {}: frame {}: column {name}: {} px is outside the {} × {} px field \
+                         (by more than the PSF's reach, {} px); give the recording's {flag}",
+                        source.display(),
+                        track.particle,
+                        point.frame,
+                        readable(value),
+                        geometry.height,
+                        geometry.width,
+                        readable(reach),
+                    )));
+                }
+            }
+        }
+        for pair in track.points.windows(2) {
+            let (Some(t0), Some(t1)) = (pair[0].time_s, pair[1].time_s) else {
+                continue;
+            };
+            let frames = pair[1].frame as f64 - pair[0].frame as f64;
+            if ((t1 - t0) - frames * period).abs() > period {
+                return Err(input_error(format!(
+                    "{}: particle {}: column time: the step from frame {} to frame {} lasts {} s, \
+                     where the frame clock gives {} s ± one frame period ({} s)",
+                    source.display(),
+                    track.particle,
+                    pair[0].frame,
+                    pair[1].frame,
+                    readable(t1 - t0),
+                    readable(frames * period),
+                    readable(period),
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Refuses results that are not finite numbers (the upper end of an
+/// interval, and so its standard error, excepted, which may be infinite):
+/// never a row of NaN, or an infinite D, with exit code 0.
+fn refuse_non_finite(
+    source: &std::path::Path,
+    tracks: &[scanloc::types::Track],
+    estimates: &[(Method, RecordingEstimates)],
+) -> anyhow::Result<()> {
+    // An interval open above (high = +∞, and so its standard error) is
+    // documented; anything else must be a finite number.
+    let finite = |e: &Estimate| {
+        [e.d, e.low, e.localisation_variance]
+            .iter()
+            .all(|v| v.is_finite())
+            && !(e.high.is_nan() || e.standard_error.is_nan())
+    };
+    for (method, e) in estimates {
+        let per_track = tracks
+            .iter()
+            .zip(&e.per_track)
+            .filter_map(|(track, estimate)| Some((track.particle.to_string(), estimate.as_ref()?)));
+        let ensemble = e
+            .ensemble
+            .as_ref()
+            .map(|estimate| ("ensemble".to_string(), estimate));
+        if let Some((label, _)) = per_track.chain(ensemble).find(|(_, e)| !finite(e)) {
+            return Err(input_error(format!(
+                "{}: particle {label}: the {} estimate is not a finite number: the tracks do not \
+                 fit the stated scan (--height, --width, --pixel-size-um, timing)",
+                source.display(),
+                method.name()
+            )));
+        }
+    }
+    Ok(())
 }

@@ -28,6 +28,7 @@ use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
 /// uncertainty and the expected step: better where particles blink and
 /// crowd, at the price of a diffusion model to state.
 #[derive(Debug, Args)]
+#[command(allow_negative_numbers = true)]
 pub struct LinkArgs {
     /// Localisation table (CSV with frame, x, y; optionally sigma_x, sigma_y).
     #[arg(long)]
@@ -42,37 +43,37 @@ pub struct LinkArgs {
     /// Largest displacement between consecutive frames, px (TrackPy's
     /// search_range). For lap: taken as 3 standard deviations of a frame's
     /// step, unless --diffusion gives the step.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     search_range: Option<f64>,
     /// trackpy: frames a particle may vanish for and still be linked
     /// (TrackPy's memory) [default: 0].
-    #[arg(long)]
+    #[arg(long, value_parser = super::whole_number::<usize>)]
     memory: Option<usize>,
     /// lap: the longest gap closed, in frames without the particle (0: none)
     /// [default: 2].
-    #[arg(long)]
+    #[arg(long, value_parser = super::whole_number::<usize>)]
     max_gap: Option<usize>,
     /// lap: diffusion coefficient D in µm²/s giving the expected step
     /// (2 D Δt per axis); needs --frame-time-ms and --pixel-size-um.
     #[arg(long, requires_all = ["frame_time_ms", "pixel_size_um"])]
     diffusion: Option<f64>,
     /// lap: time between frames, ms (e.g. 27.6 for the paper's 24 × 25 frames).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     frame_time_ms: Option<f64>,
     /// lap: pixel size, µm.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pixel_size_um: Option<f64>,
     /// Link only the rows whose `score` column (as `scanloc locate` writes
     /// it) is at least this; the others are left out of the output. A
     /// detector's candidates below its best-F1 threshold are mostly noise
     /// that would start false links (the recordings' CNN: 0.3,
     /// docs/tracking.md, "From a recording to D").
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     min_score: Option<f64>,
     /// lap: the gate, the largest Mahalanobis distance of a link's
     /// displacement [default: 3]. Each link's gate is written as its extent
     /// along x and y (gate_x, gate_y, px), which `scanloc diffusion` uses.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     gate: Option<f64>,
 }
 
@@ -93,9 +94,11 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let linker = Configured::from_args(&args)?;
     if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
         return Err(input_error(format!(
-            "--min-score: must be a finite number, got {least}"
+            "--min-score: must be a finite number, got {}",
+            scanloc::error::readable(least)
         )));
     }
+    scanloc::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
     let mut pending = PendingFile::create(&args.out)?;
     let mut table = localisation_table::read_localisation_table(&args.locs)?;
     let left_out = match args.min_score {
@@ -229,16 +232,16 @@ pub struct LinkBench {
     #[arg(long, default_value_t = 200)]
     frames: usize,
     /// Particles per px² of the field.
-    #[arg(long, default_value_t = 0.004)]
+    #[arg(long, default_value_t = 0.004, allow_hyphen_values = true)]
     density: f64,
     /// Standard deviation of a frame's step per axis, px.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
     step: f64,
     /// Probability that a detection is missing (a blink).
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
     blink: f64,
     /// Search range, px.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 4.0, allow_hyphen_values = true)]
     search_range: f64,
     /// Memory, frames.
     #[arg(long, default_value_t = 2)]

@@ -204,7 +204,7 @@ impl MicroscopeFlags {
     }
 }
 
-fn parse_detector_noise(text: &str) -> Result<DetectorNoise, String> {
+pub(super) fn parse_detector_noise(text: &str) -> Result<DetectorNoise, String> {
     match text.trim() {
         "poisson" => Ok(DetectorNoise::Poisson),
         other => match other.strip_prefix("pmt:") {

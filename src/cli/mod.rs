@@ -132,6 +132,9 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
     if let Some(value) = std::env::var_os(threads) {
         scanloc::limits::check_thread_count(threads, &value)?;
     }
+    for name in scanloc::env_vars::BOOLEAN_FLAGS {
+        scanloc::env_vars::flag(name).map_err(scanloc::error::input_error)?;
+    }
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Bench(args) => bench::run(args, stdout),
@@ -189,6 +192,29 @@ pub struct JsonFlag {
     /// Print JSON on stdout instead of text.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Parses a whole-number flag (frames, counts, seeds): a negative or
+/// fractional value is answered as out of range, not as clap's "unexpected
+/// argument" or a parse error of the digits.
+pub fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
+    text.trim()
+        .parse::<T>()
+        .map_err(|_| match text.trim().parse::<f64>() {
+            Ok(value) if value < 0.0 => format!(
+                "out of range: must be a whole number ≥ 0, got {}",
+                scanloc::error::readable(value)
+            ),
+            Ok(value) if value.fract() != 0.0 => format!(
+                "must be a whole number ≥ 0, got {}",
+                scanloc::error::readable(value)
+            ),
+            Ok(value) => format!(
+                "out of range: too large, got {}",
+                scanloc::error::readable(value)
+            ),
+            Err(_) => format!("must be a whole number ≥ 0, got {text:?}"),
+        })
 }
 
 /// The diffusion coefficients of the test sets a command simulates

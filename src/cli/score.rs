@@ -102,10 +102,13 @@ pub struct ScoreArgs {
 
 pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(curve) = &args.curve {
-        io::refuse_shared_paths(
-            &[("--truth", &args.truth), ("--locs", &args.locs)],
-            &[("--curve", curve)],
-        )?;
+        let mut inputs = vec![("--truth", args.truth.as_path()), ("--locs", &args.locs)];
+        inputs.extend(
+            args.compare
+                .as_deref()
+                .map(|compare| ("--compare", compare)),
+        );
+        io::refuse_shared_paths(&inputs, &[("--curve", curve)])?;
     }
     let resamples = paired::check_resamples("--resamples", args.resamples)?;
     metrics::check_radii("--eps", &args.eps)?;

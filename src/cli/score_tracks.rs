@@ -31,6 +31,7 @@ enum TruthPositionArg {
 /// tracks, and link precision and recall, with their counts; --json prints
 /// them as one JSON object instead.
 #[derive(Debug, Args)]
+#[command(allow_negative_numbers = true)]
 pub struct ScoreTracksArgs {
     /// Tracks CSV (frame,x,y,particle in px; other columns ignored), as
     /// `scanloc link` writes it.
@@ -41,24 +42,24 @@ pub struct ScoreTracksArgs {
     truth: PathBuf,
     /// The gate ε, px: points of one frame closer than this match, and a
     /// distance counts at most this much.
-    #[arg(long, default_value_t = tracking::DEFAULT_GATE_PX)]
+    #[arg(long, default_value_t = tracking::DEFAULT_GATE_PX, allow_hyphen_values = true)]
     gate_px: f64,
     /// Which truth position the tracks should follow.
     #[arg(long, value_enum, default_value_t = TruthPositionArg::Centroid)]
     truth_position: TruthPositionArg,
     /// Only truth rows with a mean depth |z_mean| at most this, µm (QDs far
     /// out of focus that no detector can see are left out).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     max_depth_um: Option<f64>,
     /// Only truth rows of QDs on for at least this share of the frame
     /// (with blinking).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     min_on_fraction: Option<f64>,
     /// Split a QD's truth track where it is missing (out of the field, or
     /// left out by --max-depth-um or --min-on-fraction) for more than this
     /// many frames: a linker cannot be asked to bridge a QD's absence of
     /// any length [default: no split].
-    #[arg(long)]
+    #[arg(long, value_parser = super::whole_number::<usize>)]
     split_gaps_over: Option<usize>,
     #[command(flatten)]
     format: super::JsonFlag,
@@ -74,14 +75,16 @@ pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<Exit
         && !(depth.is_finite() && depth >= 0.0)
     {
         return Err(input_error(format!(
-            "--max-depth-um: must be a finite number ≥ 0, got {depth}"
+            "--max-depth-um: must be a finite number ≥ 0, got {}",
+            scanloc::error::readable(depth)
         )));
     }
     if let Some(share) = args.min_on_fraction
         && !(0.0..=1.0).contains(&share)
     {
         return Err(input_error(format!(
-            "--min-on-fraction: must be a number from 0 to 1, got {share}"
+            "--min-on-fraction: must be a number from 0 to 1, got {}",
+            scanloc::error::readable(share)
         )));
     }
     let selection = TruthSelection {

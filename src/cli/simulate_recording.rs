@@ -21,50 +21,54 @@ use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording_with
 #[command(allow_negative_numbers = true)]
 pub struct SimulateRecordingArgs {
     /// Number of frames.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 200, value_parser = super::whole_number::<usize>)]
     frames: usize,
     /// Seed of the recording.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_parser = super::whole_number::<u64>)]
     seed: u64,
     /// Diffusion coefficient D in µm²/s.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
     diffusion: f64,
     /// N_qd, photons of an in-focus QD (PSF normalisation).
-    #[arg(long, default_value_t = 7.0)]
+    #[arg(long, default_value_t = 7.0, allow_hyphen_values = true)]
     brightness: f64,
     /// N_bkg, expected background photons per pixel.
-    #[arg(long, default_value_t = 8.4)]
+    #[arg(long, default_value_t = 8.4, allow_hyphen_values = true)]
     background: f64,
     /// The scan: frame size, pixel size, timing and lateral PSF.
     #[command(flatten)]
     scan: super::ScanGeometryArgs,
     /// Axial PSF standard deviation in µm.
-    #[arg(long, default_value_t = 1.36)]
+    #[arg(long, default_value_t = 1.36, allow_hyphen_values = true)]
     sigma_z_um: f64,
     /// PSF samples per pixel dwell (1 = the paper).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::whole_number::<u32>)]
     substeps: u32,
     /// QDs per µm³ of the simulated volume (their number is a Poisson draw
     /// of density × volume).
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
     qd_density: f64,
     /// Exactly this many QDs in the volume, instead of the Poisson draw of
     /// --qd-density (e.g. a recording with as many QDs as another).
-    #[arg(long, conflicts_with = "qd_density")]
+    #[arg(long, conflicts_with = "qd_density", value_parser = super::whole_number::<u64>)]
     qd_count: Option<u64>,
     /// How far the volume reaches beyond the field on every side, µm (the
     /// default is beyond the PSF cut-off, so QDs wrap around unseen).
-    #[arg(long, default_value_t = 1.5)]
+    #[arg(long, default_value_t = 1.5, allow_hyphen_values = true)]
     margin_um: f64,
     /// The volume spans depths ±this around the focal plane, µm.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 4.0, allow_hyphen_values = true)]
     half_depth_um: f64,
     /// Mean on time of blinking QDs, ms (with --blink-off-ms).
-    #[arg(long, requires = "blink_off_ms")]
+    #[arg(long, requires = "blink_off_ms", allow_hyphen_values = true)]
     blink_on_ms: Option<f64>,
     /// Mean off time of blinking QDs, ms (with --blink-on-ms).
-    #[arg(long, requires = "blink_on_ms")]
+    #[arg(long, requires = "blink_on_ms", allow_hyphen_values = true)]
     blink_off_ms: Option<f64>,
+    /// Detector noise: `poisson`, or `pmt:F2` for a PMT with excess-noise
+    /// factor F² > 1 (as `scanloc simulate`'s).
+    #[arg(long, default_value = "poisson", value_parser = super::microscope::parse_detector_noise)]
+    detector_noise: scanloc::sim::DetectorNoise,
     /// Output frames: FILE.npy or FILE.tif.
     #[arg(long)]
     out: PathBuf,
@@ -87,6 +91,7 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
             brightness: args.brightness.into(),
             background: args.background.into(),
             diffusion_um2_s: args.diffusion.into(),
+            detector_noise: args.detector_noise,
             ..SimParams::default()
         },
         frames: args.frames,

@@ -122,8 +122,16 @@ fn parse_truth_row(
     };
     let frame =
         super::csv_tables::parse_frame_number(cell(0)).map_err(|e| format!("column frame: {e}"))?;
-    let qd = match cell(1).parse::<u64>() {
-        Ok(value) if value <= i64::MAX as u64 => value,
+    // A whole number written as a float (`3.0`) is read as `frame` is.
+    let whole = |text: &str| -> Option<u64> {
+        text.parse::<u64>().ok().or_else(|| {
+            let value = text.parse::<f64>().ok()?;
+            (value.is_finite() && value >= 0.0 && value.fract() == 0.0 && value < 9.2e18)
+                .then_some(value as u64)
+        })
+    };
+    let qd = match whole(cell(1)) {
+        Some(value) if value <= i64::MAX as u64 => value,
         _ => {
             return Err(format!(
                 "column qd: expected a whole number from 0 to 2^63 − 1, got {}",
@@ -131,13 +139,20 @@ fn parse_truth_row(
             ));
         }
     };
+    let on_fraction = number(5)?;
+    if !(0.0..=1.0).contains(&on_fraction) {
+        return Err(format!(
+            "column on_fraction: must be a share from 0 to 1, got {}",
+            crate::error::readable(on_fraction)
+        ));
+    }
     Ok(RecordingTruthRow {
         frame,
         qd,
         x: number(2)?,
         y: number(3)?,
         z_mean: number(4)?,
-        on_fraction: number(5)?,
+        on_fraction,
         x_seen: number(6)?,
         y_seen: number(7)?,
         t_mid: number(8)?,

@@ -531,11 +531,32 @@ impl Manifest {
     }
 }
 
+/// The text of the manifest at `path`, at most
+/// [`MAX_MANIFEST_BYTES`](crate::limits::MAX_MANIFEST_BYTES) of it (a
+/// larger file, or an endless device, is refused).
+fn read_manifest_text(path: &Path) -> anyhow::Result<String> {
+    use std::io::Read;
+    let source = path.display();
+    let limit = crate::limits::MAX_MANIFEST_BYTES;
+    let file = std::fs::File::open(path)
+        .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
+    let mut bytes = Vec::new();
+    file.take(limit + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
+    if bytes.len() as u64 > limit {
+        return Err(input_error(format!(
+            "{source}: larger than {} MiB; not a manifest",
+            limit >> 20
+        )));
+    }
+    String::from_utf8(bytes).map_err(|e| input_error(format!("{source}: not UTF-8 text: {e}")))
+}
+
 /// Reads and resolves the manifest at `path`.
 pub fn load(path: &Path) -> anyhow::Result<Manifest> {
     let source = path.display().to_string();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
+    let text = read_manifest_text(path)?;
     parse(&text, &source)
 }
 
@@ -565,8 +586,7 @@ pub fn parse(text: &str, source: &str) -> anyhow::Result<Manifest> {
 /// manifest's do.
 pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimParams, Vec<String>)> {
     let source = path.display().to_string();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
+    let text = read_manifest_text(path)?;
     let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let document: serde_yaml::Value =
         serde_yaml::from_str(text).map_err(|e| errors::located_yaml_error(&source, e))?;

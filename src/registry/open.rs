@@ -204,9 +204,10 @@ fn create_database_file(path: &Path) -> anyhow::Result<()> {
 
 /// Whether every registry is to be opened read-only
 /// ([`SCANLOC_REGISTRY_READ_ONLY`](crate::env_vars::SCANLOC_REGISTRY_READ_ONLY)
-/// is `1`).
+/// is true; a value that is not a boolean, which the CLI refuses, counts as
+/// true).
 fn read_only_forced() -> bool {
-    std::env::var_os(crate::env_vars::SCANLOC_REGISTRY_READ_ONLY).is_some_and(|v| v == "1")
+    crate::env_vars::flag(crate::env_vars::SCANLOC_REGISTRY_READ_ONLY).unwrap_or(true)
 }
 
 /// Whether this process can create files in `dir` and write its database

@@ -15,9 +15,13 @@
 //! [−depth, depth]` µm (`m` the lateral margin) wraps around, so the QDs
 //! stay uniformly spread at the set density for ever (the uniform density
 //! is the stationary state of Brownian motion on a torus) and their number
-//! is constant. A QD that wraps is a new QD entering where the old one
-//! left: it gets a new id, and with the default margin (beyond the PSF's
-//! cut-off) it wraps where no beam can see it.
+//! is constant. A QD that wraps around laterally is a new QD entering
+//! where the old one left: it gets a new id from the next frame on (with the
+//! default margin, beyond the PSF's cut-off, it wraps where no beam can see
+//! it). In the frame in which it wraps, its truth row follows its path
+//! continuously (positions unwrapped), so every QD in the field has a row in
+//! every frame. Wrapping in depth keeps the id: the QD stays where it was in
+//! the field.
 //!
 //! Blinking is a two-state Markov process (continuous-time telegraph
 //! process) per QD: on and off periods are independent exponentials with
@@ -43,13 +47,18 @@ use crate::types::{FrameStack, RecordingTruthRow};
 
 /// Version of the recording simulator (its walk, truth and frames); part
 /// of every recording's content key.
-pub const RECORDING_VERSION: &str = "scanloc-recording/1";
+pub const RECORDING_VERSION: &str = "scanloc-recording/2";
 
 /// Most QDs a recording's volume may hold (the per-frame simulator's limit).
 pub const MAX_RECORDING_QDS: u64 = super::params::MAX_EMITTERS as u64;
 
 /// The longest dead time between frames, ms.
 pub const MAX_DEAD_TIME_MS: f64 = 60_000.0;
+
+/// What a recording's simulation holds beyond its data: the threads'
+/// stacks, the allocator's arenas and the writers' buffers (measured at
+/// about 3 MB on a 98 MB recording, `tests/it/tracking_defects.rs`).
+const WORKING_BYTES: u64 = 16 << 20;
 
 /// Two-state on/off blinking with exponential dwell times.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -105,17 +114,25 @@ impl RecordingParams {
             if value.is_finite() && value > 0.0 {
                 Ok(())
             } else {
-                Err(FieldError::new(name, format!("must be > 0, got {value}")))
+                Err(FieldError::new(
+                    name,
+                    format!("must be > 0, got {}", crate::error::readable(value)),
+                ))
             }
         };
         let non_negative = |name: &str, value: f64| {
             if value.is_finite() && value >= 0.0 {
                 Ok(())
             } else {
-                Err(FieldError::new(name, format!("must be ≥ 0, got {value}")))
+                Err(FieldError::new(
+                    name,
+                    format!("must be ≥ 0, got {}", crate::error::readable(value)),
+                ))
             }
         };
-        non_negative("qd_density", self.density_per_um3)?;
+        if self.qd_count.is_none() {
+            non_negative("qd_density", self.density_per_um3)?;
+        }
         non_negative("lateral_margin_um", self.lateral_margin_um)?;
         positive("half_depth_um", self.half_depth_um)?;
         non_negative("dead_time_ms", self.dead_time_ms)?;
@@ -149,7 +166,19 @@ impl RecordingParams {
             ));
         }
         let expected = self.density_per_um3 * self.volume_um3();
-        if expected.is_nan() || expected > MAX_RECORDING_QDS as f64 / 2.0 {
+        if !self.volume_um3().is_finite() {
+            return Err(FieldError::new(
+                "lateral_margin_um",
+                format!(
+                    "the volume ({} µm³) must be finite",
+                    crate::error::readable(self.volume_um3())
+                ),
+            ));
+        }
+        // A set count does not use the density.
+        if self.qd_count.is_none()
+            && (expected.is_nan() || expected > MAX_RECORDING_QDS as f64 / 2.0)
+        {
             return Err(FieldError::new(
                 "qd_density",
                 format!(
@@ -174,9 +203,12 @@ impl RecordingParams {
     }
 
     /// The bytes [`simulate_recording`] holds at its peak (saturating):
-    /// the counts (4 bytes a pixel) and the ground truth, counted as if
-    /// every QD of the volume were in the field in every frame (an upper
-    /// estimate: only those in the field get a row). A command checks it
+    /// the counts (4 bytes a pixel, allocated once at their final size) and
+    /// the ground truth, counted as if every QD of the volume were in the
+    /// field in every frame (an upper estimate: only those in the field get
+    /// a row), twice over for the slack of its growing vector; plus one
+    /// frame's working buffers and the process's working memory. `tests/it/tracking_defects.rs` compares it
+    /// with the peak measured on a mid-sized recording. A command checks it
     /// with [`check_memory`](crate::limits::check_memory) before simulating,
     /// as `simulate` does with [`dataset_bytes`](super::dataset_bytes).
     pub fn dataset_bytes(&self) -> u64 {
@@ -190,8 +222,15 @@ impl RecordingParams {
             .unwrap_or((self.density_per_um3 * self.volume_um3()).ceil().max(0.0) as u64);
         let truth_bytes = frames
             .saturating_mul(qds.min(MAX_RECORDING_QDS))
-            .saturating_mul(std::mem::size_of::<RecordingTruthRow>() as u64);
-        pixel_bytes.saturating_add(truth_bytes)
+            .saturating_mul(2 * std::mem::size_of::<RecordingTruthRow>() as u64);
+        // The expected image (f64) and the noise's two words per pixel.
+        let frame_bytes = (self.microscope.height as u64)
+            .saturating_mul(self.microscope.width as u64)
+            .saturating_mul(3 * 8);
+        pixel_bytes
+            .saturating_add(truth_bytes)
+            .saturating_add(frame_bytes)
+            .saturating_add(WORKING_BYTES)
     }
 
     /// The volume of the box, µm³.
@@ -230,8 +269,12 @@ struct Qd {
     on: bool,
     /// Time left in the current blinking state, s.
     state_left_s: f64,
-    /// Whether the QD wrapped around the volume during the current frame.
+    /// Whether the QD wrapped around the volume laterally during the
+    /// current frame (it takes a new id at the next frame's start).
     wrapped: bool,
+    /// What its wraps during the current frame took off its x and y, µm:
+    /// `at + shift` is its path unwrapped.
+    shift: [f64; 2],
     sums: FrameSums,
 }
 
@@ -355,6 +398,7 @@ impl<'a> Walk<'a> {
                 on,
                 state_left_s,
                 wrapped: false,
+                shift: [0.0; 2],
                 sums: FrameSums::default(),
             });
         }
@@ -377,20 +421,18 @@ impl<'a> Walk<'a> {
         let blinking = self.params.blinking;
         for qd in &mut self.qds {
             if sd > 0.0 {
-                let mut wrapped = false;
-                for (value, (low, high)) in qd.at.iter_mut().zip(self.bounds) {
+                for (axis, (value, (low, high))) in qd.at.iter_mut().zip(self.bounds).enumerate() {
                     let bits = self.rng.next_u32();
                     *value += sd * standard_normal_from_bits(bits, &mut self.rng);
                     let span = high - low;
                     if *value < low || *value >= high {
-                        *value = low + (*value - low).rem_euclid(span);
-                        wrapped = true;
+                        let wrapped = low + (*value - low).rem_euclid(span);
+                        if axis < 2 {
+                            qd.shift[axis] += *value - wrapped;
+                            qd.wrapped = true;
+                        }
+                        *value = wrapped;
                     }
-                }
-                if wrapped {
-                    qd.id = self.next_id;
-                    self.next_id += 1;
-                    qd.wrapped = true;
                 }
             }
             if let Some(b) = blinking {
@@ -405,9 +447,10 @@ impl<'a> Walk<'a> {
         let mut photons = 0.0;
         for qd in &mut self.qds {
             let [x, y, z] = qd.at;
+            let (path_x, path_y) = (x + qd.shift[0], y + qd.shift[1]);
             let sums = &mut qd.sums;
-            sums.x += x;
-            sums.y += y;
+            sums.x += path_x;
+            sums.y += path_y;
             sums.z += z;
             if qd.on {
                 sums.on_samples += 1.0;
@@ -419,8 +462,8 @@ impl<'a> Walk<'a> {
             }
             let weight = (-r2 * self.pre.inv_two_sigma_xy2).exp();
             sums.weight += weight;
-            sums.weighted_x += weight * x;
-            sums.weighted_y += weight * y;
+            sums.weighted_x += weight * path_x;
+            sums.weighted_y += weight * path_y;
             sums.weighted_t += weight * t_s;
             if qd.on {
                 photons += self.pre.sample_photons(self.amplitude, dx, dy, z);
@@ -452,7 +495,12 @@ impl<'a> Walk<'a> {
         let start_s = frame as f64 * self.params.frame_period_s();
         for qd in &mut self.qds {
             qd.sums = FrameSums::default();
+            if qd.wrapped {
+                qd.id = self.next_id;
+                self.next_id += 1;
+            }
             qd.wrapped = false;
+            qd.shift = [0.0; 2];
         }
         for row in 0..micro.height {
             let beam_y = (row as f64 + 0.5) * micro.pixel_size_um;
@@ -475,7 +523,7 @@ impl<'a> Walk<'a> {
     }
 
     /// Appends the truth rows of frame `frame` (started at `start_s`) for
-    /// the QDs whose centroid is in the field and that did not wrap.
+    /// the QDs whose centroid (of their unwrapped path) is in the field.
     fn emit_truth(&self, frame: usize, start_s: f64, truth: &mut Vec<RecordingTruthRow>) {
         let micro = &self.params.microscope;
         let a = micro.pixel_size_um;
@@ -500,7 +548,7 @@ impl<'a> Walk<'a> {
             );
             let inside =
                 |x: f64, y: f64| (-0.5..w - 0.5).contains(&x) && (-0.5..h - 0.5).contains(&y);
-            if qd.wrapped || !(inside(x, y) || inside(x_seen, y_seen)) {
+            if !(inside(x, y) || inside(x_seen, y_seen)) {
                 continue;
             }
             truth.push(RecordingTruthRow {
@@ -554,7 +602,9 @@ pub fn simulate_recording_with_progress(
     let mut walk = Walk::new(params, seed);
     let qds = walk.qds.len();
     let mut truth = Vec::new();
-    let mut data = Vec::new();
+    // At its final size from the start: a growing vector would hold up to
+    // twice the counts while it moves them.
+    let mut data = Vec::with_capacity(if render { params.frames * frame_len } else { 0 });
     let mut expected = vec![0.0; if render { frame_len } else { 0 }];
     let mut noise_words = Vec::new();
     let detector = Detector::new(

@@ -55,6 +55,11 @@ pub const ALTERNATIVE_COST_FACTOR: f64 = 1.05;
 /// of docs/tracking.md has about three per localisation.
 pub const MAX_CANDIDATE_LINKS: usize = 50_000_000;
 
+/// The smallest step variance q, px²: with it, and localisation σ at most
+/// [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE), every cost and
+/// gate extent is a finite number (q² and `v_x v_y` stay within `f64`).
+pub const MIN_STEP_VARIANCE: f64 = 1e-100;
+
 /// The LAP linker's parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LapParams {
@@ -95,8 +100,9 @@ impl LapParams {
         }
     }
 
-    /// Refuses a step variance that is not a finite number > 0 or exceeds
-    /// the square of [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE),
+    /// Refuses a step variance that is not a finite number > 0, is below
+    /// [`MIN_STEP_VARIANCE`] or exceeds the square of
+    /// [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE),
     /// a gate beyond [`MAX_GATE_SIGMAS`](crate::limits::MAX_GATE_SIGMAS)
     /// and gaps of more than [`MAX_FRAMES`](crate::limits::MAX_FRAMES).
     pub fn validate(&self) -> anyhow::Result<()> {
@@ -107,6 +113,15 @@ impl LapParams {
             self.step_variance,
             MAX_SEARCH_RANGE * MAX_SEARCH_RANGE,
         )?;
+        if self.step_variance < MIN_STEP_VARIANCE {
+            return Err(input_error(format!(
+                "step variance (px²; from the search range, or the diffusion, frame time and \
+                 pixel size): must be at least {MIN_STEP_VARIANCE:e} (a search range of \
+                 {:e} px), got {}",
+                3.0 * MIN_STEP_VARIANCE.sqrt(),
+                crate::error::readable(self.step_variance)
+            )));
+        }
         check_positive_at_most("gate", self.gate_sigmas, MAX_GATE_SIGMAS)?;
         if self.max_gap > crate::limits::MAX_FRAMES {
             return Err(input_error(format!(
@@ -123,6 +138,18 @@ impl LapParams {
 /// gap-closing LAP.
 pub fn link(detections: &[Detection], params: &LapParams) -> anyhow::Result<Linking> {
     params.validate()?;
+    let most = crate::limits::MAX_SEARCH_RANGE;
+    if let Some(sigma) = detections
+        .iter()
+        .filter_map(|d| d.sigma)
+        .find(|s| !(s.x <= most && s.y <= most))
+    {
+        return Err(input_error(format!(
+            "sigma_x, sigma_y: must be at most {most:e} px for the LAP's costs, got {}, {}",
+            crate::error::readable(sigma.x),
+            crate::error::readable(sigma.y)
+        )));
+    }
     let linker = Lap::new(detections, params);
     let order = frame_order(detections);
     let mut next: Vec<Option<usize>> = vec![None; detections.len()];

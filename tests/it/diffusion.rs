@@ -744,14 +744,16 @@ fn the_diffusion_command_prints_tracks_and_the_ensemble_and_refuses_bad_tables()
     let mut text = String::from("frame,x,y,particle\n");
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     for particle in 0..3 {
-        let (mut x, mut y) = (10.0, 10.0);
+        // Steps that keep the walks within the PSF's reach of the field
+        // (further out, the command refuses the table).
+        let (mut x, mut y) = (12.0, 12.0);
         // Written in reverse frame order: the command sorts.
         let mut rows = Vec::new();
         for frame in 0..30 {
             let nx: f64 = StandardNormal.sample(&mut rng);
             let ny: f64 = StandardNormal.sample(&mut rng);
-            x += 3.0 * nx;
-            y += 3.0 * ny;
+            x += 1.5 * nx;
+            y += 1.5 * ny;
             rows.push(format!("{frame},{x},{y},{particle}\n"));
         }
         rows.reverse();

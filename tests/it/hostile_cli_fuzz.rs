@@ -1,6 +1,8 @@
 //! Fuzzing the command line: random argument values for `simulate`,
-//! `locate` and `score`, and random or damaged CSV, TIFF and .npy bytes
-//! given to them. Whatever comes in, the command exits 0, 1 or 2, never
+//! `locate`, `score`, and the tracking commands `simulate-recording`,
+//! `link`, `diffusion` and `score-tracks`, and random or damaged CSV, TIFF
+//! and .npy bytes given to them. The tracking commands' cases also check
+//! that an input is never modified and that a refusal writes nothing. Whatever comes in, the command exits 0, 1 or 2, never
 //! panics, and a refusal is one `error:` line.
 //!
 //! The properties call the CLI in-process (`cli::main_with`, the function
@@ -38,6 +40,8 @@ const TIME_LIMIT: Duration = Duration::from_secs(10);
 struct Ended {
     code: Option<i32>,
     stderr: String,
+    /// What the command printed (empty from a subprocess).
+    stdout: String,
     timed_out: bool,
     /// The panic's message, when the in-process call panicked.
     panic: Option<String>,
@@ -91,13 +95,16 @@ fn run_limited(dir: &Path, args: &[String]) -> Ended {
     Ended {
         code: status.code(),
         stderr: reader.join().unwrap_or_default(),
+        stdout: String::new(),
         timed_out,
         panic: None,
     }
 }
 
 /// The flags whose values are paths.
-const PATH_FLAGS: &[&str] = &["--out", "--truth", "--input", "--locs", "--curve"];
+const PATH_FLAGS: &[&str] = &[
+    "--out", "--truth", "--input", "--locs", "--curve", "--tracks",
+];
 
 /// `args` with every path made absolute inside `dir`: the in-process
 /// command shares the test binary's working directory. Values starting
@@ -164,16 +171,19 @@ fn run_in_process(dir: &Path, args: &[String]) -> Ended {
         cli::main_with(argv, &mut stdout, &mut stderr, false)
     }));
     let stderr = String::from_utf8_lossy(&stderr).into_owned();
+    let stdout = String::from_utf8_lossy(&stdout).into_owned();
     match outcome {
         Ok(code) => Ended {
             code: exit_number(code),
             stderr,
+            stdout,
             timed_out: false,
             panic: None,
         },
         Err(payload) => Ended {
             code: None,
             stderr,
+            stdout,
             timed_out: false,
             panic: Some(
                 payload
@@ -223,6 +233,10 @@ struct Inputs {
     tif: Vec<u8>,
     truth: Vec<u8>,
     locs: Vec<u8>,
+    /// A recording's truth (`simulate-recording --truth`), and the same
+    /// positions as a tracks table (particle = QD).
+    recording_truth: Vec<u8>,
+    tracks: Vec<u8>,
 }
 
 fn inputs() -> &'static Inputs {
@@ -259,8 +273,30 @@ fn inputs() -> &'static Inputs {
             "--minmass",
             "0",
         ]);
+        run(&[
+            "simulate-recording",
+            "--frames",
+            "12",
+            "--qd-density",
+            "0.3",
+            "--seed",
+            "5",
+            "--out",
+            "r.npy",
+            "--truth",
+            "rtruth.csv",
+        ]);
         let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+        let recording_truth = read("rtruth.csv");
+        let mut tracks = String::from("frame,x,y,particle\n");
+        for row in
+            scanloc::io::tracks::read_recording_truth(&dir.path().join("rtruth.csv")).unwrap()
+        {
+            tracks.push_str(&format!("{},{},{},{}\n", row.frame, row.x, row.y, row.qd));
+        }
         Inputs {
+            recording_truth,
+            tracks: tracks.into_bytes(),
             npy: read("s.npy"),
             tif: read("s.tif"),
             truth: read("truth.csv"),
@@ -727,6 +763,246 @@ fn score_case(
     check_contract(&args, &ended)
 }
 
+fn simulate_recording_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        ("--frames", number(small_int(1..5))),
+        ("--seed", number(any::<u64>().prop_map(|v| v.to_string()))),
+        ("--diffusion", number(small_real(0.0..3.0))),
+        ("--brightness", number(small_real(0.0..50.0))),
+        ("--background", number(small_real(0.0..20.0))),
+        ("--height", number(small_int(1..33))),
+        ("--width", number(small_int(1..33))),
+        ("--pixel-size-um", number(small_real(0.01..1.0))),
+        ("--dwell-us", number(small_real(0.1..10.0))),
+        ("--retrace-ms", number(small_real(0.0..5.0))),
+        ("--dead-time-ms", number(small_real(0.0..5.0))),
+        ("--sigma-xy-um", number(small_real(0.05..1.0))),
+        ("--sigma-z-um", number(small_real(0.1..3.0))),
+        ("--substeps", number(small_int(1..4))),
+        ("--qd-density", number(small_real(0.0..0.3))),
+        ("--qd-count", number(small_int(0..6))),
+        ("--margin-um", number(small_real(0.0..3.0))),
+        ("--half-depth-um", number(small_real(0.01..5.0))),
+        ("--blink-on-ms", number(small_real(0.001..100.0))),
+        ("--blink-off-ms", number(small_real(0.001..100.0))),
+        (
+            "--detector-noise",
+            prop_oneof![
+                Just("poisson".to_string()),
+                number(small_real(1.01..3.0)).prop_map(|f| format!("pmt:{f}")),
+                Just("gaussian".to_string()),
+            ]
+            .boxed(),
+        ),
+        ("--truth", output_name(&["csv"])),
+    ])
+    .prop_flat_map(|args| {
+        output_name(&["npy", "tif", "tiff"]).prop_map(move |out| {
+            let mut all = vec!["simulate-recording".to_string(), "--out".to_string(), out];
+            all.extend(args.iter().cloned());
+            all
+        })
+    })
+    .boxed()
+}
+
+/// Whether `simulate-recording` arguments ask for more work than a cheap
+/// case (frames × pixels × substeps × QDs above 2²¹; the QDs of a density
+/// taken at its largest valid value over the volume); as
+/// [`legitimately_large`], legitimate, not hostile.
+fn recording_legitimately_large(args: &[String]) -> bool {
+    let value = |flag: &str, default: f64| -> Option<f64> {
+        match args.iter().position(|a| a == flag) {
+            Some(at) => args.get(at + 1)?.parse().ok(),
+            None => Some(default),
+        }
+    };
+    let (Some(frames), Some(height), Some(width), Some(substeps)) = (
+        value("--frames", 200.0),
+        value("--height", 24.0),
+        value("--width", 25.0),
+        value("--substeps", 1.0),
+    ) else {
+        return false;
+    };
+    let (Some(a), Some(margin), Some(depth), Some(density)) = (
+        value("--pixel-size-um", 0.07),
+        value("--margin-um", 1.5),
+        value("--half-depth-um", 4.0),
+        value("--qd-density", 0.05),
+    ) else {
+        return false;
+    };
+    let qds = match args.iter().position(|a| a == "--qd-count") {
+        Some(_) => value("--qd-count", 0.0).unwrap_or(0.0),
+        None => density * (width * a + 2.0 * margin) * (height * a + 2.0 * margin) * 2.0 * depth,
+    };
+    let work = frames * height * width * substeps * qds.max(1.0);
+    // Beyond the limits it must be refused at once: fuzzed.
+    let within = frames <= scanloc::limits::MAX_FRAMES as f64
+        && height <= scanloc::limits::MAX_FRAME_SIDE as f64
+        && width <= scanloc::limits::MAX_FRAME_SIDE as f64
+        && frames * height * width <= scanloc::limits::MAX_DATASET_PIXELS as f64
+        && substeps <= 1024.0
+        && qds <= scanloc::sim::recording::MAX_RECORDING_QDS as f64 / 2.0;
+    within && work.is_finite() && work > (1u64 << 21) as f64
+}
+
+fn link_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        (
+            "--linker",
+            prop::sample::select(vec!["trackpy", "lap"])
+                .prop_map(str::to_string)
+                .boxed(),
+        ),
+        ("--search-range", number(small_real(0.1..20.0))),
+        ("--memory", number(small_int(0..4))),
+        ("--max-gap", number(small_int(0..4))),
+        ("--diffusion", number(small_real(0.01..3.0))),
+        ("--frame-time-ms", number(small_real(1.0..50.0))),
+        ("--pixel-size-um", number(small_real(0.01..1.0))),
+        ("--min-score", number(small_real(0.0..1.0))),
+        ("--gate", number(small_real(0.5..6.0))),
+    ])
+    .prop_flat_map(|args| {
+        prop_oneof![4 => output_name(&["csv"]), 1 => Just("locs.csv".to_string())].prop_map(
+            move |out| {
+                let mut all = vec!["link".to_string(), "--out".to_string(), out];
+                all.extend(args.iter().cloned());
+                all
+            },
+        )
+    })
+    .boxed()
+}
+
+fn diffusion_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        ("--height", number(small_int(1..40))),
+        ("--width", number(small_int(1..40))),
+        ("--pixel-size-um", number(small_real(0.01..1.0))),
+        ("--dwell-us", number(small_real(0.1..10.0))),
+        ("--retrace-ms", number(small_real(0.0..5.0))),
+        ("--dead-time-ms", number(small_real(0.0..5.0))),
+        ("--sigma-xy-um", number(small_real(0.05..1.0))),
+        (
+            "--exposure",
+            prop::sample::select(vec![
+                "auto",
+                "whole-frame",
+                "rows",
+                "frame-index",
+                "uniform-frame",
+            ])
+            .prop_map(str::to_string)
+            .boxed(),
+        ),
+        ("--min-points", number(small_int(0..6))),
+        ("--ensemble-gate", number(small_real(0.1..0.707))),
+        ("--ensemble-margin-px", number(small_real(0.0..4.0))),
+    ])
+    .prop_flat_map(|args| {
+        (any::<bool>(), any::<bool>()).prop_map(move |(given, no_profile)| {
+            let mut all = vec![
+                "diffusion".to_string(),
+                "--tracks".to_string(),
+                "tracks.csv".into(),
+            ];
+            all.extend(args.iter().cloned());
+            if given {
+                all.push("--given-sigma".into());
+            }
+            if no_profile {
+                all.push("--no-detection-profile".into());
+            }
+            all
+        })
+    })
+    .boxed()
+}
+
+fn score_tracks_args() -> BoxedStrategy<Vec<String>> {
+    flags(vec![
+        ("--gate-px", number(small_real(0.1..5.0))),
+        (
+            "--truth-position",
+            prop::sample::select(vec!["centroid", "seen"])
+                .prop_map(str::to_string)
+                .boxed(),
+        ),
+        ("--max-depth-um", number(small_real(0.0..3.0))),
+        ("--min-on-fraction", number(small_real(0.0..1.0))),
+        ("--split-gaps-over", number(small_int(0..5))),
+    ])
+    .prop_flat_map(|args| {
+        any::<bool>().prop_map(move |json| {
+            let mut all: Vec<String> = [
+                "score-tracks",
+                "--tracks",
+                "tracks.csv",
+                "--truth",
+                "truth.csv",
+            ]
+            .iter()
+            .map(|a| a.to_string())
+            .collect();
+            all.extend(args.iter().cloned());
+            if json {
+                all.push("--json".into());
+            }
+            all
+        })
+    })
+    .boxed()
+}
+
+/// Every file in `dir` with its bytes.
+fn snapshot(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|entry| {
+            let entry = entry.unwrap();
+            let name = entry.file_name().to_string_lossy().into_owned();
+            (name, std::fs::read(entry.path()).unwrap_or_default())
+        })
+        .collect()
+}
+
+/// The tracking commands' contract beyond [`check_contract`]: the inputs
+/// (`inputs`, names in `dir`) are never modified, and a refusal writes
+/// nothing (no file, nothing on stdout).
+fn tracking_case(
+    dir: &Path,
+    args: &[String],
+    inputs: &[(&str, &[u8])],
+    run: fn(&Path, &[String]) -> Ended,
+) -> Result<(), TestCaseError> {
+    for (name, bytes) in inputs {
+        write(dir, name, bytes);
+    }
+    let before = snapshot(dir);
+    let ended = run(dir, args);
+    check_contract(args, &ended)?;
+    let after = snapshot(dir);
+    for (name, bytes) in inputs {
+        prop_assert!(
+            after.get(*name).map(Vec::as_slice) == Some(*bytes),
+            "{name} was modified: scanloc {args:?}\nstderr: {}",
+            ended.stderr
+        );
+    }
+    if ended.code != Some(0) {
+        prop_assert_eq!(&after, &before, "a refusal wrote: scanloc {:?}", args);
+        prop_assert!(
+            ended.stdout.is_empty(),
+            "a refusal printed: scanloc {args:?}: {}",
+            ended.stdout
+        );
+    }
+    Ok(())
+}
+
 proptest! {
     // Little shrinking: a failing case may take seconds.
     #![proptest_config(ProptestConfig {
@@ -763,6 +1039,50 @@ proptest! {
     ) {
         let dir = common::fuzz_case_dir();
         score_case(dir.path(), &truth, &locs, eps, json, curve, run_in_process)?;
+    }
+
+    #[test]
+    fn simulate_recording_never_panics_on_any_arguments(
+        args in simulate_recording_args()
+            .prop_filter("a legitimately large recording", |a| !recording_legitimately_large(a)),
+    ) {
+        let dir = common::fuzz_case_dir();
+        tracking_case(dir.path(), &args, &[], run_in_process)?;
+    }
+
+    #[test]
+    fn link_never_panics_on_any_arguments_or_csv_bytes(
+        args in link_args(),
+        locs in csv_file(|| &inputs().locs),
+    ) {
+        let dir = common::fuzz_case_dir();
+        let mut args = args;
+        args.extend(["--locs".to_string(), "locs.csv".to_string()]);
+        tracking_case(dir.path(), &args, &[("locs.csv", &locs)], run_in_process)?;
+    }
+
+    #[test]
+    fn diffusion_never_panics_on_any_arguments_or_csv_bytes(
+        args in diffusion_args(),
+        tracks in csv_file(|| &inputs().tracks),
+    ) {
+        let dir = common::fuzz_case_dir();
+        tracking_case(dir.path(), &args, &[("tracks.csv", &tracks)], run_in_process)?;
+    }
+
+    #[test]
+    fn score_tracks_never_panics_on_any_arguments_or_csv_bytes(
+        args in score_tracks_args(),
+        tracks in csv_file(|| &inputs().tracks),
+        truth in csv_file(|| &inputs().recording_truth),
+    ) {
+        let dir = common::fuzz_case_dir();
+        tracking_case(
+            dir.path(),
+            &args,
+            &[("tracks.csv", &tracks), ("truth.csv", &truth)],
+            run_in_process,
+        )?;
     }
 }
 

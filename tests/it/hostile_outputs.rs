@@ -520,6 +520,29 @@ fn every_read_command_works_on_a_registry_forced_read_only_and_writes_nothing() 
     assert_eq!(listing(&registry), before, "the read-only registry changed");
 }
 
+/// SCANLOC_REGISTRY_READ_ONLY takes the usual spellings of true (each
+/// guards the registry) and refuses anything else, leaving the registry as
+/// it was, rather than leaving it writable without a word.
+#[test]
+fn the_read_only_flag_takes_every_spelling_of_true_and_refuses_other_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let registry = fresh_registry(dir.path());
+    let before = listing(&registry);
+    let name = scanloc::env_vars::SCANLOC_REGISTRY_READ_ONLY;
+    for value in ["1", "true", "TRUE", "yes", "On"] {
+        write_commands_refused(&registry, &[(name, value)]);
+    }
+    for value in ["2", "", "enable", "y"] {
+        let output = Command::new(env!("CARGO_BIN_EXE_scanloc"))
+            .args(["registry", "gc", "--registry", text(&registry)])
+            .env(name, value)
+            .output()
+            .unwrap();
+        assert_refused(&output, &[&format!("{name}=\"{value}\": not a boolean")]);
+    }
+    assert_eq!(listing(&registry), before, "the guarded registry changed");
+}
+
 #[test]
 fn every_read_command_works_on_a_read_only_mount() {
     let dir = tempfile::tempdir().unwrap();

@@ -53,4 +53,5 @@ mod simulator;
 mod stress;
 mod structure;
 mod sweep_cluster;
+mod tracking_defects;
 mod tracking_runs;

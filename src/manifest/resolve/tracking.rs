@@ -27,6 +27,16 @@ const RECORDING_FIELDS: [&str; 8] = [
     "blink_off_ms",
 ];
 
+/// The microscope's fields that a recording does not use, and why.
+const NOT_FOR_RECORDINGS: [(&str, &str); 3] = [
+    ("emitters", "its QDs come from qd_density or qd_count"),
+    (
+        "margin_px",
+        "its volume reaches lateral_margin_um beyond the field",
+    ),
+    ("z_start", "its QDs start spread through the volume"),
+];
+
 /// Every recording, in manifest order; names are shared with the datasets.
 pub(super) fn resolve_recordings(
     section: &Named<serde_yaml::Mapping>,
@@ -93,6 +103,23 @@ fn resolve_recording(
             ));
         }
     };
+    // Fields of a dataset that a recording does not use, and a density
+    // beside a set count (the CLI refuses --qd-density with --qd-count):
+    // an error, never silently ignored.
+    for (field, reason) in NOT_FOR_RECORDINGS {
+        if entry.contains_key(field) {
+            return Err(FieldError::at(
+                &super::field(path, field),
+                format!("not used by a recording ({reason})"),
+            ));
+        }
+    }
+    if entry.contains_key("qd_density") && entry.contains_key("qd_count") {
+        return Err(FieldError::at(
+            &super::field(path, "qd_density"),
+            "not used beside qd_count (give one of them)",
+        ));
+    }
     let params = RecordingParams {
         microscope: apply_sim_overrides(path, microscope, entry, &RECORDING_FIELDS)?,
         frames,
