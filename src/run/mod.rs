@@ -14,7 +14,6 @@
 //! it `unfinished`.
 
 pub mod artefacts;
-mod bias;
 pub mod calibrate;
 mod compute;
 pub mod cross_validation;

@@ -21,7 +21,6 @@ use serde::Serialize;
 use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
-use super::bias::BIAS_CORRECTION_VERSION;
 use crate::manifest::{
     DatasetSpec, DetectorEntry, LinkerEntry, Manifest, MetricsSpec, RecordingSpec,
 };
@@ -30,7 +29,9 @@ use crate::registry::hashing::{canonical_json, content_key};
 use crate::registry::{ArtefactKind, StepId};
 use crate::sim::GENERATOR_VERSION;
 use crate::sim::recording::RECORDING_VERSION;
-use crate::track::pipeline::{BiasCorrection, LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring};
+use crate::track::pipeline::{
+    BIAS_CORRECTION_VERSION, BiasCorrection, LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring,
+};
 use crate::types::derive_seed;
 
 /// Version of the frame-subset step (cross-validation folds).
