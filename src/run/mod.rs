@@ -24,6 +24,7 @@ pub mod reproduce;
 mod stored;
 pub mod table;
 pub mod test_sets;
+pub mod track_recording;
 
 use std::io::IsTerminal;
 use std::time::Instant;
