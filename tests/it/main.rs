@@ -50,4 +50,5 @@ mod score_tracks;
 mod simulator;
 mod stress;
 mod sweep_cluster;
+mod track;
 mod tracking_runs;
