@@ -19,6 +19,7 @@ mod score_tracks;
 mod simulate;
 mod simulate_recording;
 mod sweep;
+mod track;
 mod train;
 
 use std::ffi::OsString;
@@ -66,6 +67,7 @@ enum Command {
     SimulateRecording(simulate_recording::SimulateRecordingArgs),
     Diffusion(diffusion::DiffusionArgs),
     ScoreTracks(score_tracks::ScoreTracksArgs),
+    Track(track::TrackArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -153,6 +155,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::SimulateRecording(args) => simulate_recording::run(args),
         Command::Diffusion(args) => diffusion::run(args, stdout, stderr),
         Command::ScoreTracks(args) => score_tracks::run(args, stdout),
+        Command::Track(args) => track::run(args, stdout),
     }
 }
 

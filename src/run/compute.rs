@@ -152,22 +152,41 @@ pub(super) fn compute(
             {
                 let predictions = read_input(bias.predictions)?;
                 let model = bias.model.map(&mut read_input).transpose()?;
-                let pipeline = super::bias::Pipeline {
-                    detector: &bias.detector,
-                    model: model.as_ref(),
-                    min_score: bias.min_score,
-                    linker: &bias.linker.spec,
-                };
-                evaluation.corrected_ensemble = super::bias::correct_ensemble(
-                    &step.name(),
-                    step.seed
+                let min_score = bias.min_score;
+                let kept = predictions
+                    .predictions()?
+                    .iter()
+                    .filter(|p| crate::track::pipeline::scores_at_least(p, min_score))
+                    .count();
+                let setup = crate::track::pipeline::BiasSetup {
+                    recording: &spec.params,
+                    seed: step
+                        .seed
                         .context("a bias correction draws from the step's seed")?,
                     recordings,
-                    spec,
-                    &pipeline,
-                    predictions.predictions()?,
-                    &evaluation,
-                )
+                    min_score,
+                    linker: &bias.linker.spec,
+                    scoring,
+                };
+                let model = model.as_ref();
+                let microscope = &spec.params.microscope;
+                let mut localise = |label: &str, frames: &crate::types::FrameStack| {
+                    locate_frames(label, &bias.detector, frames, model, Some(microscope))
+                };
+                evaluation.corrected_ensemble = match evaluation
+                    .estimator(crate::track::diffusion::Method::Ml)
+                    .and_then(|e| e.ensemble)
+                {
+                    Some(recorded) => crate::track::pipeline::correct_ensemble(
+                        &step.name(),
+                        &setup,
+                        &recorded,
+                        kept,
+                        evaluation.true_diffusion_um2_s,
+                        &mut localise,
+                    ),
+                    None => Ok(None),
+                }
                 .with_context(|| format!("correcting the bias of {}", step.name()))?;
             }
             Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
@@ -290,7 +309,7 @@ fn locate(
 /// `detector`'s localisations in `frames` (with its trained `model`; the
 /// `microscope` the frames were made with, for the likelihood detector),
 /// its progress shown as `label`.
-pub(super) fn locate_frames(
+fn locate_frames(
     label: &str,
     detector: &DetectorEntry,
     frames: &crate::types::FrameStack,

@@ -14,7 +14,6 @@
 //! it `unfinished`.
 
 pub mod artefacts;
-mod bias;
 pub mod calibrate;
 mod compute;
 pub mod cross_validation;
@@ -27,6 +26,7 @@ mod rows;
 mod stored;
 pub mod table;
 pub mod test_sets;
+pub mod track_recording;
 
 use std::time::Instant;
 

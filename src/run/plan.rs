@@ -20,7 +20,6 @@ use anyhow::Context;
 use serde_json::json;
 
 use super::artefacts::FORMAT_VERSION;
-use super::bias::BIAS_CORRECTION_VERSION;
 use super::descriptions::{
     Describes, Keyed, LinkDescription, LocateDescription, MetricDescription, RecordingDescription,
     ScoreDescription, SimulateDescription, SubsetDescription, TrackScoreDescription,
@@ -34,7 +33,9 @@ use crate::registry::hashing::{canonical_json, content_key};
 use crate::registry::{ArtefactKind, StepId};
 use crate::sim::GENERATOR_VERSION;
 use crate::sim::recording::RECORDING_VERSION;
-use crate::track::pipeline::{BiasCorrection, LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring};
+use crate::track::pipeline::{
+    BIAS_CORRECTION_VERSION, BiasCorrection, LINK_VERSION, TRACK_METRIC_VERSION, TrackScoring,
+};
 use crate::types::derive_seed;
 
 /// Version of the frame-subset step (cross-validation folds).

@@ -53,5 +53,6 @@ mod simulator;
 mod stress;
 mod structure;
 mod sweep_cluster;
+mod track;
 mod tracking_defects;
 mod tracking_runs;

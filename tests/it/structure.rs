@@ -35,12 +35,7 @@ const TO_BE_SPLIT: &[(&str, &str)] = &[
 
 /// To be split: imports that close a circle among `run`'s files, which
 /// other work removes now (module folder, importing file, imported file).
-const CIRCLES_TO_BE_SPLIT: &[(&str, &str, &str)] = &[
-    // The bias correction's version belongs with its procedure's new home.
-    ("src/run", "plan", "bias"),
-    // The bias correction locates frames through `compute`.
-    ("src/run", "bias", "compute"),
-];
+const CIRCLES_TO_BE_SPLIT: &[(&str, &str, &str)] = &[];
 
 /// `source` without its comments and its `#[cfg(test)]` module (a test
 /// module at column 0, ended by the first `}` at column 0).
