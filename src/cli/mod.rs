@@ -7,6 +7,7 @@ mod calibrate;
 mod check;
 mod cv;
 mod diffusion;
+mod fit_microscope;
 mod link;
 mod locate;
 mod microscope;
@@ -66,6 +67,7 @@ enum Command {
     SimulateRecording(simulate_recording::SimulateRecordingArgs),
     Diffusion(diffusion::DiffusionArgs),
     ScoreTracks(score_tracks::ScoreTracksArgs),
+    FitMicroscope(fit_microscope::FitMicroscopeArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -150,6 +152,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::SimulateRecording(args) => simulate_recording::run(args),
         Command::Diffusion(args) => diffusion::run(args, stdout, stderr),
         Command::ScoreTracks(args) => score_tracks::run(args, stdout),
+        Command::FitMicroscope(args) => fit_microscope::run(args, stdout),
     }
 }
 

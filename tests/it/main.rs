@@ -26,6 +26,7 @@ mod crocker_grier;
 mod diffusion;
 mod empty_frames;
 mod figures;
+mod fit_microscope;
 mod hostile_bounds;
 mod hostile_cli_fuzz;
 mod hostile_files;
