@@ -13,6 +13,7 @@ pub mod bench;
 pub mod detect;
 pub mod env_vars;
 pub mod error;
+pub mod fit;
 pub mod io;
 pub mod limits;
 pub mod manifest;

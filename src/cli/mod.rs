@@ -7,6 +7,7 @@ mod calibrate;
 mod check;
 mod cv;
 mod diffusion;
+mod fit_microscope;
 mod link;
 mod locate;
 mod microscope;
@@ -68,6 +69,7 @@ enum Command {
     Diffusion(diffusion::DiffusionArgs),
     ScoreTracks(score_tracks::ScoreTracksArgs),
     Track(track::TrackArgs),
+    FitMicroscope(fit_microscope::FitMicroscopeArgs),
 }
 
 /// The whole command: parses `args` (the program name first), runs the
@@ -156,6 +158,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
         Command::Diffusion(args) => diffusion::run(args, stdout, stderr),
         Command::ScoreTracks(args) => score_tracks::run(args, stdout),
         Command::Track(args) => track::run(args, stdout),
+        Command::FitMicroscope(args) => fit_microscope::run(args, stdout),
     }
 }
 

@@ -11,6 +11,7 @@
 //! Readers report problems as [`InputError`](crate::error::InputError)s that
 //! name the file.
 
+pub mod acquisition;
 pub mod csv_tables;
 pub mod folders;
 pub mod localisation_table;
@@ -18,7 +19,9 @@ pub mod npy;
 pub mod tiff_stack;
 pub mod tracks;
 
+pub use acquisition::{AcquisitionMetadata, MetadataSource};
 pub use folders::{PendingFolder, safe_file_name};
+pub use tiff_stack::StackSelection;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -90,6 +93,46 @@ pub fn read_recording_of_channel(path: &Path, channel: Option<usize>) -> anyhow:
     let (n, height, width) = recording.shape();
     crate::limits::check_stack_shape(&path.display().to_string(), n, height, width)?;
     Ok(recording)
+}
+
+/// A recording as a lab's software wrote it: its frames (one channel, one
+/// plane) and what the file says about the acquisition.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecordingFile {
+    pub frames: Recording,
+    pub metadata: AcquisitionMetadata,
+}
+
+/// Reads a recording from `.npy` or TIFF (classic or BigTIFF, 8/16/32/64-bit
+/// integer or float pages, ImageJ hyperstacks, ScanImage files) with its
+/// acquisition metadata ([`AcquisitionMetadata`]; a `.npy` has none). A
+/// multi-channel or multi-plane stack is read at the plane `selection`
+/// names and refused without one ([`tiff_stack::read_selected`]); the
+/// stack's shape is checked as [`read_frames`] checks it.
+pub fn read_recording_file(
+    path: &Path,
+    selection: &StackSelection,
+) -> anyhow::Result<RecordingFile> {
+    let (frames, metadata) = match FrameFormat::from_path(path)? {
+        FrameFormat::Npy => {
+            for (flag, chosen) in [
+                ("--channel", selection.channel),
+                ("--slice", selection.slice),
+            ] {
+                if let Some(chosen) = chosen.filter(|&c| c > 0) {
+                    return Err(input_error(format!(
+                        "{}: {flag} {chosen} does not exist; a .npy stack (n, H, W) has one (0)",
+                        path.display()
+                    )));
+                }
+            }
+            (npy::read_recording(path)?, AcquisitionMetadata::none())
+        }
+        FrameFormat::Tiff => tiff_stack::read_selected(path, selection)?,
+    };
+    let (n, height, width) = frames.shape();
+    crate::limits::check_stack_shape(&path.display().to_string(), n, height, width)?;
+    Ok(RecordingFile { frames, metadata })
 }
 
 /// Writes a frame stack to `.npy` or TIFF, by extension, atomically.

@@ -6,7 +6,9 @@
 //! equal size: integer pages as photon counts (signed values must be ≥ 0),
 //! float pages as real values (finite; a stack with any float page is read
 //! as real-valued frames), see [`super::npy`]. ImageJ hyperstacks are read
-//! one channel at a time ([`read_channel`]).
+//! one channel and one slice at a time, BigTIFF as classic TIFF, and the
+//! acquisition metadata of ImageJ and ScanImage files with the frames
+//! ([`read_selected`]).
 
 use std::io::{BufReader, Seek, Write};
 use std::path::Path;
@@ -15,6 +17,7 @@ use tiff::decoder::{Decoder, DecodingResult};
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
 
+use super::acquisition::{self, AcquisitionMetadata, MetadataSource};
 use super::open_input;
 use crate::error::input_error;
 use crate::types::frames::whole_count;
@@ -44,43 +47,84 @@ pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
         .map_err(|e| input_error(format!("{}: {e:#}", path.display())))
 }
 
-/// Reads the frames of a TIFF stack, one greyscale page per frame.
+/// Reads the frames of a TIFF stack, one greyscale page per frame; see
+/// [`read_selected`] (this is its channel selection alone, without the
+/// metadata).
+pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
+    let selection = StackSelection {
+        channel,
+        slice: None,
+    };
+    Ok(read_selected(path, &selection)?.0)
+}
+
+/// Which plane of a hyperstack to read: a channel and a z slice (0-based),
+/// `None` where the stack has one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct StackSelection {
+    pub channel: Option<usize>,
+    pub slice: Option<usize>,
+}
+
+/// Reads the frames of a TIFF stack (classic or BigTIFF), one greyscale
+/// page per frame, and the acquisition metadata the file states
+/// ([`AcquisitionMetadata`]: an ImageJ description or ScanImage's header).
 ///
 /// An ImageJ hyperstack (an `ImageDescription` starting `ImageJ=` with
-/// `channels=C`) stores its pages channel by channel within each slice and
-/// time point; with `C > 1` the frames of channel `channel` (0-based) are
-/// read, in slice-then-time order, and without a channel the stack is
-/// refused rather than read with channels interleaved as time. Pages with
-/// more than one sample per pixel (colour, or channels stored as
-/// contiguous samples or separate planes) are refused: no channel is ever
-/// dropped silently.
-pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
+/// `channels=C`, `slices=Z`) stores its pages channel by channel within
+/// each slice, slice by slice within each time point; a ScanImage file
+/// interleaves the channels it saved. With `C > 1` (or `Z > 1`) the frames
+/// of the selected channel (slice) are read in time order, and without a
+/// selection the stack is refused rather than read with channels or planes
+/// interleaved as time. Pages with more than one sample per pixel (colour,
+/// or channels stored as contiguous samples or separate planes) are
+/// refused: no channel is ever dropped silently. The frames read so far
+/// are checked against the size limits page by page, so a file cannot make
+/// the reader hold more than [`MAX_DATASET_PIXELS`](crate::limits::MAX_DATASET_PIXELS).
+pub fn read_selected(
+    path: &Path,
+    selection: &StackSelection,
+) -> anyhow::Result<(Recording, AcquisitionMetadata)> {
     let name = path.display();
     let bad = |e: tiff::TiffError| input_error(format!("{name}: not a readable TIFF stack: {e}"));
     let mut decoder = Decoder::new(BufReader::new(open_input(path)?)).map_err(bad)?;
-    let channels = imagej_channels(&mut decoder);
-    let selected = match (channels, channel) {
-        (1, None) => 0,
-        (channels, None) => {
-            return Err(input_error(format!(
-                "{name}: an ImageJ hyperstack with {channels} channels; choose one with --channel (0 to {})",
-                channels - 1
-            )));
-        }
-        (channels, Some(channel)) if channel >= channels => {
-            return Err(input_error(format!(
-                "{name}: --channel {channel} does not exist; the stack has {channels} channel{} (0 to {})",
-                if channels == 1 { "" } else { "s" },
-                channels - 1
-            )));
-        }
-        (_, Some(channel)) => channel,
+    let metadata = read_metadata(&mut decoder);
+    let channels = metadata.channels;
+    let slices = metadata.slices;
+    if slices > 1 && metadata.source == MetadataSource::ScanImage {
+        return Err(input_error(format!(
+            "{name}: a ScanImage z-stack ({slices} slices); a recording is one plane over time: save one plane per file"
+        )));
+    }
+    let choose = |what: &str, flag: &str, count: usize, chosen: Option<usize>| match (count, chosen)
+    {
+        (1, None | Some(0)) => Ok(0),
+        (count, None) => Err(input_error(format!(
+            "{name}: a {} with {count} {what}s; choose one with {flag} (0 to {})",
+            if what == "slice" {
+                "3-D (z) stack"
+            } else {
+                "hyperstack"
+            },
+            count - 1
+        ))),
+        (count, Some(chosen)) if chosen >= count => Err(input_error(format!(
+            "{name}: {flag} {chosen} does not exist; the stack has {count} {what}{} (0 to {})",
+            if count == 1 { "" } else { "s" },
+            count - 1
+        ))),
+        (_, Some(chosen)) => Ok(chosen),
     };
+    let channel = choose("channel", "--channel", channels, selection.channel)?;
+    let slice = choose("slice", "--slice", slices, selection.slice)?;
     let mut stack = Recording::Counts(FrameStack::default());
     let mut page_index = 0usize;
     loop {
-        if page_index % channels == selected {
+        if page_index % channels == channel && (page_index / channels) % slices == slice {
             let page = read_page(&mut decoder, &name, page_index)?;
+            let (n, height, width) = page.shape();
+            crate::limits::check_dataset_size("frame count", stack.shape().0 + n, height, width)
+                .map_err(|e| input_error(format!("{name}: {e}")))?;
             stack
                 .append(page)
                 .map_err(|e| input_error(format!("{name}: {e}")))?;
@@ -91,30 +135,56 @@ pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recor
         }
         decoder.next_image().map_err(bad)?;
     }
-    if !page_index.is_multiple_of(channels) {
+    if !page_index.is_multiple_of(channels * slices) {
         return Err(input_error(format!(
-            "{name}: {page_index} pages do not divide into the {channels} channels its ImageJ description declares"
+            "{name}: {page_index} pages do not divide into the {channels} channel(s) × {slices} slice(s) its {} metadata declares",
+            metadata.source.as_str()
         )));
     }
-    Ok(stack)
+    Ok((stack, metadata))
 }
 
-/// The `channels=` of an ImageJ description on the first page (1 if the
-/// file is not an ImageJ hyperstack).
-fn imagej_channels<R: std::io::Read + Seek>(decoder: &mut Decoder<R>) -> usize {
-    let description = match decoder.find_tag(Tag::ImageDescription) {
+/// The acquisition metadata of the first page: an ImageJ description, or
+/// ScanImage's header in the Software tag or the description (with the
+/// frame time stamps of the first two time points' descriptions; the
+/// decoder is rewound to the first page).
+fn read_metadata<R: std::io::Read + Seek>(decoder: &mut Decoder<R>) -> AcquisitionMetadata {
+    let text = |decoder: &mut Decoder<R>, tag: Tag| match decoder.find_tag(tag) {
         Ok(Some(value)) => value.into_string().unwrap_or_default(),
-        _ => return 1,
+        _ => String::new(),
     };
-    if !description.starts_with("ImageJ=") {
-        return 1;
+    let description = text(decoder, Tag::ImageDescription);
+    if acquisition::is_imagej(&description) {
+        let resolution = match decoder.find_tag(Tag::XResolution) {
+            Ok(Some(value)) => value
+                .into_u32_vec()
+                .ok()
+                .filter(|v| v.len() == 2 && v[1] > 0)
+                .map(|v| f64::from(v[0]) / f64::from(v[1])),
+            _ => None,
+        };
+        return acquisition::parse_imagej(&description, resolution);
     }
-    description
-        .lines()
-        .find_map(|line| line.trim().strip_prefix("channels="))
-        .and_then(|value| value.trim().parse::<usize>().ok())
-        .filter(|&channels| channels >= 1)
-        .unwrap_or(1)
+    let software = text(decoder, Tag::Software);
+    let header = if acquisition::is_scanimage(&software) {
+        software
+    } else if acquisition::is_scanimage(&description) {
+        description.clone()
+    } else {
+        return AcquisitionMetadata::none();
+    };
+    let mut stamps = Vec::new();
+    stamps.extend(acquisition::scanimage_timestamp(&description));
+    let channels = acquisition::parse_scanimage(&header, &[]).channels;
+    if stamps.len() == 1 && decoder.seek_to_image(channels).is_ok() {
+        let next = text(decoder, Tag::ImageDescription);
+        stamps.extend(acquisition::scanimage_timestamp(&next));
+    }
+    let metadata = acquisition::parse_scanimage(&header, &stamps);
+    if decoder.seek_to_image(0).is_err() {
+        return AcquisitionMetadata::none();
+    }
+    metadata
 }
 
 /// Decodes the current page as one frame: counts from integer samples,

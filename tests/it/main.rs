@@ -28,6 +28,7 @@ mod diffusion;
 mod docs;
 mod empty_frames;
 mod figures;
+mod fit_microscope;
 mod hostile_bounds;
 mod hostile_cli_fuzz;
 mod hostile_files;
