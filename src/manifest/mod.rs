@@ -567,7 +567,18 @@ pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimPara
     let source = path.display().to_string();
     let text = std::fs::read_to_string(path)
         .map_err(|e| input_error(format!("{source}: cannot read: {e}")))?;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    microscope_from_text(&source, &text, base)
+}
+
+/// [`load_microscope`] of YAML (or JSON) `text` read from `source` (the
+/// name its errors give): the Python bindings' `Microscope` from a dict.
+pub fn microscope_from_text(
+    source: &str,
+    text: &str,
+    base: &SimParams,
+) -> anyhow::Result<(SimParams, Vec<String>)> {
+    let source = source.to_string();
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let document: serde_yaml::Value =
         serde_yaml::from_str(text).map_err(|e| errors::located_yaml_error(&source, e))?;
     let located =
