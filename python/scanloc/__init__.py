@@ -92,6 +92,7 @@ class Microscope:
             )
         section = dict(base or {})
         section.update(fields)
+        section = {k: _flag_form(v) for k, v in section.items()}
         if isinstance(spec, (str, os.PathLike)) and not fields:
             self._fields = base
             self._stated = sorted(set(stated))
@@ -124,7 +125,7 @@ class Microscope:
         return json.dumps(self._fields)
 
     def __getattr__(self, name: str) -> Any:
-        fields = self.__dict__.get("_fields", {})
+        fields = self.__dict__.get("_fields") or {}
         if name in fields:
             return fields[name]
         raise AttributeError(f"Microscope has no field {name!r}")
@@ -133,8 +134,26 @@ class Microscope:
         return isinstance(other, Microscope) and self._fields == other._fields
 
     def __repr__(self) -> str:
-        shown = ", ".join(f"{k}={self._fields[k]!r}" for k in self._fields)
+        fields = self.__dict__.get("_fields") or {}
+        shown = ", ".join(f"{k}={v!r}" for k, v in fields.items())
         return f"Microscope({shown})"
+
+
+def _flag_form(value: Any) -> Any:
+    """A field written as on the command line (``"uniform:5,9"``,
+    ``"choice:0,1,2/weights:1,1,2"``) in the manifest's form."""
+    if not isinstance(value, str):
+        return value
+    text = value.strip()
+    if text.startswith("uniform:"):
+        return {"uniform": [float(v) for v in text[len("uniform:"):].split(",")]}
+    if text.startswith("choice:"):
+        counts, _, weights = text[len("choice:"):].partition("/weights:")
+        choice: dict = {"choice": [int(v) for v in counts.split(",")]}
+        if weights:
+            choice["weights"] = [float(v) for v in weights.split(",")]
+        return choice
+    return value
 
 
 def _microscope(microscope: Any) -> Microscope:

@@ -46,11 +46,13 @@ const CHUNK_PIXELS: usize = 1 << 21;
 /// else `RuntimeError`; the message is the CLI's (`{:#}`, the whole chain).
 fn to_py(error: anyhow::Error) -> PyErr {
     let message = format!("{error:#}");
+    // A missing file: an io::Error in the chain, or one the library
+    // folded into its one-line message ("FILE: cannot read: … (os error 2)").
     let not_found = error.chain().any(|cause| {
         cause
             .downcast_ref::<std::io::Error>()
             .is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound)
-    });
+    }) || message.contains("(os error 2)");
     if not_found {
         PyFileNotFoundError::new_err(message)
     } else if error.chain().any(|cause| cause.is::<InputError>()) {
@@ -195,9 +197,11 @@ impl<P> Pixels<'_, P> {
 fn pixels<'a, P: numpy::Element + Copy>(
     array: &'a numpy::PyReadonlyArray3<'_, P>,
 ) -> Pixels<'a, P> {
+    // `as_slice` also takes a Fortran-ordered array (its memory in
+    // column-major order): only a C-ordered one is read in place.
     match array.as_slice() {
-        Ok(slice) => Pixels::Borrowed(slice),
-        Err(_) => Pixels::Owned(array.as_array().iter().copied().collect()),
+        Ok(slice) if array.is_c_contiguous() => Pixels::Borrowed(slice),
+        _ => Pixels::Owned(array.as_array().iter().copied().collect()),
     }
 }
 

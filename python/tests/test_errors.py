@@ -60,7 +60,7 @@ def test_a_bad_yaml_file_names_its_line(tmp_path):
     path.write_text("microscope:\n  height: 30\n  dwell_us: fast\n")
     with pytest.raises(ValueError, match="m.yaml"):
         scanloc.Microscope(path)
-    path.write_text("microscope:\n  height: 30\n  brightness: uniform:5,9\n")
+    path.write_text("microscope:\n  height: 30\n  brightness: {uniform: [5, 9]}\n")
     m = scanloc.Microscope(path)
     assert m.height == 30 and m.width == 25 and m.stated == ["brightness", "height"]
     assert scanloc.Microscope(path, width=31).width == 31

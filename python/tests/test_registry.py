@@ -29,7 +29,7 @@ def test_artefacts_by_key_and_verify(smoke_registry):
     registry = scanloc.Registry(smoke_registry)
     run = registry.runs()["id"].iloc[0]
     record = registry.run(run)
-    keys = [step["key"] for step in record["steps"]]
+    keys = [step["artefact_key"] for step in record["steps"]]
     contents = [registry.artefact(key) for key in keys]
     frames = [c["frames.npy"] for c in contents if "frames.npy" in c]
     assert frames and all(f.ndim == 3 and f.dtype.kind == "u" for f in frames)
