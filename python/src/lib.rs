@@ -26,7 +26,7 @@ use pyo3::types::PyDict;
 use scanloc::detect::cnn::TrainedCnn;
 use scanloc::detect::crocker_grier::{self, CrockerGrierParams, Feature, Pixel};
 use scanloc::detect::likelihood::{self, LikelihoodParams};
-use scanloc::error::{CheckFailed, InputError};
+use scanloc::error::InputError;
 use scanloc::sim::SimParams;
 use scanloc::sim::recording::{Blinking, RecordingParams};
 use scanloc::track::diffusion::tables::{TableSettings, estimate_table};
@@ -57,9 +57,9 @@ fn to_py(error: anyhow::Error) -> PyErr {
         PyFileNotFoundError::new_err(message)
     } else if error.chain().any(|cause| cause.is::<InputError>()) {
         PyValueError::new_err(message)
-    } else if error.chain().any(|cause| cause.is::<CheckFailed>()) {
-        PyRuntimeError::new_err(message)
     } else {
+        // An internal failure, or a check that found a difference
+        // (`CheckFailed`: exit code 1 on the command line).
         PyRuntimeError::new_err(message)
     }
 }
