@@ -786,6 +786,9 @@ fn detections(
     Ok(out)
 }
 
+/// What `_link` returns: the particles, and the lap linker's gates.
+type Linked<'py> = (Bound<'py, PyArray1<i64>>, Option<Bound<'py, PyDict>>);
+
 /// `scanloc.link`: the particle of each row, indexed like the input.
 #[pyfunction]
 #[pyo3(signature = (frame, x, y, sigma_x, sigma_y, linker, search_range, memory, max_gap, diffusion, frame_time_ms, pixel_size_um, gate, progress))]
@@ -806,7 +809,7 @@ fn _link<'py>(
     pixel_size_um: Option<f64>,
     gate: Option<f64>,
     progress: bool,
-) -> PyResult<(Bound<'py, PyArray1<i64>>, Option<Bound<'py, PyDict>>)> {
+) -> PyResult<Linked<'py>> {
     use scanloc::limits::{
         MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
     };

@@ -43,6 +43,10 @@ fn _registry_run(py: Python<'_>, path: &str, id: &str) -> PyResult<String> {
     .map_err(to_py)
 }
 
+/// An artefact's blobs: (role, bytes).
+type Blobs = Vec<(String, Vec<u8>)>;
+type PyBlobs<'py> = Vec<(String, Bound<'py, PyBytes>)>;
+
 /// An artefact's record (JSON) and its blobs as (role, bytes); `key` is a
 /// content key or a unique prefix.
 #[pyfunction]
@@ -50,9 +54,9 @@ fn _registry_artefact<'py>(
     py: Python<'py>,
     path: &str,
     key: &str,
-) -> PyResult<(String, Vec<(String, Bound<'py, PyBytes>)>)> {
+) -> PyResult<(String, PyBlobs<'py>)> {
     let (record, blobs) = py
-        .allow_threads(|| -> anyhow::Result<(String, Vec<(String, Vec<u8>)>)> {
+        .allow_threads(|| -> anyhow::Result<(String, Blobs)> {
             let registry = open(path)?;
             let key = match registry.resolve_id(key)? {
                 Found::Artefact(key) => key,
