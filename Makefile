@@ -5,7 +5,7 @@ CARGO   ?= cargo
 BIN     := target/release/scanloc
 MANIFEST ?= experiments/paper.yaml
 
-.PHONY: all build test lint fmt reproduce-paper bound tracking cv calibrate bench bench-registry fuzz clean
+.PHONY: all build test python pytest lint fmt reproduce-paper bound tracking cv calibrate bench bench-registry fuzz clean
 
 all: build
 
@@ -13,10 +13,33 @@ build:
 	$(CARGO) build --release --locked
 
 # The test suite: formatting, then every unit and integration test in the
-# release profile (the simulator and the CNN are too slow unoptimised).
+# release profile (the simulator and the CNN are too slow unoptimised),
+# then the Python package's tests (pytest in .venv, see `python`).
 test:
 	$(CARGO) fmt --check
 	$(CARGO) test --release --locked
+	$(MAKE) pytest
+
+# The Python package (python/, docs/python.md) built into .venv: the
+# virtual environment and the test requirements are made once (again when
+# python/requirements-test.txt changes), the extension module is rebuilt
+# by maturin on every call (a no-op build when nothing changed).
+PYTHON ?= python3
+VENV   := .venv
+VENV_PY := $(VENV)/bin/python
+$(VENV)/.requirements: python/requirements-test.txt
+	$(PYTHON) -m venv $(VENV)
+	$(VENV_PY) -m pip install --quiet --disable-pip-version-check -r python/requirements-test.txt
+	touch $@
+
+python: $(VENV)/.requirements build
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" MATURIN_PEP517_ARGS="--locked" $(VENV_PY) -m pip install --quiet --disable-pip-version-check \
+		--no-build-isolation --no-deps --force-reinstall ./python
+
+# pytest over python/tests (exit 5, no test collected, is a failure).
+pytest: python
+	SCANLOC_BIN=$(BIN) $(VENV_PY) -m pytest python/tests -q -p no:cacheprovider; \
+		status=$$?; if [ $$status -eq 5 ]; then echo "pytest collected no test"; exit 1; fi; exit $$status
 
 lint:
 	$(CARGO) clippy --release --locked --all-targets -- -D warnings

@@ -6,11 +6,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
-use scanloc::error::{input_error, readable};
-use scanloc::track::diffusion::{
-    ENSEMBLE_GATE, Estimate, Exposure, Method, RecordingEstimates, Series,
-    attach_detection_profile, estimate_recording,
-};
+use scanloc::error::readable;
+use scanloc::track::diffusion::tables::{TableSettings, estimate_table};
+use scanloc::track::diffusion::{ENSEMBLE_GATE, Estimate, Exposure, Method};
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -137,223 +135,46 @@ pub fn run(
         ExposureArg::FrameIndex => Exposure::FrameIndex,
         ExposureArg::UniformFrame => Exposure::UniformFrame,
     };
-    if !(args.ensemble_margin_px.is_finite() && args.ensemble_margin_px >= 0.0) {
-        return Err(input_error(format!(
-            "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
-            readable(args.ensemble_margin_px)
-        )));
-    }
-    scanloc::track::pipeline::check_ensemble_margin(
-        args.ensemble_margin_px,
-        geometry.height,
-        geometry.width,
-    )
-    .map_err(|e| input_error(format!("--ensemble-margin-px: {e}")))?;
-    scanloc::track::pipeline::check_min_points("--min-points", args.min_points)?;
-    if !scanloc::track::pipeline::valid_ensemble_gate(args.ensemble_gate) {
-        return Err(input_error(format!(
-            "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
-            readable(args.ensemble_gate)
-        )));
-    }
-    let mut tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
-    refuse_foreign_tracks(&args.tracks, &tracks, &geometry)?;
-    if !args.given_sigma && tracks.iter().any(|t| t.has_sigma()) {
-        tracks = tracks.iter().map(|t| t.without_sigma()).collect();
-        writeln!(
-            stderr,
-            "the table's sigma_x, sigma_y are not used: the localisation variance is estimated with D (--given-sigma uses them)"
-        )?;
-    }
-    let mut series: Vec<Series> = tracks
-        .iter()
-        .map(|track| Series::new(track, &geometry, exposure))
-        .collect();
-    for (track, s) in tracks.iter().zip(&series) {
-        if let Some(i) = s.first_step_shorter_than_blur() {
-            return Err(input_error(format!(
-                "{}: particle {}: column time: the step from frame {} to frame {} lasts {} s, not more than the two localisations' blur ({} s): time stamps must increase with the frame, in seconds",
-                args.tracks.display(),
-                track.particle,
-                s.frames[i],
-                s.frames[i + 1],
-                readable(s.times[i + 1] - s.times[i]),
-                readable(s.blur[i] + s.blur[i + 1]),
-            )));
-        }
-    }
-    if series.iter().all(|s| s.len() < 2) {
-        return Err(input_error(format!(
-            "{}: no track has two localisations",
-            args.tracks.display()
-        )));
-    }
-    if !args.no_detection_profile {
-        attach_detection_profile(&mut series, geometry.pixel_size_um);
-    }
-    let estimates: Vec<(Method, RecordingEstimates)> = Method::ALL
-        .into_iter()
-        .map(|method| {
-            (
-                method,
-                estimate_recording(
-                    &series,
-                    method,
-                    args.min_points,
-                    args.ensemble_gate,
-                    args.ensemble_margin_px * geometry.pixel_size_um,
-                ),
-            )
-        })
-        .collect();
-    refuse_non_finite(&args.tracks, &tracks, &estimates)?;
+    let settings = TableSettings {
+        exposure,
+        min_points: args.min_points,
+        detection_profile: !args.no_detection_profile,
+        ensemble_gate: args.ensemble_gate,
+        ensemble_margin_px: args.ensemble_margin_px,
+        given_sigma: args.given_sigma,
+    };
+    let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    let table = estimate_table(
+        tracks,
+        &geometry,
+        &settings,
+        &args.tracks.display().to_string(),
+    )?;
     writeln!(
         stdout,
         "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
     )?;
     // One row per track and method, tracks in table order.
-    for (index, track) in tracks.iter().enumerate() {
-        for (method, e) in &estimates {
+    for (index, track) in table.tracks.iter().enumerate() {
+        for (method, e) in &table.estimates {
             if let Some(estimate) = &e.per_track[index] {
                 row(
                     stdout,
                     &track.particle.to_string(),
-                    series[index].len(),
+                    table.points[index],
                     *method,
                     estimate,
                 )?;
             }
         }
     }
-    for (method, e) in &estimates {
-        if let Some(phi) = e.dispersion.filter(|&phi| phi > 1.0) {
-            writeln!(
-                stderr,
-                "{}: the tracks' estimates scatter {phi:.2} times as much as the likelihood says; each track's interval is widened by that (docs/tracking.md, \"The estimators\")",
-                method.name()
-            )?;
-        }
-        if let Some(phi) = e.ensemble_dispersion.filter(|&phi| phi > 1.0) {
-            writeln!(
-                stderr,
-                "{}: the ensemble's runs scatter {phi:.2} times as much as the likelihood says; the ensemble's interval is widened by that (docs/tracking.md, \"The estimators\")",
-                method.name()
-            )?;
-        }
+    for note in &table.notes {
+        writeln!(stderr, "{note}")?;
     }
-    let points: usize = series.iter().filter(|s| s.len() > 1).map(Series::len).sum();
-    for (method, e) in &estimates {
-        match &e.ensemble {
-            Some(estimate) => row(stdout, "ensemble", points, *method, estimate)?,
-            None => writeln!(
-                stderr,
-                "{}: no ensemble estimate: too few steps{}",
-                method.name(),
-                if *method == Method::Ml && args.ensemble_margin_px > 0.0 {
-                    " inside the ensemble's margin (--ensemble-margin-px)"
-                } else {
-                    ""
-                }
-            )?,
+    for (method, e) in &table.estimates {
+        if let Some(estimate) = &e.ensemble {
+            row(stdout, "ensemble", table.ensemble_points, *method, estimate)?;
         }
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// How far outside the field a localisation may lie, in σxy of the PSF:
-/// beyond it no pixel of the field sees the particle.
-const FIELD_REACH_SIGMAS: f64 = 3.0;
-
-/// Refuses tracks that cannot come from the scan `geometry` describes: a
-/// localisation further outside the field than the PSF reaches (tracks of a
-/// larger field analysed as a smaller one, whose D would come out far too
-/// low), or a step whose `time` stamps differ from its frames' distance on
-/// the frame clock by more than a frame period.
-fn refuse_foreign_tracks(
-    source: &std::path::Path,
-    tracks: &[scanloc::types::Track],
-    geometry: &scanloc::track::diffusion::ScanGeometry,
-) -> anyhow::Result<()> {
-    let reach = FIELD_REACH_SIGMAS * geometry.sigma_xy_um / geometry.pixel_size_um;
-    let period = geometry.frame_period_s();
-    for track in tracks {
-        for point in &track.points {
-            for (name, value, size, flag) in [
-                ("x", point.x, geometry.width, "--width"),
-                ("y", point.y, geometry.height, "--height"),
-            ] {
-                let (low, high) = (-0.5 - reach, size as f64 - 0.5 + reach);
-                if !(low..=high).contains(&value) {
-                    return Err(input_error(format!(
-                        "{}: particle {}: frame {}: column {name}: {} px is outside the {} × {} px field \
-                         (by more than the PSF's reach, {} px); give the recording's {flag}",
-                        source.display(),
-                        track.particle,
-                        point.frame,
-                        readable(value),
-                        geometry.height,
-                        geometry.width,
-                        readable(reach),
-                    )));
-                }
-            }
-        }
-        for pair in track.points.windows(2) {
-            let (Some(t0), Some(t1)) = (pair[0].time_s, pair[1].time_s) else {
-                continue;
-            };
-            let frames = pair[1].frame as f64 - pair[0].frame as f64;
-            if ((t1 - t0) - frames * period).abs() > period {
-                return Err(input_error(format!(
-                    "{}: particle {}: column time: the step from frame {} to frame {} lasts {} s, \
-                     where the frame clock gives {} s ± one frame period ({} s)",
-                    source.display(),
-                    track.particle,
-                    pair[0].frame,
-                    pair[1].frame,
-                    readable(t1 - t0),
-                    readable(frames * period),
-                    readable(period),
-                )));
-            }
-        }
-    }
-    Ok(())
-}
-
-/// Refuses results that are not finite numbers (the upper end of an
-/// interval, and so its standard error, excepted, which may be infinite):
-/// never a row of NaN, or an infinite D, with exit code 0.
-fn refuse_non_finite(
-    source: &std::path::Path,
-    tracks: &[scanloc::types::Track],
-    estimates: &[(Method, RecordingEstimates)],
-) -> anyhow::Result<()> {
-    // An interval open above (high = +∞, and so its standard error) is
-    // documented; anything else must be a finite number.
-    let finite = |e: &Estimate| {
-        [e.d, e.low, e.localisation_variance]
-            .iter()
-            .all(|v| v.is_finite())
-            && !(e.high.is_nan() || e.standard_error.is_nan())
-    };
-    for (method, e) in estimates {
-        let per_track = tracks
-            .iter()
-            .zip(&e.per_track)
-            .filter_map(|(track, estimate)| Some((track.particle.to_string(), estimate.as_ref()?)));
-        let ensemble = e
-            .ensemble
-            .as_ref()
-            .map(|estimate| ("ensemble".to_string(), estimate));
-        if let Some((label, _)) = per_track.chain(ensemble).find(|(_, e)| !finite(e)) {
-            return Err(input_error(format!(
-                "{}: particle {label}: the {} estimate is not a finite number: the tracks do not \
-                 fit the stated scan (--height, --width, --pixel-size-um, timing)",
-                source.display(),
-                method.name()
-            )));
-        }
-    }
-    Ok(())
 }

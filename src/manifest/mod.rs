@@ -587,7 +587,18 @@ pub fn parse(text: &str, source: &str) -> anyhow::Result<Manifest> {
 pub fn load_microscope(path: &Path, base: &SimParams) -> anyhow::Result<(SimParams, Vec<String>)> {
     let source = path.display().to_string();
     let text = read_manifest_text(path)?;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    microscope_from_text(&source, &text, base)
+}
+
+/// [`load_microscope`] of YAML (or JSON) `text` read from `source` (the
+/// name its errors give): the Python bindings' `Microscope` from a dict.
+pub fn microscope_from_text(
+    source: &str,
+    text: &str,
+    base: &SimParams,
+) -> anyhow::Result<(SimParams, Vec<String>)> {
+    let source = source.to_string();
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let document: serde_yaml::Value =
         serde_yaml::from_str(text).map_err(|e| errors::located_yaml_error(&source, e))?;
     let located =

@@ -333,3 +333,48 @@ fn degenerate_frames_give_no_feature_and_no_panic() {
             .all(|f| f.mass.is_finite() && f.size.is_finite())
     );
 }
+
+/// The entry point the Python bindings call on chunks of a caller's
+/// array (`locate_frames_in_range`): with the stack's rescaling range,
+/// chunks give the stack's features, and a numpy dtype's own range gives
+/// TrackPy's treatment of that dtype (uint16 = the counts' range here).
+#[test]
+fn chunks_and_narrow_dtypes_give_the_stacks_features() {
+    let recording = io::npy::read_recording(&fixture("paper_bright.npy")).unwrap();
+    let Recording::Counts(frames) = recording else {
+        panic!("paper_bright holds counts");
+    };
+    assert!(frames.max_count() <= u32::from(u16::MAX) && frames.n >= 3);
+    let params = params("paper_bright");
+    let whole = locate_stack(&frames, &params, &hidden()).unwrap();
+    let as_u16: Vec<u16> = frames.data.iter().map(|&c| c as u16).collect();
+    let frame_len = frames.height * frames.width;
+    let mut chunked = Vec::new();
+    for start in (0..frames.n).step_by(2) {
+        let end = (start + 2).min(frames.n);
+        let part = crocker_grier::locate_frames_in_range(
+            &as_u16[start * frame_len..end * frame_len],
+            end - start,
+            frames.height,
+            frames.width,
+            &params,
+            u64::from(u16::MAX),
+            &hidden(),
+        )
+        .unwrap();
+        chunked.extend(part.into_iter().map(|(i, f)| (i + start, f)));
+    }
+    assert!(!whole.is_empty());
+    assert_eq!(chunked, whole);
+    // Fewer values than the frames asked for: refused, not a panic.
+    let refused = crocker_grier::locate_frames_in_range(
+        &as_u16[..frame_len],
+        2,
+        frames.height,
+        frames.width,
+        &params,
+        u64::from(u16::MAX),
+        &hidden(),
+    );
+    assert!(refused.is_err());
+}

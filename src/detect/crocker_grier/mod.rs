@@ -65,6 +65,29 @@ impl Pixel for f64 {
     }
 }
 
+// The other element types a caller's array may hold (the Python bindings
+// borrow numpy's uint8, uint16 and float32 stacks without converting them).
+impl Pixel for u8 {
+    const INTEGER: bool = true;
+    fn value(self) -> f64 {
+        f64::from(self)
+    }
+}
+
+impl Pixel for u16 {
+    const INTEGER: bool = true;
+    fn value(self) -> f64 {
+        f64::from(self)
+    }
+}
+
+impl Pixel for f32 {
+    const INTEGER: bool = false;
+    fn value(self) -> f64 {
+        f64::from(self)
+    }
+}
+
 /// TrackPy's default `threshold`: 1 for integer images, 1/255 for float
 /// images.
 fn default_threshold<P: Pixel>() -> f64 {
@@ -713,12 +736,51 @@ fn locate_frames<P: Pixel>(
     params: &CrockerGrierParams,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<(usize, Feature)>> {
+    crate::limits::check_frame_not_empty(height, width)?;
+    check_frame_data(data.len(), n, height, width)?;
+    // One rescaling range for the whole stack, as TrackPy's for one array.
+    let integer_max = integer_range(&data[..n * height * width]);
+    locate_frames_in_range(data, n, height, width, params, integer_max, progress)
+}
+
+/// That `len` values hold `n` frames of `height × width`.
+fn check_frame_data(len: usize, n: usize, height: usize, width: usize) -> anyhow::Result<()> {
+    match n
+        .checked_mul(height)
+        .and_then(|rows| rows.checked_mul(width))
+    {
+        Some(expected) if expected <= len => Ok(()),
+        _ => Err(input_error(format!(
+            "{len} values cannot hold {n} frames of {height} × {width}"
+        ))),
+    }
+}
+
+/// [`locate_stack`] of the first `n` row-major `height × width` frames of
+/// `data`, with peaks found in band-passed frames rescaled to
+/// `0..=integer_max` (TrackPy's `convert_to_int`: the largest value of the
+/// array's integer type, e.g. 255 for `uint8` and 65,535 for `uint16`;
+/// 255 for float arrays). A caller that goes through a long stack in
+/// chunks (to stay interruptible) passes every chunk the same
+/// `integer_max`, so the features do not depend on the chunking; frame
+/// indices are within `data`.
+pub fn locate_frames_in_range<P: Pixel>(
+    data: &[P],
+    n: usize,
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    integer_max: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<(usize, Feature)>> {
     params.validate()?;
     crate::limits::check_frame_not_empty(height, width)?;
+    check_frame_data(data.len(), n, height, width)?;
+    if integer_max == 0 {
+        return Err(input_error("integer_max: must be ≥ 1"));
+    }
     let frame_len = height * width;
     let frame = |index: usize| &data[index * frame_len..(index + 1) * frame_len];
-    // One rescaling range for the whole stack, as TrackPy's for one array.
-    let integer_max = integer_range(&data[..n * frame_len]);
     let mask = Mask::new(params.radius());
     let per_frame: Vec<Vec<(usize, Feature)>> = (0..n)
         .into_par_iter()

@@ -28,6 +28,7 @@ pub mod cve;
 pub mod ml;
 pub mod msd;
 pub mod scan;
+pub mod tables;
 
 pub use scan::{Exposure, ScanGeometry};
 
