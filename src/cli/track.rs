@@ -123,7 +123,7 @@ pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
     )
     .map_err(|e| input_error(e.to_string()))?;
     if let Some(d) = args.diameter
-        && (d < 1 || d % 2 == 0 || d > microscope.height.max(microscope.width))
+        && (d < 1 || d.is_multiple_of(2) || d > microscope.height.max(microscope.width))
     {
         return Err(input_error(format!(
             "--diameter: must be an odd number of pixels within the field, got {d}"
@@ -328,6 +328,15 @@ fn write_summary(out: &mut dyn Write, result: &TrackResult, dir: &Path) -> anyho
             writeln!(out, "ensemble (not bias-corrected): {}", interval(raw))?;
         }
         (None, _) => writeln!(out, "no ensemble D: too few steps in the tracks")?,
+    }
+    if let Some(e) = result.d()
+        && !(e.standard_error.is_finite() && e.interval_valid)
+    {
+        writeln!(
+            out,
+            "warning: the ensemble's interval is not valid ({} steps): do not trust this D (docs/recording.md, \"When to distrust it\")",
+            e.steps
+        )?;
     }
     writeln!(out, "wrote {} ({})", dir.display(), OUTPUTS.join(", "))?;
     Ok(())

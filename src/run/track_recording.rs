@@ -186,7 +186,7 @@ pub fn check_recording(frames: &FrameStack, microscope: &SimParams) -> anyhow::R
 /// number of pixels ≥ 2σ + 1, at least 3.
 pub fn diameter_for(sigma_px: f64) -> usize {
     let d = (2.0 * sigma_px + 1.0).ceil().max(3.0) as usize;
-    if d % 2 == 0 { d + 1 } else { d }
+    if d.is_multiple_of(2) { d + 1 } else { d }
 }
 
 /// Tracks `frames`, a recording taken with `microscope` (its frame size,
