@@ -887,10 +887,6 @@ mod tests {
             })
             .collect();
         let unconditioned = fit(&on_the_field);
-        eprintln!(
-            "D true 0.75: in the box {:.4} ± {:.4}, the box's runs conditioned on the field {:.4}",
-            boxed.d, boxed.standard_error, unconditioned.d
-        );
         assert!(
             unconditioned.d < boxed.d - 3.0 * boxed.standard_error,
             "conditioned on the field {} against the box {}",
