@@ -143,6 +143,7 @@ pub fn run(
         ensemble_margin_px: args.ensemble_margin_px,
         given_sigma: args.given_sigma,
     };
+    settings.check(&geometry)?;
     let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
     let table = estimate_table(
         tracks,

@@ -40,6 +40,29 @@ impl TableSettings {
             given_sigma: false,
         }
     }
+
+    /// Checks the settings against a scan of `geometry`, each error naming
+    /// the flag: before a table is read, so a bad flag is answered first.
+    pub fn check(&self, geometry: &ScanGeometry) -> anyhow::Result<()> {
+        let settings = self;
+        let margin = settings.ensemble_margin_px;
+        if !(margin.is_finite() && margin >= 0.0) {
+            return Err(input_error(format!(
+                "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
+                readable(margin)
+            )));
+        }
+        crate::track::pipeline::check_ensemble_margin(margin, geometry.height, geometry.width)
+            .map_err(|e| input_error(format!("--ensemble-margin-px: {e}")))?;
+        crate::track::pipeline::check_min_points("--min-points", settings.min_points)?;
+        if !crate::track::pipeline::valid_ensemble_gate(settings.ensemble_gate) {
+            return Err(input_error(format!(
+                "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
+                readable(settings.ensemble_gate)
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// The estimates of a tracks table by every method.
@@ -66,22 +89,8 @@ pub fn estimate_table(
     settings: &TableSettings,
     source: &str,
 ) -> anyhow::Result<TableEstimates> {
+    settings.check(geometry)?;
     let margin = settings.ensemble_margin_px;
-    if !(margin.is_finite() && margin >= 0.0) {
-        return Err(input_error(format!(
-            "--ensemble-margin-px: must be a finite number ≥ 0, got {}",
-            readable(margin)
-        )));
-    }
-    crate::track::pipeline::check_ensemble_margin(margin, geometry.height, geometry.width)
-        .map_err(|e| input_error(format!("--ensemble-margin-px: {e}")))?;
-    crate::track::pipeline::check_min_points("--min-points", settings.min_points)?;
-    if !crate::track::pipeline::valid_ensemble_gate(settings.ensemble_gate) {
-        return Err(input_error(format!(
-            "--ensemble-gate: must be a share of the gate in (0, 0.707] or 1 (every step), got {}",
-            readable(settings.ensemble_gate)
-        )));
-    }
     refuse_foreign_tracks(source, &tracks, geometry)?;
     let mut notes = Vec::new();
     if !settings.given_sigma && tracks.iter().any(|t| t.has_sigma()) {

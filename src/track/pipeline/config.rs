@@ -4,14 +4,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::link::{ensemble_ml, tracks_of};
-use crate::error::input_error;
 use crate::metrics::tracking::{DEFAULT_GATE_PX, TruthPosition, TruthSelection};
-use crate::track::diffusion::{ENSEMBLE_GATE, MAX_ENSEMBLE_GATE, ScanGeometry};
-use crate::track::{Detection, Linking, lap, trackpy};
+use crate::track::diffusion::{ENSEMBLE_GATE, MAX_ENSEMBLE_GATE};
 
-/// Version of the linking step (the linkers of [`trackpy`] and
-/// [`lap`] and the tracks table they make).
+/// Version of the linking step (the linkers of
+/// [`trackpy`](crate::track::trackpy) and [`lap`](crate::track::lap) and the tracks table they make).
 pub const LINK_VERSION: &str = "scanloc-link/4";
 
 /// Version of the scoring of tracks ([`evaluate`](super::evaluate()) and its JSON).
@@ -23,9 +20,9 @@ pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/6";
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum LinkerSpec {
-    /// TrackPy 0.7's `link` ([`trackpy`]).
+    /// TrackPy 0.7's `link` ([`trackpy`](crate::track::trackpy)).
     Trackpy(TrackpySettings),
-    /// Frame-to-frame LAP and gap closing ([`lap`]).
+    /// Frame-to-frame LAP and gap closing ([`lap`](crate::track::lap)).
     Lap(LapSettings),
 }
 
@@ -125,60 +122,6 @@ impl LinkerSpec {
         match self {
             LinkerSpec::Trackpy(_) => "trackpy",
             LinkerSpec::Lap(_) => "lap",
-        }
-    }
-
-    /// Links `detections` of a recording with scan `geometry` (whose frame
-    /// period and pixel size turn a diffusion coefficient into a step).
-    pub fn link(
-        &self,
-        detections: &[Detection],
-        geometry: &ScanGeometry,
-    ) -> anyhow::Result<Linking> {
-        match self {
-            LinkerSpec::Trackpy(s) => trackpy::link(
-                detections,
-                &trackpy::TrackpyParams {
-                    search_range: s.search_range,
-                    memory: s.memory,
-                },
-            ),
-            LinkerSpec::Lap(s) => {
-                let gated = |params: lap::LapParams| lap::LapParams {
-                    gate_sigmas: s.gate_sigmas.unwrap_or(lap::GATE_SIGMAS),
-                    ..params
-                };
-                let with_diffusion = |d: f64| {
-                    gated(lap::LapParams::from_diffusion(
-                        d,
-                        geometry.frame_period_s() * 1e3,
-                        geometry.pixel_size_um,
-                        s.max_gap,
-                    ))
-                };
-                let params = match (s.search_range, s.diffusion_um2_s) {
-                    (Some(range), _) => gated(lap::LapParams::from_search_range(range, s.max_gap)),
-                    (None, Some(d)) => with_diffusion(d),
-                    (None, None) => {
-                        return Err(input_error(
-                            "the lap linker needs search_range or diffusion_um2_s",
-                        ));
-                    }
-                };
-                let first = lap::link(detections, &params)?;
-                if !s.relink {
-                    return Ok(first);
-                }
-                // The second pass, with the first pass's D; if it gives
-                // none (no step), the first pass stands.
-                let tracks = tracks_of(detections, &first);
-                match ensemble_ml(&tracks, geometry) {
-                    Some(d) if d.is_finite() && d > 0.0 => {
-                        lap::link(detections, &with_diffusion(d))
-                    }
-                    _ => Ok(first),
-                }
-            }
         }
     }
 }

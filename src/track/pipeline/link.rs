@@ -4,10 +4,11 @@
 use std::collections::BTreeMap;
 
 use super::config::LinkerSpec;
+use crate::error::input_error;
 use crate::track::diffusion::{
     ENSEMBLE_GATE, ScanGeometry, Series, attach_detection_profile, ml, within_gates,
 };
-use crate::track::{Detection, Linking};
+use crate::track::{Detection, Linking, lap, trackpy};
 use crate::types::{Prediction, Track, TrackPoint};
 
 /// The ML ensemble's D (µm²/s) over all `tracks` as `scanloc diffusion`
@@ -92,4 +93,60 @@ pub fn link_predictions(
         .collect();
     let linking = linker.link(&detections, geometry)?;
     Ok(tracks_of(&detections, &linking))
+}
+
+impl LinkerSpec {
+    /// Links `detections` of a recording with scan `geometry` (whose frame
+    /// period and pixel size turn a diffusion coefficient into a step).
+    pub fn link(
+        &self,
+        detections: &[Detection],
+        geometry: &ScanGeometry,
+    ) -> anyhow::Result<Linking> {
+        match self {
+            LinkerSpec::Trackpy(s) => trackpy::link(
+                detections,
+                &trackpy::TrackpyParams {
+                    search_range: s.search_range,
+                    memory: s.memory,
+                },
+            ),
+            LinkerSpec::Lap(s) => {
+                let gated = |params: lap::LapParams| lap::LapParams {
+                    gate_sigmas: s.gate_sigmas.unwrap_or(lap::GATE_SIGMAS),
+                    ..params
+                };
+                let with_diffusion = |d: f64| {
+                    gated(lap::LapParams::from_diffusion(
+                        d,
+                        geometry.frame_period_s() * 1e3,
+                        geometry.pixel_size_um,
+                        s.max_gap,
+                    ))
+                };
+                let params = match (s.search_range, s.diffusion_um2_s) {
+                    (Some(range), _) => gated(lap::LapParams::from_search_range(range, s.max_gap)),
+                    (None, Some(d)) => with_diffusion(d),
+                    (None, None) => {
+                        return Err(input_error(
+                            "the lap linker needs search_range or diffusion_um2_s",
+                        ));
+                    }
+                };
+                let first = lap::link(detections, &params)?;
+                if !s.relink {
+                    return Ok(first);
+                }
+                // The second pass, with the first pass's D; if it gives
+                // none (no step), the first pass stands.
+                let tracks = tracks_of(detections, &first);
+                match ensemble_ml(&tracks, geometry) {
+                    Some(d) if d.is_finite() && d > 0.0 => {
+                        lap::link(detections, &with_diffusion(d))
+                    }
+                    _ => Ok(first),
+                }
+            }
+        }
+    }
 }

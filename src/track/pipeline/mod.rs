@@ -20,8 +20,8 @@ pub mod link;
 pub mod records;
 
 pub use bias::{
-    BIAS_CORRECTION_VERSION, BiasSetup, CorrectedEnsemble, Localiser, SimulatedBias,
-    correct_ensemble, measure_bias, recording_geometry,
+    BIAS_CORRECTION_VERSION, BiasSetup, Localiser, SimulatedBias, correct_ensemble, measure_bias,
+    recording_geometry,
 };
 pub use config::{
     BiasCorrection, LINK_VERSION, LapSettings, LinkerSpec, MAX_BIAS_RECORDINGS,
@@ -30,4 +30,5 @@ pub use config::{
 };
 pub use evaluate::{evaluate, ml_ensemble_of};
 pub use link::{link_predictions, scores_at_least, series_of, tracks_of};
+pub use records::CorrectedEnsemble;
 pub use records::{EstimatorScore, StoredEstimate, TrackEstimate, TrackEvaluation};

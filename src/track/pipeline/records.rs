@@ -5,7 +5,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::bias::CorrectedEnsemble;
 use super::config::TrackScoring;
 use crate::metrics::diffusion::{DiffusionInterval, DiffusionScore};
 use crate::metrics::tracking::TrackingScore;
@@ -123,5 +122,67 @@ impl TrackEvaluation {
     /// The entry of estimator `method`.
     pub fn estimator(&self, method: Method) -> Option<&EstimatorScore> {
         self.diffusion.iter().find(|e| e.method == method)
+    }
+}
+
+/// The ML ensemble corrected for a pipeline's bias by simulation
+/// ([`BiasCorrection::Simulated`](super::BiasCorrection::Simulated)): the pipeline read `D̂` on the recording
+/// and `D̂ₛ` on a simulated one at D = `D̂`, so it reads D high by `D̂ₛ/D̂`
+/// there, and the corrected D is `D̂ · D̂/D̂ₛ`, its relative standard error
+/// the two estimates' added in quadrature.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CorrectedEnsemble {
+    /// The corrected D with its standard error and 95 % interval
+    /// (`D ± 1.96 SE`); its localisation variance and steps are the
+    /// recording's ensemble's.
+    pub estimate: StoredEstimate,
+    /// `D/D_true − 1` of the corrected D.
+    pub relative_error: f64,
+    /// QDs in each simulated recording: as many as give them the
+    /// recording's localisations per frame, by a pilot with `pilot_qds`.
+    pub simulated_qds: u64,
+    pub pilot_qds: u64,
+    /// The simulated recordings' frames, all together.
+    pub simulated_frames: usize,
+    /// The ML ensemble the pipeline read on the simulated recordings' tracks
+    /// together, whose true D is the recording's ensemble D̂.
+    pub simulated: StoredEstimate,
+}
+
+impl CorrectedEnsemble {
+    /// The correction of `recording`'s ensemble estimate (true D `true_d`)
+    /// by `simulated`, the pipeline's estimate on a recording simulated at
+    /// D = `recording.d`; `None` where either is not a positive finite D.
+    pub fn new(
+        recording: &StoredEstimate,
+        simulated: &StoredEstimate,
+        true_d: f64,
+        qds: (u64, u64),
+        simulated_frames: usize,
+    ) -> Option<Self> {
+        let positive = |e: &StoredEstimate| e.d.is_finite() && e.d > 0.0;
+        if !(positive(recording) && positive(simulated)) {
+            return None;
+        }
+        let d = recording.d * recording.d / simulated.d;
+        let relative_se =
+            (recording.standard_error / recording.d).hypot(simulated.standard_error / simulated.d);
+        let standard_error = d * relative_se;
+        let half_width = 1.96 * standard_error;
+        let estimate = StoredEstimate {
+            d,
+            standard_error: finite_or_nan(standard_error),
+            low: finite_or_nan(d - half_width),
+            high: (d + half_width).is_finite().then_some(d + half_width),
+            ..*recording
+        };
+        Some(Self {
+            estimate,
+            relative_error: d / true_d - 1.0,
+            simulated_qds: qds.1,
+            pilot_qds: qds.0,
+            simulated_frames,
+            simulated: *simulated,
+        })
     }
 }
