@@ -323,18 +323,24 @@ fn the_recordings_memory_estimate_covers_its_measured_peak() {
     };
     let frames = 1500;
     // The process's own footprint (code, libraries; its one frame's data
-    // are 0.1 MB) measured on one frame, taken off the peak.
-    let baseline = run(1);
+    // are 0.1 MB) measured on one frame, taken off the peak: the median of
+    // three runs, as it varies between runs (measured 93–117 MB of peak
+    // resident memory with the other tests running), so both comparisons
+    // allow that much: 32 MiB, against 98 MB of counts.
+    let mut baselines = [run(1), run(1), run(1)];
+    baselines.sort_unstable();
+    let baseline = baselines[1];
+    let noise = 32 << 20;
     let used = run(frames).saturating_sub(baseline);
     let estimate = params(frames).dataset_bytes();
-    eprintln!("estimate {estimate} B, measured {used} B (baseline {baseline} B)");
+    eprintln!("estimate {estimate} B, measured {used} B (baselines {baselines:?} B)");
     assert!(
-        estimate >= used,
-        "estimate {estimate} < measured peak {used}"
+        estimate + noise >= used,
+        "estimate {estimate} < measured peak {used} (beyond {noise} B)"
     );
     assert!(
-        estimate < 2 * used,
-        "estimate {estimate} ≥ twice the peak {used}"
+        estimate < 2 * used + noise,
+        "estimate {estimate} ≥ twice the peak {used} (beyond {noise} B)"
     );
 }
 
