@@ -280,8 +280,16 @@ fn peak_bytes(args: &[&str]) -> u64 {
 /// `simulate-recording`'s memory estimate, which `check_memory` compares
 /// with the machine's, is not below the peak it measures on a mid-sized
 /// recording (98 MB of counts), nor far above it.
+///
+/// Run alone (`cargo test --release --test it -- --ignored
+/// the_recordings_memory`): a child spawned from the test process reports
+/// as its peak the larger of its own and the test process's resident memory
+/// at the spawn (the spawn shares the parent's memory until `exec`), so
+/// beside the other tests, whose memory comes and goes, the figure is the
+/// harness's, not the command's. Alone, the one-frame baseline is 20 MB.
 #[cfg(target_os = "linux")]
 #[test]
+#[ignore = "measures a child's peak memory: run alone (see its doc)"]
 fn the_recordings_memory_estimate_covers_its_measured_peak() {
     use scanloc::sim::SimParams;
     use scanloc::sim::recording::RecordingParams;
@@ -324,9 +332,8 @@ fn the_recordings_memory_estimate_covers_its_measured_peak() {
     let frames = 1500;
     // The process's own footprint (code, libraries; its one frame's data
     // are 0.1 MB) measured on one frame, taken off the peak: the median of
-    // three runs, as it varies between runs (measured 93–117 MB of peak
-    // resident memory with the other tests running), so both comparisons
-    // allow that much: 32 MiB, against 98 MB of counts.
+    // three runs, and both comparisons allow 32 MiB for the footprint's
+    // variation, against 98 MB of counts.
     let mut baselines = [run(1), run(1), run(1)];
     baselines.sort_unstable();
     let baseline = baselines[1];
