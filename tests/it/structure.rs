@@ -42,6 +42,24 @@ const TO_BE_SPLIT: &[(&str, &str)] = &[
 /// other work removes now (module folder, importing file, imported file).
 const CIRCLES_TO_BE_SPLIT: &[(&str, &str, &str)] = &[];
 
+/// Where scanning resumes if `lines[i]` opens a `#[cfg(test)]` module (a
+/// test module at column 0, ended by the first `}` at column 0): the line
+/// after its end; `None` if it does not.
+fn after_test_module(lines: &[&str], i: usize) -> Option<usize> {
+    let opens = lines[i].starts_with("#[cfg(test)]")
+        && lines
+            .get(i + 1)
+            .is_some_and(|next| next.starts_with("mod ") && next.trim_end().ends_with('{'));
+    if !opens {
+        return None;
+    }
+    let mut end = i + 2;
+    while end < lines.len() && !lines[end].starts_with('}') {
+        end += 1;
+    }
+    Some(end + 1)
+}
+
 /// `source` without its comments and its `#[cfg(test)]` module (a test
 /// module at column 0, ended by the first `}` at column 0).
 fn without_tests_and_comments(source: &str) -> String {
@@ -50,16 +68,8 @@ fn without_tests_and_comments(source: &str) -> String {
     let mut i = 0;
     while i < lines.len() {
         let line = lines[i];
-        if line.starts_with("#[cfg(test)]")
-            && lines
-                .get(i + 1)
-                .is_some_and(|next| next.starts_with("mod ") && next.trim_end().ends_with('{'))
-        {
-            i += 2;
-            while i < lines.len() && !lines[i].starts_with('}') {
-                i += 1;
-            }
-            i += 1;
+        if let Some(after) = after_test_module(&lines, i) {
+            i = after;
             continue;
         }
         let code = line.split("//").next().unwrap_or("");
@@ -361,16 +371,8 @@ fn long_functions(source: &str) -> Vec<(String, usize, usize)> {
     let mut i = 0;
     while i < lines.len() {
         let line = lines[i];
-        if line.starts_with("#[cfg(test)]")
-            && lines
-                .get(i + 1)
-                .is_some_and(|next| next.starts_with("mod ") && next.trim_end().ends_with('{'))
-        {
-            i += 2;
-            while i < lines.len() && !lines[i].starts_with('}') {
-                i += 1;
-            }
-            i += 1;
+        if let Some(after) = after_test_module(&lines, i) {
+            i = after;
             continue;
         }
         if let Some(name) = function_name(line) {
