@@ -34,8 +34,11 @@
 //! reported is its width / 3.92. The interval is stated valid for at
 //! least [`MIN_STEPS`] steps per axis.
 
+use std::cell::Cell;
+
 use rayon::prelude::*;
 
+use super::search::{crossing, minimise, minimise_near};
 use super::{Estimate, Series, normal_cdf};
 
 /// Fewest steps per axis for which the likelihood-ratio interval is stated
@@ -45,9 +48,18 @@ pub const MIN_STEPS: usize = 10;
 /// χ²₁ quantile of 0.95.
 const CHI2_95: f64 = 3.841_458_820_694_124;
 
-/// Iterations of a golden-section search or bisection: 0.618²⁸ ≈ 1.4·10⁻⁶
-/// of the bracket, far below any estimate's standard error.
-const GOLDEN_ITERATIONS: usize = 28;
+/// How precisely log D is located, at the minimum and where the profile
+/// crosses the interval's level: far below any estimate's relative
+/// standard error (0.2 % on a million localisations).
+const LOG_D_TOLERANCE: f64 = 1e-5;
+
+/// How precisely the signed root of σ² is located, as a share of its
+/// search's bracket.
+const VARIANCE_TOLERANCE: f64 = 1e-7;
+
+/// The share of the σ² search's bracket, either side of the last σ̂², where
+/// the profile's search starts.
+const WARM_START_SHARE: f64 = 1e-3;
 
 /// How far from a localisation's prediction, in its standard deviations,
 /// the detection profile's bins are evaluated: beyond it a bin's mass is
@@ -103,7 +115,7 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64, steps: Steps) -> f64 
         // Conditioned on the localisation being in the field: its
         // predictive distribution is N(previous + (Δ − z), p).
         let predicted = values[i - 1] + (delta - z);
-        let sd = p.sqrt();
+        let per_sd = p.sqrt().recip();
         // Seen only inside the field and the linker's gate around the
         // previous localisation.
         let gate = series.gates[axis][i];
@@ -116,7 +128,7 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64, steps: Steps) -> f64 
             if from >= to {
                 return 0.0;
             }
-            normal_cdf((to - predicted) / sd) - normal_cdf((from - predicted) / sd)
+            normal_cdf((to - predicted) * per_sd) - normal_cdf((from - predicted) * per_sd)
         };
         let mut inside = mass(low, high);
         if let Some(profile) = &series.detection {
@@ -124,17 +136,22 @@ fn axis_cost(series: &Series, axis: usize, d: f64, v: f64, steps: Steps) -> f64 
             // prediction hold mass above 1e-19 (the bins are sorted and
             // disjoint): bounded work per step on a field of many bins.
             let bins = &profile.shortfalls[axis];
-            let (near, far) = (
-                predicted - PROFILE_REACH * sd,
-                predicted + PROFILE_REACH * sd,
-            );
+            let reach = PROFILE_REACH / per_sd;
+            let (near, far) = (predicted - reach, predicted + reach);
             let first = bins.partition_point(|&(_, to, _)| to <= near);
             for &(from, to, shortfall) in bins[first..].iter().take_while(|b| b.0 < far) {
                 inside -= shortfall * mass(from, to);
             }
         }
         if i > 1 || steps == Steps::All {
-            cost += p.ln() + z * z / p + 2.0 * inside.max(1e-300).ln();
+            // log p + 2 log(inside) as one logarithm where the product
+            // cannot underflow.
+            let inside = inside.max(1e-300);
+            let logs = match inside > 1e-100 {
+                true => (p * inside * inside).ln(),
+                false => p.ln() + 2.0 * inside.ln(),
+            };
+            cost += logs + z * z / p;
         }
         pivot = p;
         carry = z;
@@ -161,46 +178,36 @@ fn cost(series: &[&Series], d: f64, v: f64, steps: Steps) -> f64 {
     terms.into_iter().sum()
 }
 
-/// The minimiser and minimum of `f` on `[low, high]` by golden-section
-/// search (exact for unimodal `f`).
-fn golden(f: impl Fn(f64) -> f64, mut low: f64, mut high: f64) -> (f64, f64) {
-    let ratio = (5f64.sqrt() - 1.0) / 2.0;
-    let mut a = high - ratio * (high - low);
-    let mut b = low + ratio * (high - low);
-    let (mut fa, mut fb) = (f(a), f(b));
-    for _ in 0..GOLDEN_ITERATIONS {
-        if fa <= fb {
-            high = b;
-            b = a;
-            fb = fa;
-            a = high - ratio * (high - low);
-            fa = f(a);
-        } else {
-            low = a;
-            a = b;
-            fa = fb;
-            b = low + ratio * (high - low);
-            fb = f(b);
-        }
-    }
-    if fa <= fb { (a, fa) } else { (b, fb) }
-}
-
-/// The scale of the problem: the mean squared step per axis and the mean
-/// step time.
-fn scales(series: &[&Series]) -> Option<(f64, f64, usize)> {
+/// The scale of the problem: the mean squared step per axis, the mean
+/// step time, the number of steps per axis, and the covariance-based
+/// guess of D, `(⟨Δᵢ²⟩ + 2⟨ΔᵢΔᵢ₊₁⟩)/(2⟨Δt⟩)`, which neither the
+/// localisation error nor the blur biases (`None` where it is not
+/// positive).
+fn scales(series: &[&Series]) -> Option<(f64, f64, usize, Option<f64>)> {
     let (mut sum_sq, mut sum_dt, mut count) = (0.0, 0.0, 0usize);
+    let (mut sum_lag, mut lags) = (0.0, 0usize);
     for s in series {
         for axis in 0..2 {
+            let mut previous = None;
             for (delta, dt, _) in super::steps(s, axis) {
                 sum_sq += delta * delta;
                 sum_dt += dt;
                 count += 1;
+                if let Some(previous) = previous {
+                    sum_lag += previous * delta;
+                    lags += 1;
+                }
+                previous = Some(delta);
             }
         }
     }
-    (count > 0 && sum_dt > 0.0 && sum_sq > 0.0)
-        .then(|| (sum_sq / count as f64, sum_dt / count as f64, count / 2))
+    let (mean_sq, mean_dt) = (sum_sq / count as f64, sum_dt / count as f64);
+    let covariance_guess = (mean_sq + 2.0 * sum_lag / lags.max(1) as f64) / (2.0 * mean_dt);
+    (count > 0 && sum_dt > 0.0 && sum_sq > 0.0).then(|| {
+        let guess =
+            (covariance_guess > 0.0 && covariance_guess.is_finite()).then_some(covariance_guess);
+        (mean_sq, mean_dt, count / 2, guess)
+    })
 }
 
 /// The likelihood problem: the series and whether σ² is estimated.
@@ -213,6 +220,11 @@ struct Problem<'a> {
     /// The least `(Δtᵢ − 2τᵢ − 2τᵢ₊₁)/2` over the steps, s: down to σ² =
     /// `−D` times this, Σ stays diagonally dominant, so positive definite.
     shortest_free_time: f64,
+    /// log D and the signed root of σ̂² of the profile's last two calls,
+    /// the latest first, from which its next search starts (the searches
+    /// over D call it in a fixed order, so the results do not depend on
+    /// the thread count).
+    last_roots: Cell<[Option<(f64, f64)>; 2]>,
 }
 
 impl Problem<'_> {
@@ -232,11 +244,33 @@ impl Problem<'_> {
         // unimodal in it near 0.
         let v_min = -0.999 * d * self.shortest_free_time.max(0.0);
         let signed_square = |root: f64| root * root.abs();
-        let (root, value) = golden(
-            |root| cost(self.series, d, signed_square(root), self.steps),
-            -(-v_min).sqrt(),
-            self.v_max.sqrt(),
-        );
+        let (low, high) = (-(-v_min).sqrt(), self.v_max.sqrt());
+        let tolerance = VARIANCE_TOLERANCE * (high - low);
+        let at = |root| cost(self.series, d, signed_square(root), self.steps);
+        // The searches over D call the profile at nearby D one after
+        // another, and σ̂² moves smoothly with D: the search starts where
+        // the line through the last two roots (in log D) predicts it.
+        let log_d = d.ln();
+        let (root, value) = match self.last_roots.get() {
+            [Some(last), before] => {
+                let predicted = match before {
+                    Some(before) if before.0 != last.0 => {
+                        last.1 + (last.1 - before.1) / (last.0 - before.0) * (log_d - last.0)
+                    }
+                    _ => last.1,
+                };
+                minimise_near(
+                    at,
+                    predicted,
+                    WARM_START_SHARE * (high - low),
+                    (low, high),
+                    tolerance,
+                )
+            }
+            _ => minimise(at, low, high, tolerance),
+        };
+        self.last_roots
+            .set([Some((log_d, root)), self.last_roots.get()[0]]);
         let at_zero = cost(self.series, d, 0.0, self.steps);
         if at_zero <= value {
             (at_zero, 0.0)
@@ -245,25 +279,78 @@ impl Problem<'_> {
         }
     }
 
-    /// Where the profile crosses `level` between log D `inside` (below the
-    /// level) and `outside` (above it), by bisection in log D.
-    fn crossing(&self, mut inside: f64, mut outside: f64, level: f64) -> f64 {
-        for _ in 0..GOLDEN_ITERATIONS {
-            let middle = 0.5 * (inside + outside);
-            if self.profile(middle.exp()).0 <= level {
-                inside = middle;
-            } else {
-                outside = middle;
+    /// The minimum of the profile over log D near `guess`, within
+    /// `[lowest, highest]`: `(log D, −2 log L, σ²)` there, `None` where the
+    /// profile is nowhere finite on the unit grid of log D.
+    fn minimum(&self, guess: f64, lowest: f64, highest: f64) -> Option<(f64, f64, f64)> {
+        // The lowest point evaluated, with its σ̂²: the search's result.
+        let best = Cell::new((f64::NAN, f64::INFINITY, f64::NAN));
+        let last = Cell::new((f64::NAN, f64::NAN));
+        let at = |log_d: f64| {
+            // The search starts where the guess was evaluated.
+            if last.get().0 == log_d {
+                return last.get().1;
+            }
+            let (value, variance) = self.profile(log_d.exp());
+            last.set((log_d, value));
+            if value < best.get().1 {
+                best.set((log_d, value, variance));
+            }
+            value
+        };
+        let grid_minimum = || {
+            let grid = (0..=(highest - lowest).round() as usize).map(|k| lowest + k as f64);
+            let (start, value) = grid
+                .map(|g| (g, at(g)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))?;
+            value.is_finite().then_some(start)
+        };
+        match self.v_max == 0.0 || !at(guess).is_finite() {
+            // Where a value is one evaluation of the cost (every σ² given),
+            // or the guess is not finite: the best point of a unit grid
+            // over the whole search, then the unit either side of it (a
+            // short track's likelihood can have a second, narrow minimum).
+            true => {
+                let start = grid_minimum()?;
+                minimise(
+                    at,
+                    (start - 1.0).max(lowest),
+                    (start + 1.0).min(highest),
+                    LOG_D_TOLERANCE,
+                );
+            }
+            // Where each value is a search over σ²: downhill from the
+            // guess, which is within the ensemble's standard error or a
+            // few of it (the likelihood of D is unimodal in practice).
+            false => {
+                minimise_near(at, guess, FIRST_REACH, (lowest, highest), LOG_D_TOLERANCE);
             }
         }
-        0.5 * (inside + outside)
+        let best = best.get();
+        best.1.is_finite().then_some(best)
     }
 }
+
+/// How far either side of its guess, in log D, the search for the
+/// minimum looks first (it widens fourfold until it brackets it).
+const FIRST_REACH: f64 = 0.05;
 
 /// The maximum-likelihood estimate over `series` jointly; `None` without a
 /// step of non-zero length.
 pub fn estimate(series: &[&Series]) -> Option<Estimate> {
     estimate_with_dispersion(series, 1.0)
+}
+
+/// The localisation variance σ̂² of the maximum-likelihood fit over
+/// `series` jointly (the given variances' mean where every series has
+/// them), without the interval of D that [`estimate`] also searches for;
+/// `None` as for [`estimate`].
+pub fn localisation_variance(series: &[&Series]) -> Option<f64> {
+    let fit = Fit::new(series, Steps::All)?;
+    Some(match fit.known {
+        true => mean_given_variance(series),
+        false => fit.variance,
+    })
 }
 
 /// [`estimate`] with the interval widened for a dispersion `phi` (≥ 1):
@@ -277,9 +364,11 @@ pub fn estimate_with_dispersion(series: &[&Series], phi: f64) -> Option<Estimate
 /// interval at any dispersion is read.
 struct Fit<'a> {
     problem: Problem<'a>,
-    /// log D at the minimum, and −2 log L there.
+    /// log D at the minimum, −2 log L there, and the σ² that minimises it
+    /// there.
     log_d: f64,
     minimum: f64,
+    variance: f64,
     /// The ends of the log D search.
     lowest: f64,
     highest: f64,
@@ -291,7 +380,7 @@ impl<'a> Fit<'a> {
     /// `None` without a step of non-zero length, or where −2 log L is
     /// nowhere finite.
     fn new(series: &'a [&'a Series], which: Steps) -> Option<Self> {
-        let (mean_sq, mean_dt, all_steps) = scales(series)?;
+        let (mean_sq, mean_dt, all_steps, covariance_guess) = scales(series)?;
         let steps = match which {
             Steps::All => all_steps,
             Steps::AfterFirst => all_steps - series.iter().filter(|s| s.len() > 1).count(),
@@ -302,32 +391,21 @@ impl<'a> Fit<'a> {
             steps: which,
             v_max: if known { 0.0 } else { mean_sq },
             shortest_free_time: shortest_free_time(series),
+            last_roots: Cell::new([None; 2]),
         };
-        // A log-spaced grid brackets the optimum; golden section refines it.
-        let guess = (mean_sq / (2.0 * mean_dt)).ln();
-        let (lowest, highest) = (guess - 14.0, guess + 4.0);
-        let grid: Vec<f64> = (0..=18)
-            .map(|k| lowest + (highest - lowest) * k as f64 / 18.0)
-            .collect();
-        let values: Vec<f64> = grid.iter().map(|&g| problem.profile(g.exp()).0).collect();
-        let best = (0..grid.len()).min_by(|&a, &b| values[a].total_cmp(&values[b]))?;
-        if !values[best].is_finite() {
-            return None;
-        }
-        let (left, right) = (
-            grid[best.saturating_sub(1)],
-            grid[(best + 1).min(grid.len() - 1)],
-        );
-        let (log_d, minimum) = golden(|g| problem.profile(g.exp()).0, left, right);
-        let (log_d, minimum) = if values[best] < minimum {
-            (grid[best], values[best])
-        } else {
-            (log_d, minimum)
-        };
+        // The search spans from 10⁻⁶ to e⁴ times the steps' mean square
+        // over twice their time.
+        let naive = (mean_sq / (2.0 * mean_dt)).ln();
+        let (lowest, highest) = (naive - 14.0, naive + 4.0);
+        let guess = covariance_guess
+            .map_or(naive, f64::ln)
+            .clamp(lowest, highest);
+        let (log_d, minimum, variance) = problem.minimum(guess, lowest, highest)?;
         Some(Fit {
             problem,
             log_d,
             minimum,
+            variance,
             lowest,
             highest,
             known,
@@ -345,22 +423,23 @@ impl<'a> Fit<'a> {
             highest,
             ..
         } = self;
-        let level = minimum + CHI2_95 * phi.max(1.0);
-        let low = if problem.profile(lowest.exp()).0 <= level {
-            0.0
-        } else {
-            problem.crossing(*log_d, *lowest, level).exp()
-        };
-        let high = if problem.profile(highest.exp()).0 <= level {
-            f64::INFINITY
-        } else {
-            problem.crossing(*log_d, *highest, level).exp()
-        };
+        // The crossings are searched in √(−2 log L − minimum), which is
+        // close to linear in log D on each side of the minimum (the
+        // likelihood is close to Gaussian), so the secant lands near them
+        // from the first step.
+        let rise = |log_d: f64| (problem.profile(log_d.exp()).0 - minimum).max(0.0).sqrt();
+        let level = (CHI2_95 * phi.max(1.0)).sqrt();
+        let low = self
+            .crossing_towards(*lowest, level, &rise)
+            .map_or(0.0, f64::exp);
+        let high = self
+            .crossing_towards(*highest, level, &rise)
+            .map_or(f64::INFINITY, f64::exp);
         let d = log_d.exp();
         let localisation_variance = if self.known {
             mean_given_variance(problem.series)
         } else {
-            problem.profile(d).1
+            self.variance
         };
         Estimate {
             d,
@@ -373,6 +452,54 @@ impl<'a> Fit<'a> {
         }
     }
 }
+
+impl Fit<'_> {
+    /// Where `rise` (√(−2 log L − minimum), a function of log D) crosses
+    /// `level` between the minimum and log D `end`; `None` where it stays
+    /// below the level up to `end` (the interval is open that way).
+    ///
+    /// Probed outwards from the minimum first: a small step reads the
+    /// slope of `rise`, whose line predicts the crossing; steps beyond it
+    /// grow until the level is passed. The crossing is then searched on
+    /// the last two probes, so the profile is evaluated near the interval
+    /// rather than at the search's far ends.
+    fn crossing_towards(&self, end: f64, level: f64, rise: &impl Fn(f64) -> f64) -> Option<f64> {
+        let span = (end - self.log_d).abs();
+        let direction = (end - self.log_d).signum();
+        let mut inside = (self.log_d, 0.0);
+        let mut distance = FIRST_PROBE.min(span);
+        loop {
+            let probe = self.log_d + direction * distance;
+            let at_probe = rise(probe);
+            if at_probe > level {
+                return Some(crossing(
+                    rise,
+                    inside,
+                    (probe, at_probe),
+                    level,
+                    LOG_D_TOLERANCE,
+                ));
+            }
+            if distance >= span {
+                return None;
+            }
+            inside = (probe, at_probe);
+            // The line through the minimum and this probe, 20 % beyond
+            // where it reaches the level (rise is convex near the
+            // minimum's flanks), at least twice as far.
+            let predicted = match at_probe > 0.0 {
+                true => 1.2 * distance * level / at_probe,
+                false => 0.0,
+            };
+            distance = predicted.max(2.0 * distance).min(span);
+        }
+    }
+}
+
+/// The first step from the minimum of log D with which
+/// [`Fit::crossing_towards`] reads the slope of the likelihood: below an
+/// ensemble's relative standard error, far above the search's precision.
+const FIRST_PROBE: f64 = 0.005;
 
 /// Fewest tracks [`dispersion`] is measured on.
 pub const MIN_DISPERSION_TRACKS: usize = 20;

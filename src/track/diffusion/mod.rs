@@ -28,6 +28,7 @@ pub mod cve;
 pub mod ml;
 pub mod msd;
 pub mod scan;
+mod search;
 pub mod tables;
 
 pub use scan::{Exposure, ScanGeometry};
@@ -308,25 +309,18 @@ pub fn estimate_recording(
         let all: Vec<&Series> = series.iter().filter(|s| s.len() > 1).collect();
         method.estimate(&all)
     };
-    let (ensemble, ensemble_dispersion, whole_ensemble) = match method {
+    let (ensemble, ensemble_dispersion, shared_variance) = match method {
         Method::Ml => {
             let (ensemble, phi) = ml_ensemble(series, ensemble_gate, ensemble_margin).unzip();
             // The tracks' σ² comes from the likelihood of every step of
             // the whole tracks, as each track's own estimate takes them
             // (the ensemble leaves out first steps and steps beyond its
             // box).
-            (ensemble, phi.flatten(), of(&whole))
+            let all: Vec<&Series> = whole.iter().filter(|s| s.len() > 1).collect();
+            let shared = ml::localisation_variance(&all).filter(|v| v.is_finite());
+            (ensemble, phi.flatten(), shared)
         }
-        _ => {
-            let whole_ensemble = of(&whole);
-            (whole_ensemble, None, whole_ensemble)
-        }
-    };
-    let shared_variance = match (method, &whole_ensemble) {
-        (Method::Ml, Some(e)) if e.localisation_variance.is_finite() => {
-            Some(e.localisation_variance)
-        }
-        _ => None,
+        _ => (of(&whole), None, None),
     };
     // Each track as its own estimate sees it: σ² told where the ensemble
     // gave it.
