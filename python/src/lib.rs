@@ -1006,7 +1006,9 @@ fn _scanloc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_score, m)?)?;
     m.add_function(wrap_pyfunction!(_version, m)?)?;
     registry::register(m)?;
+    track::register(m)?;
     Ok(())
 }
 
 mod registry;
+mod track;
