@@ -10,6 +10,9 @@ works, takes numpy stacks without copying them where the layout allows
 (``KeyboardInterrupt``) within a fraction of a second, and shows progress
 with tqdm when it is installed.
 
+``track`` runs the command line's one-command pipeline (``scanloc
+track``) on a recording: localisation, linking and a bias-corrected D.
+
 The API, and how each call maps to TrackPy's and to the command line:
 docs/python.md.
 """
@@ -38,6 +41,8 @@ __all__ = [
     "diffusion",
     "emsd",
     "score",
+    "track",
+    "TrackResult",
     "is_zero_copy",
 ]
 
@@ -556,6 +561,114 @@ def emsd(traj: pd.DataFrame, mpp: float, fps: float, max_lagtime: int = 100, det
     if not detail:
         return result.set_index("lagt")["msd"]
     return result
+
+
+class TrackResult:
+    """What :func:`track` returns: the outputs of ``scanloc track``.
+
+    - ``tracks``: DataFrame, tracks.csv (frame, x, y, gate_x, gate_y, …,
+      particle: TrackPy's columns);
+    - ``diffusion``: DataFrame, diffusion.csv (one ``ml`` row per track
+      with a D of its own, then ``ensemble`` as read and, with the bias
+      correction, ``ensemble-corrected``; columns particle, points, method,
+      d_um2_s, standard_error, low_95, high_95, localisation_variance_um2,
+      interval_valid);
+    - ``ensemble``: dict, the ensemble D to report (corrected where there
+      is a correction) as ``--json`` prints it: d_um2_s, standard_error,
+      low_95, high_95 (``None`` for an unbounded interval), steps,
+      interval_valid, plus bias_corrected and warnings (empty when the D
+      can be trusted); ``{}`` with a warning when there is none;
+    - ``settings``: dict, settings.json (every setting chosen or given);
+    - ``summary``: dict, the whole ``--json`` summary (counts of frames,
+      localisations, linked, tracks; the uncorrected ensemble).
+    """
+
+    def __init__(self, tracks: pd.DataFrame, diffusion: pd.DataFrame, settings: dict, summary: dict):
+        self.tracks = tracks
+        self.diffusion = diffusion
+        self.settings = settings
+        self.summary = summary
+        self.ensemble = dict(summary.get("ensemble") or {})
+        self.ensemble["bias_corrected"] = summary["bias_corrected"]
+        self.ensemble["warnings"] = list(summary["warnings"])
+
+    def __repr__(self) -> str:
+        d = self.ensemble.get("d_um2_s")
+        shown = "no ensemble D" if d is None else f"D = {d:.4g} µm²/s ± {self.ensemble['standard_error']:.2g}"
+        return (
+            f"TrackResult({self.summary['frames']} frames, {len(self.tracks)} localisations in "
+            f"{self.summary['tracks']} tracks, {shown}{', bias-corrected' if self.ensemble['bias_corrected'] else ''})"
+        )
+
+
+def track(
+    recording: Any,
+    microscope: Any,
+    *,
+    method: str = "crocker-grier",
+    diameter: Optional[int] = None,
+    min_score: Optional[float] = None,
+    search_range: Optional[float] = None,
+    max_gap: Optional[int] = None,
+    ensemble_margin_px: Optional[float] = None,
+    max_diffusion: Optional[float] = None,
+    min_points: Optional[int] = None,
+    bias_correction: bool = True,
+    bias_recordings: Optional[int] = None,
+    dead_time_ms: Optional[float] = None,
+    seed: Optional[int] = None,
+    progress: Optional[bool] = None,
+) -> TrackResult:
+    """Localise, link and read D from a recording in one call: ``scanloc
+    track REC --microscope scope.yaml`` (the same library function, the
+    same numbers), returning its outputs instead of writing them
+    (:class:`TrackResult`: ``tracks``, ``diffusion``, ``ensemble``,
+    ``settings``). Nothing is written anywhere.
+
+    ``recording`` is a path (``.npy`` or TIFF, read as the command reads
+    it) or an array ``(n, H, W)`` of photon counts (uint8, uint16, uint32,
+    or whole float values ≥ 0; copied once into uint32 counts, as the
+    command reads a file). ``microscope`` is a :class:`Microscope`, a dict
+    or a YAML path, and must state ``height``, ``width``,
+    ``pixel_size_um``, ``dwell_us`` and ``retrace_ms``; its PSF,
+    brightness and background make the simulations that choose the
+    settings.
+
+    The keywords are the command's flags, ``None`` their defaults (chosen
+    by simulation of the microscope, recorded in ``settings``):
+    ``diameter`` (odd, px; from the PSF), ``min_score`` (the mass to link
+    at; the F1-best on a simulated recording), ``search_range`` (px),
+    ``max_gap`` (2), ``ensemble_margin_px`` (σxy in px),
+    ``max_diffusion`` (3 µm²/s), ``min_points`` (3),
+    ``bias_correction`` (``--no-bias-correction`` is ``False``),
+    ``bias_recordings`` (2), ``dead_time_ms`` (0), ``seed`` (20261207).
+    Bad input raises ``ValueError`` (a missing file ``FileNotFoundError``)
+    with the command's message; Ctrl-C raises ``KeyboardInterrupt`` at the
+    next phase or stack of frames located; ``progress`` shows one tqdm bar.
+    """
+    m = _microscope(microscope)
+    if isinstance(recording, (str, os.PathLike)):
+        source: Any = os.fspath(recording)
+    else:
+        array = np.asarray(recording)
+        if array.ndim not in (2, 3):
+            raise ValueError(f"recording: expected shape (n, H, W) or (H, W), got {list(array.shape)}")
+        source = _as_stack(array)
+    tracks, diffusion_csv, settings, summary = _scanloc._track(
+        source, m._json(), m.stated, str(method),
+        None if diameter is None else int(diameter), _opt_float(min_score), _opt_float(search_range),
+        None if max_gap is None else int(max_gap), _opt_float(ensemble_margin_px), _opt_float(max_diffusion),
+        None if min_points is None else int(min_points), bool(bias_correction),
+        None if bias_recordings is None else int(bias_recordings), _opt_float(dead_time_ms),
+        None if seed is None else int(seed), _progress(progress),
+    )
+    diffusion_table = pd.read_csv(io.StringIO(diffusion_csv), dtype={"particle": str})
+    return TrackResult(
+        pd.read_csv(io.StringIO(tracks)),
+        diffusion_table,
+        json.loads(settings),
+        json.loads(summary),
+    )
 
 
 def score(truth: pd.DataFrame, predictions: pd.DataFrame, eps: Iterable[float] = (1, 2, 3), frames: Optional[int] = None) -> pd.DataFrame:

@@ -108,6 +108,34 @@ def diffusion(
     given_sigma: bool = ...,
 ) -> Tuple[pd.DataFrame, pd.DataFrame]: ...
 def emsd(traj: pd.DataFrame, mpp: float, fps: float, max_lagtime: int = ..., detail: bool = ..., pos_columns: Optional[Sequence[str]] = ...) -> Union[pd.Series, pd.DataFrame]: ...
+class TrackResult:
+    """The outputs of ``scanloc track``: tracks, diffusion, ensemble, settings, summary."""
+    tracks: pd.DataFrame
+    diffusion: pd.DataFrame
+    ensemble: dict
+    settings: dict
+    summary: dict
+
+def track(
+    recording: Union[str, os.PathLike, np.ndarray],
+    microscope: MicroscopeSpec,
+    *,
+    method: str = ...,
+    diameter: Optional[int] = ...,
+    min_score: Optional[float] = ...,
+    search_range: Optional[float] = ...,
+    max_gap: Optional[int] = ...,
+    ensemble_margin_px: Optional[float] = ...,
+    max_diffusion: Optional[float] = ...,
+    min_points: Optional[int] = ...,
+    bias_correction: bool = ...,
+    bias_recordings: Optional[int] = ...,
+    dead_time_ms: Optional[float] = ...,
+    seed: Optional[int] = ...,
+    progress: Optional[bool] = ...,
+) -> TrackResult:
+    """Localise, link and read D from a recording (``scanloc track``)."""
+    ...
 def score(truth: pd.DataFrame, predictions: pd.DataFrame, eps: Iterable[float] = ..., frames: Optional[int] = ...) -> pd.DataFrame: ...
 
 class Registry:

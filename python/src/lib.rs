@@ -29,9 +29,10 @@ use scanloc::detect::likelihood::{self, LikelihoodParams};
 use scanloc::error::InputError;
 use scanloc::sim::SimParams;
 use scanloc::sim::recording::{Blinking, RecordingParams};
+use scanloc::track::Detection;
 use scanloc::track::diffusion::tables::{TableSettings, estimate_table};
 use scanloc::track::diffusion::{Exposure, ScanGeometry};
-use scanloc::track::{Detection, lap::LapParams, trackpy::TrackpyParams};
+use scanloc::track::linker::{LinkerKind, LinkerRequest, Naming};
 use scanloc::types::{FrameStack, LocalisationSigma, Prediction};
 
 /// How often the calling thread checks for signals and draws progress.
@@ -810,79 +811,35 @@ fn _link<'py>(
     gate: Option<f64>,
     progress: bool,
 ) -> PyResult<Linked<'py>> {
-    use scanloc::limits::{
-        MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
-    };
-    let bounded = |name: &str, value: f64, max: f64| -> PyResult<f64> {
-        check_positive_at_most(name, value, max).map_err(|e| to_py(e.into()))
-    };
     let sigma = match (&sigma_x, &sigma_y) {
         (Some(sx), Some(sy)) => Some((sx, sy)),
         _ => None,
     };
     let detections = detections(&frame, &x, &y, sigma)?;
-    enum Linker {
-        Trackpy(TrackpyParams),
-        Lap(LapParams),
+    let configured = LinkerRequest {
+        linker: match linker {
+            "trackpy" => LinkerKind::Trackpy,
+            "lap" => LinkerKind::Lap,
+            other => {
+                return Err(value_error(format!(
+                    "linker: expected \"trackpy\" or \"lap\", got {other:?}"
+                )));
+            }
+        },
+        search_range,
+        memory,
+        max_gap,
+        diffusion,
+        frame_time_ms,
+        pixel_size_um,
+        gate,
     }
-    let configured = match linker {
-        "trackpy" => {
-            if diffusion.is_some() || max_gap.is_some() || gate.is_some() {
-                return Err(value_error(
-                    "diffusion, max_gap and gate are for linker=\"lap\" (trackpy uses search_range and memory)",
-                ));
-            }
-            let search_range = search_range
-                .ok_or_else(|| value_error("search_range: needed by linker=\"trackpy\""))?;
-            let params = TrackpyParams {
-                search_range: bounded("search_range", search_range, MAX_SEARCH_RANGE)?,
-                memory: memory.unwrap_or(0),
-            };
-            params.validate().map_err(to_py)?;
-            Linker::Trackpy(params)
-        }
-        "lap" => {
-            if memory.is_some_and(|m| m > 0) {
-                return Err(value_error(
-                    "memory is for linker=\"trackpy\" (lap closes gaps up to max_gap)",
-                ));
-            }
-            let max_gap = max_gap.unwrap_or(2);
-            let mut params = match (diffusion, search_range) {
-                (Some(d), _) => LapParams::from_diffusion(
-                    bounded("diffusion", d, MAX_DIFFUSION_UM2_S)?,
-                    bounded("frame_time_ms", frame_time_ms.unwrap_or(f64::NAN), f64::MAX)?,
-                    bounded("pixel_size_um", pixel_size_um.unwrap_or(f64::NAN), f64::MAX)?,
-                    max_gap,
-                ),
-                (None, Some(r)) => LapParams::from_search_range(
-                    bounded("search_range", r, MAX_SEARCH_RANGE)?,
-                    max_gap,
-                ),
-                (None, None) => {
-                    return Err(value_error(
-                        "linker=\"lap\" needs search_range or diffusion (with frame_time_ms and pixel_size_um)",
-                    ));
-                }
-            };
-            if let Some(gate) = gate {
-                params.gate_sigmas = bounded("gate", gate, MAX_GATE_SIGMAS)?;
-            }
-            params.validate().map_err(to_py)?;
-            Linker::Lap(params)
-        }
-        other => {
-            return Err(value_error(format!(
-                "linker: expected \"trackpy\" or \"lap\", got {other:?}"
-            )));
-        }
-    };
+    .configure(Naming::Keywords)
+    .map_err(to_py)?;
     let linking = interruptible(py, 1, "linking", progress, |bar, _| {
-        let linking = match &configured {
-            Linker::Trackpy(params) => scanloc::track::trackpy::link(&detections, params),
-            Linker::Lap(params) => scanloc::track::lap::link(&detections, params),
-        }
-        .map_err(|e| e.context("features: linking"))?;
+        let linking = configured
+            .link(&detections)
+            .map_err(|e| e.context("features: linking"))?;
         bar.inc(1);
         Ok(linking)
     })?;
@@ -1049,7 +1006,9 @@ fn _scanloc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_score, m)?)?;
     m.add_function(wrap_pyfunction!(_version, m)?)?;
     registry::register(m)?;
+    track::register(m)?;
     Ok(())
 }
 
 mod registry;
+mod track;

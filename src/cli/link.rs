@@ -7,7 +7,8 @@ use std::process::ExitCode;
 use clap::{Args, ValueEnum};
 use scanloc::error::input_error;
 use scanloc::io::{PendingFile, localisation_table};
-use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
+use scanloc::track::linker::{LinkerKind, LinkerRequest, Naming};
+use scanloc::track::{self, trackpy::TrackpyParams};
 
 /// Link localisations into trajectories (docs/tracking.md#linking).
 ///
@@ -77,9 +78,6 @@ pub struct LinkArgs {
     gate: Option<f64>,
 }
 
-/// --max-gap's default: blinks of up to 2 frames are closed.
-const DEFAULT_MAX_GAP: usize = 2;
-
 /// The linkers of `scanloc link`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Linker {
@@ -91,7 +89,20 @@ enum Linker {
 }
 
 pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let linker = Configured::from_args(&args)?;
+    let linker = LinkerRequest {
+        linker: match args.linker {
+            Linker::Trackpy => LinkerKind::Trackpy,
+            Linker::Lap => LinkerKind::Lap,
+        },
+        search_range: args.search_range,
+        memory: args.memory,
+        max_gap: args.max_gap,
+        diffusion: args.diffusion,
+        frame_time_ms: args.frame_time_ms,
+        pixel_size_um: args.pixel_size_um,
+        gate: args.gate,
+    }
+    .configure(Naming::Flags)?;
     if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
         return Err(input_error(format!(
             "--min-score: must be a finite number, got {}",
@@ -108,11 +119,9 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
         None => 0,
     };
     let detections = track::detections(&table);
-    let linking = match &linker {
-        Configured::Trackpy(params) => track::trackpy::link(&detections, params),
-        Configured::Lap(params) => track::lap::link(&detections, params),
-    }
-    .map_err(|e| e.context(format!("{}: linking", args.locs.display())))?;
+    let linking = linker
+        .link(&detections)
+        .map_err(|e| e.context(format!("{}: linking", args.locs.display())))?;
     let order = track::frame_order(&detections);
     localisation_table::fill_track_table(
         &mut pending,
@@ -139,85 +148,6 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
         args.out.display()
     )?;
     Ok(ExitCode::SUCCESS)
-}
-
-/// A linker with its checked parameters.
-enum Configured {
-    Trackpy(TrackpyParams),
-    Lap(LapParams),
-}
-
-impl Configured {
-    fn from_args(args: &LinkArgs) -> anyhow::Result<Self> {
-        use scanloc::limits::{
-            MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
-        };
-        let bounded = |flag: &str, value: f64, max: f64| -> anyhow::Result<f64> {
-            Ok(check_positive_at_most(flag, value, max)?)
-        };
-        let positive = |flag: &str, value: f64| bounded(flag, value, f64::MAX);
-        match args.linker {
-            Linker::Trackpy => {
-                if args.diffusion.is_some() || args.max_gap.is_some() || args.gate.is_some() {
-                    return Err(input_error(
-                        "--diffusion, --max-gap and --gate are for --linker lap (trackpy uses \
-                         --search-range and --memory)",
-                    ));
-                }
-                let Some(search_range) = args.search_range else {
-                    return Err(input_error("--search-range: needed by --linker trackpy"));
-                };
-                Ok(Self::Trackpy(TrackpyParams {
-                    search_range: bounded("--search-range", search_range, MAX_SEARCH_RANGE)?,
-                    memory: args.memory.unwrap_or(0),
-                }))
-            }
-            Linker::Lap => {
-                if args.memory.is_some() {
-                    return Err(input_error(
-                        "--memory is for --linker trackpy (lap closes gaps up to --max-gap)",
-                    ));
-                }
-                let max_gap = args.max_gap.unwrap_or(DEFAULT_MAX_GAP);
-                let mut params = match (args.diffusion, args.search_range) {
-                    (Some(d), _) => LapParams::from_diffusion(
-                        bounded("--diffusion", d, MAX_DIFFUSION_UM2_S)?,
-                        positive("--frame-time-ms", args.frame_time_ms.unwrap_or(f64::NAN))?,
-                        positive("--pixel-size-um", args.pixel_size_um.unwrap_or(f64::NAN))?,
-                        max_gap,
-                    ),
-                    (None, Some(r)) => LapParams::from_search_range(
-                        bounded("--search-range", r, MAX_SEARCH_RANGE)?,
-                        max_gap,
-                    ),
-                    (None, None) => {
-                        return Err(input_error(
-                            "--linker lap needs --search-range or --diffusion (with \
-                             --frame-time-ms and --pixel-size-um)",
-                        ));
-                    }
-                };
-                if let Some(gate) = args.gate {
-                    params.gate_sigmas = bounded("--gate", gate, MAX_GATE_SIGMAS)?;
-                }
-                params.validate()?;
-                Ok(Self::Lap(params))
-            }
-        }
-    }
-
-    fn describe(&self) -> String {
-        match self {
-            Self::Trackpy(p) => format!(
-                "trackpy, search range {} px, memory {}",
-                p.search_range, p.memory
-            ),
-            Self::Lap(p) => format!(
-                "lap, step variance {:.4} px², gate {} σ, max gap {}",
-                p.step_variance, p.gate_sigmas, p.max_gap
-            ),
-        }
-    }
 }
 
 /// `scanloc bench link`: random walks of particles that appear, disappear

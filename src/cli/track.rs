@@ -7,7 +7,11 @@ use std::process::ExitCode;
 
 use clap::Args;
 use scanloc::error::input_error;
-use scanloc::run::track_recording::{TrackMethod, TrackOptions, TrackResult, track_recording};
+use scanloc::run::track_recording::outputs::FILES;
+use scanloc::run::track_recording::{
+    OnStderr, TrackMethod, TrackOptions, TrackResult, check_stated, read_recording,
+    track_named_recording,
+};
 use scanloc::track::pipeline::StoredEstimate;
 
 use super::microscope::MicroscopeArgs;
@@ -87,56 +91,9 @@ enum MethodArg {
 }
 
 pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let frames = scanloc::io::read_frames(&args.recording)?;
     let microscope = args.microscope.resolve()?;
-    for field in ["height", "width", "pixel_size_um", "dwell_us", "retrace_ms"] {
-        if !microscope.stated.contains(field) {
-            return Err(input_error(format!(
-                "{field}: the microscope must state it (--microscope FILE.yaml or --{}); docs/recording.md",
-                field.replace('_', "-")
-            )));
-        }
-    }
+    check_stated(&microscope.stated)?;
     let microscope = microscope.params;
-    if (frames.height, frames.width) != (microscope.height, microscope.width) {
-        return Err(input_error(format!(
-            "{}: height/width: the recording's frames are {} × {} px, the microscope's {} × {}",
-            args.recording.display(),
-            frames.height,
-            frames.width,
-            microscope.height,
-            microscope.width
-        )));
-    }
-    scanloc::track::pipeline::check_min_points("--min-points", args.min_points)?;
-    if !(1..=scanloc::track::pipeline::MAX_BIAS_RECORDINGS).contains(&args.bias_recordings) {
-        return Err(input_error(format!(
-            "--bias-recordings: must be 1 to {}, got {}",
-            scanloc::track::pipeline::MAX_BIAS_RECORDINGS,
-            args.bias_recordings
-        )));
-    }
-    scanloc::limits::check_positive_at_most(
-        "--max-diffusion",
-        args.max_diffusion,
-        scanloc::limits::MAX_DIFFUSION_UM2_S,
-    )
-    .map_err(|e| input_error(e.to_string()))?;
-    if let Some(d) = args.diameter
-        && (d < 1 || d.is_multiple_of(2) || d > microscope.height.max(microscope.width))
-    {
-        return Err(input_error(format!(
-            "--diameter: must be an odd number of pixels within the field, got {d}"
-        )));
-    }
-    if let Some(score) = args.min_score
-        && !score.is_finite()
-    {
-        return Err(input_error(format!(
-            "--min-score: must be a finite number, got {score}"
-        )));
-    }
-    check_out(&args.out, &args.recording)?;
     let options = TrackOptions {
         method: match args.method {
             MethodArg::CrockerGrier => TrackMethod::CrockerGrier,
@@ -154,28 +111,27 @@ pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
         seed: args.seed,
         ..TrackOptions::default()
     };
-    let result = track_recording(&frames, &microscope, &options)
-        .map_err(|e| with_file(e, &args.recording))?;
+    options.check(&microscope)?;
+    let frames = read_recording(&args.recording)?;
+    check_out(&args.out, &args.recording)?;
+    let result = track_named_recording(
+        &args.recording.display().to_string(),
+        &frames,
+        &microscope,
+        &options,
+        &OnStderr,
+    )?;
     write_outputs(&args.out, &result)?;
     if args.json {
         writeln!(
             stdout,
             "{}",
-            serde_json::to_string_pretty(&summary_json(&result))?
+            serde_json::to_string_pretty(&result.summary_json())?
         )?;
     } else {
         write_summary(stdout, &result, &args.out)?;
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// An input error from the library, prefixed with the recording's name.
-fn with_file(error: anyhow::Error, recording: &Path) -> anyhow::Error {
-    if scanloc::error::exit_code(&error) == 2 {
-        input_error(format!("{}: {error:#}", recording.display()))
-    } else {
-        error
-    }
 }
 
 /// Refuses an output folder that holds (or is) the recording.
@@ -204,84 +160,13 @@ fn check_out(out: &Path, recording: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-const OUTPUTS: [&str; 3] = ["tracks.csv", "diffusion.csv", "settings.json"];
-
 fn write_outputs(out: &Path, result: &TrackResult) -> anyhow::Result<()> {
     std::fs::create_dir_all(out)
         .map_err(|e| input_error(format!("--out {}: {e}", out.display())))?;
-    let [tracks_name, diffusion_name, settings_name] = OUTPUTS;
-    let mut tracks = Vec::new();
-    scanloc::io::tracks::write_tracks_to(&mut tracks, &result.tracks)?;
-    std::fs::write(out.join(tracks_name), tracks)?;
-    let mut diffusion = Vec::new();
-    writeln!(
-        diffusion,
-        "particle,points,method,d_um2_s,standard_error,low_95,high_95,localisation_variance_um2,interval_valid"
-    )?;
-    for t in &result.per_track {
-        row(
-            &mut diffusion,
-            &t.particle.to_string(),
-            t.points,
-            &t.estimate,
-        )?;
+    for (name, contents) in result.files()? {
+        std::fs::write(out.join(name), contents)?;
     }
-    let points: usize = result
-        .tracks
-        .iter()
-        .filter(|t| t.points.len() > 1)
-        .map(|t| t.points.len())
-        .sum();
-    if let Some(e) = &result.ensemble {
-        row(&mut diffusion, "ensemble", points, e)?;
-    }
-    if let Some(c) = &result.corrected {
-        row(&mut diffusion, "ensemble-corrected", points, &c.estimate)?;
-    }
-    std::fs::write(out.join(diffusion_name), diffusion)?;
-    std::fs::write(
-        out.join(settings_name),
-        serde_json::to_string_pretty(&result.settings)? + "\n",
-    )?;
     Ok(())
-}
-
-fn row(out: &mut Vec<u8>, label: &str, points: usize, e: &StoredEstimate) -> std::io::Result<()> {
-    writeln!(
-        out,
-        "{label},{points},ml,{},{},{},{},{},{}",
-        e.d,
-        e.standard_error,
-        e.low,
-        e.high.unwrap_or(f64::INFINITY),
-        e.localisation_variance,
-        e.interval_valid
-    )
-}
-
-fn estimate_json(e: &StoredEstimate) -> serde_json::Value {
-    serde_json::json!({
-        "d_um2_s": e.d,
-        "standard_error": e.standard_error,
-        "low_95": e.low,
-        "high_95": e.high,
-        "steps": e.steps,
-        "interval_valid": e.interval_valid,
-    })
-}
-
-fn summary_json(result: &TrackResult) -> serde_json::Value {
-    serde_json::json!({
-        "ensemble": result.d().as_ref().map(estimate_json),
-        "bias_corrected": result.corrected.is_some(),
-        "uncorrected": result.ensemble.as_ref().map(estimate_json),
-        "frames": result.frames,
-        "localisations": result.localisations.len(),
-        "linked": result.linked,
-        "tracks": result.tracks.len(),
-        "tracks_with_d": result.per_track.len(),
-        "settings": result.settings,
-    })
 }
 
 fn write_summary(out: &mut dyn Write, result: &TrackResult, dir: &Path) -> anyhow::Result<()> {
@@ -327,17 +212,11 @@ fn write_summary(out: &mut dyn Write, result: &TrackResult, dir: &Path) -> anyho
         (Some(raw), None) => {
             writeln!(out, "ensemble (not bias-corrected): {}", interval(raw))?;
         }
-        (None, _) => writeln!(out, "no ensemble D: too few steps in the tracks")?,
+        (None, _) => {}
     }
-    if let Some(e) = result.d()
-        && !(e.standard_error.is_finite() && e.interval_valid)
-    {
-        writeln!(
-            out,
-            "warning: the ensemble's interval is not valid ({} steps): do not trust this D (docs/recording.md, \"When to distrust it\")",
-            e.steps
-        )?;
+    for warning in result.warnings() {
+        writeln!(out, "warning: {warning}")?;
     }
-    writeln!(out, "wrote {} ({})", dir.display(), OUTPUTS.join(", "))?;
+    writeln!(out, "wrote {} ({})", dir.display(), FILES.join(", "))?;
     Ok(())
 }

@@ -19,6 +19,7 @@
 
 pub mod diffusion;
 pub mod lap;
+pub mod linker;
 pub mod pipeline;
 pub mod trackpy;
 

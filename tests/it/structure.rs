@@ -30,9 +30,8 @@ const KERNELS: &[&str] = &[
 const TO_BE_SPLIT: &[(&str, &str)] = &[
     ("src/metrics/tracking.rs", "score_tracks"),
     ("src/run/compute.rs", "compute"),
-    // `track` and `fit-microscope`, landed at the end of a session: their
-    // phases are to be split into functions of their own.
-    ("src/run/track_recording.rs", "track_recording"),
+    // `fit-microscope`, landed at the end of a session: its phases are to
+    // be split into functions of their own.
     ("src/fit/mod.rs", "fit_microscope"),
     ("src/fit/mod.rs", "fit_in_focus_total"),
     ("src/cli/fit_microscope.rs", "run"),

@@ -6,7 +6,7 @@ use super::link::series_of;
 use super::records::{EstimatorScore, StoredEstimate, TrackEstimate, TrackEvaluation};
 use crate::metrics::diffusion::{DiffusionInterval, score_diffusion};
 use crate::metrics::tracking::{score_tracks, truth_tracks};
-use crate::track::diffusion::{Method, ScanGeometry, estimate_recording};
+use crate::track::diffusion::{Estimate, Method, ScanGeometry, Series, estimate_recording};
 use crate::types::{RecordingTruthRow, Track};
 
 /// Scores `tracks` against a recording's `truth` (true D `true_d`, scan
@@ -36,18 +36,7 @@ pub fn evaluate(
                 scoring.ensemble_margin_px * geometry.pixel_size_um,
             );
             let ensemble = estimates.ensemble.map(StoredEstimate::from);
-            let per_track: Vec<TrackEstimate> = estimates
-                .per_track
-                .into_iter()
-                .enumerate()
-                .filter_map(|(index, e)| {
-                    e.map(|e| TrackEstimate {
-                        particle: tracks[index].particle,
-                        points: series[index].len(),
-                        estimate: e.into(),
-                    })
-                })
-                .collect();
+            let per_track = track_estimates(tracks, &series, estimates.per_track);
             let valid: Vec<DiffusionInterval> = per_track
                 .iter()
                 .filter(|t| t.estimate.interval_valid)
@@ -72,6 +61,27 @@ pub fn evaluate(
         diffusion,
         corrected_ensemble: None,
     })
+}
+
+/// The estimates of `tracks` (whose series are `series`) that got one,
+/// from `per_track` (one entry per track, in order), as stored: by
+/// particle, with the track's localisations.
+pub fn track_estimates(
+    tracks: &[Track],
+    series: &[Series],
+    per_track: Vec<Option<Estimate>>,
+) -> Vec<TrackEstimate> {
+    per_track
+        .into_iter()
+        .enumerate()
+        .filter_map(|(index, e)| {
+            e.map(|e| TrackEstimate {
+                particle: tracks[index].particle,
+                points: series[index].len(),
+                estimate: e.into(),
+            })
+        })
+        .collect()
 }
 
 /// The ML ensemble of `tracks` as [`evaluate`] takes it under `scoring`
