@@ -10,6 +10,7 @@
 //! integers.
 
 pub mod bench;
+pub mod cli;
 pub mod detect;
 pub mod env_vars;
 pub mod error;

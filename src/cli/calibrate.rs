@@ -5,9 +5,9 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::manifest;
+use crate::sweep::{SweepKind, SweepSpec};
 use clap::Args;
-use scanloc::manifest;
-use scanloc::sweep::{SweepKind, SweepSpec};
 
 use super::sweep::{ExecutorArgs, run_sweep};
 

@@ -4,12 +4,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::manifest;
+use crate::registry::{CrossValidationPlan, Registry};
+use crate::run::cross_validation;
+use crate::sweep::{SweepKind, SweepSpec};
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::manifest;
-use scanloc::registry::{CrossValidationPlan, Registry};
-use scanloc::run::cross_validation;
-use scanloc::sweep::{SweepKind, SweepSpec};
 
 use super::sweep::{ExecutorArgs, run_sweep};
 

@@ -5,10 +5,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::readable;
+use crate::track::diffusion::tables::{TableSettings, estimate_table};
+use crate::track::diffusion::{ENSEMBLE_GATE, Estimate, Exposure, Method};
 use clap::{Args, ValueEnum};
-use scanloc::error::readable;
-use scanloc::track::diffusion::tables::{TableSettings, estimate_table};
-use scanloc::track::diffusion::{ENSEMBLE_GATE, Estimate, Exposure, Method};
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -144,7 +144,7 @@ pub fn run(
         given_sigma: args.given_sigma,
     };
     settings.check(&geometry)?;
-    let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    let tracks = crate::io::tracks::read_tracks(&args.tracks)?;
     let table = estimate_table(
         tracks,
         &geometry,

@@ -6,12 +6,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::fit::{FittedMicroscope, KnownTiming, fit_microscope};
+use crate::io::{self, AcquisitionMetadata, MetadataSource, StackSelection};
+use crate::sim::{DetectorNoise, SimParams};
+use crate::types::FrameStack;
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::fit::{FittedMicroscope, KnownTiming, fit_microscope};
-use scanloc::io::{self, AcquisitionMetadata, MetadataSource, StackSelection};
-use scanloc::sim::{DetectorNoise, SimParams};
-use scanloc::types::FrameStack;
 
 /// Fit the microscope to a recording: background photons per pixel, QD
 /// brightness N_qd, the detector's excess noise and the lateral PSF width

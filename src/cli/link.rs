@@ -4,10 +4,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::io::{PendingFile, localisation_table};
+use crate::track::{self, lap::LapParams, trackpy::TrackpyParams};
 use clap::{Args, ValueEnum};
-use scanloc::error::input_error;
-use scanloc::io::{PendingFile, localisation_table};
-use scanloc::track::{self, lap::LapParams, trackpy::TrackpyParams};
 
 /// Link localisations into trajectories (docs/tracking.md#linking).
 ///
@@ -95,10 +95,10 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
         return Err(input_error(format!(
             "--min-score: must be a finite number, got {}",
-            scanloc::error::readable(least)
+            crate::error::readable(least)
         )));
     }
-    scanloc::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
+    crate::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
     let mut pending = PendingFile::create(&args.out)?;
     let mut table = localisation_table::read_localisation_table(&args.locs)?;
     let left_out = match args.min_score {
@@ -149,7 +149,7 @@ enum Configured {
 
 impl Configured {
     fn from_args(args: &LinkArgs) -> anyhow::Result<Self> {
-        use scanloc::limits::{
+        use crate::limits::{
             MAX_DIFFUSION_UM2_S, MAX_GATE_SIGMAS, MAX_SEARCH_RANGE, check_positive_at_most,
         };
         let bounded = |flag: &str, value: f64, max: f64| -> anyhow::Result<f64> {
@@ -265,7 +265,7 @@ pub struct LinkBench {
 }
 
 pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    use scanloc::bench::link as bench_link;
+    use crate::bench::link as bench_link;
     let spec = bench_link::WalkSpec {
         particles: args.particles,
         frames: args.frames,
@@ -297,7 +297,7 @@ pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode
     let input = folder.path().join("locs.csv");
     let output = folder.path().join("tracks.csv");
     bench_link::write_detections(&input, &detections)?;
-    let figures = scanloc::bench::reference::run_python_figures(
+    let figures = crate::bench::reference::run_python_figures(
         &args.python,
         &args.reference,
         &[

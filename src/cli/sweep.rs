@@ -5,9 +5,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::registry::Registry;
+use crate::sweep::{self, Executor, SweepKind, SweepSpec, slurm::SlurmOptions};
 use clap::{Args, Subcommand, ValueEnum};
-use scanloc::registry::Registry;
-use scanloc::sweep::{self, Executor, SweepKind, SweepSpec, slurm::SlurmOptions};
 
 /// Where a sweep's points run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -195,7 +195,7 @@ pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             force,
         } => {
             let manifest_text = std::fs::read_to_string(&manifest).map_err(|e| {
-                scanloc::error::input_error(format!("{}: cannot read: {e}", manifest.display()))
+                crate::error::input_error(format!("{}: cannot read: {e}", manifest.display()))
             })?;
             let spec = SweepSpec {
                 kind: SweepKind::Grid,

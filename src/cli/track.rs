@@ -5,10 +5,10 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::run::track_recording::{TrackMethod, TrackOptions, TrackResult, track_recording};
+use crate::track::pipeline::StoredEstimate;
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::run::track_recording::{TrackMethod, TrackOptions, TrackResult, track_recording};
-use scanloc::track::pipeline::StoredEstimate;
 
 use super::microscope::MicroscopeArgs;
 
@@ -87,7 +87,7 @@ enum MethodArg {
 }
 
 pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let frames = scanloc::io::read_frames(&args.recording)?;
+    let frames = crate::io::read_frames(&args.recording)?;
     let microscope = args.microscope.resolve()?;
     for field in ["height", "width", "pixel_size_um", "dwell_us", "retrace_ms"] {
         if !microscope.stated.contains(field) {
@@ -108,18 +108,18 @@ pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             microscope.width
         )));
     }
-    scanloc::track::pipeline::check_min_points("--min-points", args.min_points)?;
-    if !(1..=scanloc::track::pipeline::MAX_BIAS_RECORDINGS).contains(&args.bias_recordings) {
+    crate::track::pipeline::check_min_points("--min-points", args.min_points)?;
+    if !(1..=crate::track::pipeline::MAX_BIAS_RECORDINGS).contains(&args.bias_recordings) {
         return Err(input_error(format!(
             "--bias-recordings: must be 1 to {}, got {}",
-            scanloc::track::pipeline::MAX_BIAS_RECORDINGS,
+            crate::track::pipeline::MAX_BIAS_RECORDINGS,
             args.bias_recordings
         )));
     }
-    scanloc::limits::check_positive_at_most(
+    crate::limits::check_positive_at_most(
         "--max-diffusion",
         args.max_diffusion,
-        scanloc::limits::MAX_DIFFUSION_UM2_S,
+        crate::limits::MAX_DIFFUSION_UM2_S,
     )
     .map_err(|e| input_error(e.to_string()))?;
     if let Some(d) = args.diameter
@@ -171,7 +171,7 @@ pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
 
 /// An input error from the library, prefixed with the recording's name.
 fn with_file(error: anyhow::Error, recording: &Path) -> anyhow::Error {
-    if scanloc::error::exit_code(&error) == 2 {
+    if crate::error::exit_code(&error) == 2 {
         input_error(format!("{}: {error:#}", recording.display()))
     } else {
         error
@@ -211,7 +211,7 @@ fn write_outputs(out: &Path, result: &TrackResult) -> anyhow::Result<()> {
         .map_err(|e| input_error(format!("--out {}: {e}", out.display())))?;
     let [tracks_name, diffusion_name, settings_name] = OUTPUTS;
     let mut tracks = Vec::new();
-    scanloc::io::tracks::write_tracks_to(&mut tracks, &result.tracks)?;
+    crate::io::tracks::write_tracks_to(&mut tracks, &result.tracks)?;
     std::fs::write(out.join(tracks_name), tracks)?;
     let mut diffusion = Vec::new();
     writeln!(
