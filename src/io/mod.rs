@@ -11,12 +11,12 @@
 //! Readers report problems as [`InputError`](crate::error::InputError)s that
 //! name the file.
 
-pub mod acquisition;
+pub(crate) mod acquisition;
 pub mod csv_tables;
-pub mod folders;
+pub(crate) mod folders;
 pub mod localisation_table;
 pub mod npy;
-pub mod tiff_stack;
+pub(crate) mod tiff_stack;
 pub mod tracks;
 
 pub use acquisition::{AcquisitionMetadata, MetadataSource};

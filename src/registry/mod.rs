@@ -19,24 +19,24 @@
 //! once both write the same blob (identical bytes, atomic rename) and the
 //! second insert finds the first.
 
-pub mod blobs;
+pub(crate) mod blobs;
 mod claims;
-pub mod dates;
-pub mod diff;
-pub mod gc;
-pub mod hashing;
+pub(crate) mod dates;
+pub(crate) mod diff;
+pub(crate) mod gc;
+pub(crate) mod hashing;
 mod insert;
 mod migrate;
-pub mod models;
+pub(crate) mod models;
 mod open;
-pub mod record;
+pub(crate) mod record;
 mod runs;
 pub mod shard;
-pub mod sql;
-pub mod sql_guard;
-pub mod step_id;
-pub mod table;
-pub mod verify;
+pub(crate) mod sql;
+pub(crate) mod sql_guard;
+pub(crate) mod step_id;
+pub(crate) mod table;
+pub(crate) mod verify;
 pub mod write_lock;
 
 use std::path::{Path, PathBuf};

@@ -13,20 +13,20 @@
 //! process dies stays `running` until the next run on the same host marks
 //! it `unfinished`.
 
-pub mod artefacts;
-pub mod calibrate;
+pub(crate) mod artefacts;
+pub(crate) mod calibrate;
 mod compute;
 pub mod cross_validation;
 mod descriptions;
 mod details;
 mod execution;
-pub mod plan;
-pub mod reproduce;
+pub(crate) mod plan;
+pub(crate) mod reproduce;
 mod rows;
 mod stored;
-pub mod table;
-pub mod test_sets;
-pub mod track_recording;
+pub(crate) mod table;
+pub(crate) mod test_sets;
+pub(crate) mod track_recording;
 
 use std::time::Instant;
 

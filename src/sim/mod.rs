@@ -21,9 +21,9 @@
 //! be drawn keep their frames bit for bit. Frames are therefore identical
 //! whatever the thread count and however a dataset is split into calls.
 
-pub mod gaussian;
+pub(crate) mod gaussian;
 pub mod noise;
-pub mod params;
+pub(crate) mod params;
 pub mod recording;
 
 use std::ops::Range;

@@ -23,12 +23,12 @@
 //! submitted again finds the same folder and the registry's cache, and
 //! runs only its missing points.
 
-pub mod calibrate;
-pub mod cv;
-pub mod front_end;
-pub mod grid;
+pub(crate) mod calibrate;
+pub(crate) mod cv;
+pub(crate) mod front_end;
+pub(crate) mod grid;
 pub mod slurm;
-pub mod state;
+pub(crate) mod state;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -28,10 +28,10 @@
 //! ensembles existed.
 
 mod config;
-pub mod data;
+pub(crate) mod data;
 mod ensemble;
 pub mod inference;
-pub mod kernels;
+pub(crate) mod kernels;
 mod loss;
 pub mod model;
 mod model_folder;

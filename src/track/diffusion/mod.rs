@@ -24,10 +24,10 @@
 //! and `Cov(Δᵢ, Δᵢ₊₁) = 2Dτᵢ₊₁ − σᵢ₊₁²` (τ the blur time, σ² the
 //! localisation variance). x and y are independent and share D.
 
-pub mod cve;
-pub mod ml;
-pub mod msd;
-pub mod scan;
+pub(crate) mod cve;
+pub(crate) mod ml;
+pub(crate) mod msd;
+pub(crate) mod scan;
 pub mod tables;
 
 pub use scan::{Exposure, ScanGeometry};

@@ -24,7 +24,7 @@
 //! finite (squared deviations beyond f32's range) make the layer's output
 //! NaN, so a training that blows up ends in a non-finite loss.
 
-pub mod body;
+pub(crate) mod body;
 mod conv;
 mod head;
 mod norm;
