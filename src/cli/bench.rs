@@ -11,7 +11,7 @@ use clap::{Args, Subcommand};
 
 /// Measure throughput (frames/s) of scanloc's stages.
 #[derive(Debug, Args)]
-pub struct BenchArgs {
+pub(super) struct BenchArgs {
     #[command(subcommand)]
     command: BenchCommand,
 }
@@ -171,7 +171,7 @@ struct SimulateBench {
     microscope: super::MicroscopeArgs,
 }
 
-pub fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     match args.command {
         BenchCommand::Simulate(args) => simulate(args, stdout),
         BenchCommand::Locate(args) => locate(args, stdout),

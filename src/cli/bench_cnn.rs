@@ -30,7 +30,7 @@ use clap::Args;
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct BenchTrainArgs {
+pub(super) struct BenchTrainArgs {
     /// Training samples to time.
     #[arg(long, default_value_t = 2000)]
     samples: usize,
@@ -74,7 +74,7 @@ pub struct BenchTrainArgs {
 const MAX_BENCH_THREADS: usize = 256;
 const MAX_REPEATS: usize = 100;
 
-pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     super::microscope::paper_sized("--samples", args.samples)?;
     super::microscope::paper_sized("--locate-frames", args.locate_frames)?;
     if args.samples == 0 || args.locate_frames == 0 {
@@ -214,7 +214,7 @@ fn print_table(
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct BenchLocateArgs {
+pub(super) struct BenchLocateArgs {
     /// Model folder written by `scanloc train`.
     #[arg(long)]
     model: PathBuf,
@@ -240,7 +240,10 @@ pub struct BenchLocateArgs {
     score_floor: Option<f64>,
 }
 
-pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run_locate(
+    args: BenchLocateArgs,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
     let params = super::microscope::bench_microscope(&args.microscope, "--frames", args.frames)?;
     args.test_diffusion.checked()?;
     let mut model = TrainedCnn::load(&args.model)?;

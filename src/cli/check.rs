@@ -15,14 +15,14 @@ use serde_json::json;
 ///
 /// Manifest format: docs/manifest.md.
 #[derive(Debug, Args)]
-pub struct CheckArgs {
+pub(super) struct CheckArgs {
     /// The manifest (YAML).
     manifest: PathBuf,
     #[command(flatten)]
     format: super::JsonFlag,
 }
 
-pub fn run(
+pub(super) fn run(
     args: CheckArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

@@ -25,7 +25,7 @@ use super::sweep::{ExecutorArgs, run_sweep};
 /// The cross_validation block: docs/manifest.md; how folds are stored:
 /// docs/registry.md.
 #[derive(Debug, Args)]
-pub struct CvArgs {
+pub(super) struct CvArgs {
     /// The experiment manifest.
     manifest: PathBuf,
     /// Number of folds [default: the manifest's cross_validation.folds, else 5].
@@ -51,7 +51,7 @@ pub struct CvArgs {
     executor: ExecutorArgs,
 }
 
-pub fn run(args: CvArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: CvArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     let block = manifest.cross_validation.clone();
     let detector = args

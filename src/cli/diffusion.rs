@@ -53,7 +53,7 @@ enum ExposureArg {
 /// period. An estimate that is not a finite number is refused too.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct DiffusionArgs {
+pub(super) struct DiffusionArgs {
     /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s: in every row
     /// of a track or in none, each step longer than its two localisations' blur).
     #[arg(long)]
@@ -122,7 +122,7 @@ fn row(
     )
 }
 
-pub fn run(
+pub(super) fn run(
     args: DiffusionArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

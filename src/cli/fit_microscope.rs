@@ -24,7 +24,7 @@ use clap::Args;
 /// and, with --out, written as a `microscope:` section for
 /// `--microscope FILE.yaml`.
 #[derive(Debug, Args)]
-pub struct FitMicroscopeArgs {
+pub(super) struct FitMicroscopeArgs {
     /// The recording: a multi-page TIFF (8/16/32-bit, ImageJ hyperstack,
     /// ScanImage, BigTIFF) or a .npy (n, H, W) stack of photon counts.
     recording: PathBuf,
@@ -204,7 +204,7 @@ fn round(value: f64, digits: i32) -> f64 {
     (value * scale).round() / scale
 }
 
-pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let name = args.recording.display().to_string();
     // The destination is checked (and claimed) before the long read, so a
     // bad --out is refused at once.

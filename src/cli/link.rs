@@ -29,7 +29,7 @@ use clap::{Args, ValueEnum};
 /// crowd, at the price of a diffusion model to state.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct LinkArgs {
+pub(super) struct LinkArgs {
     /// Localisation table (CSV with frame, x, y; optionally sigma_x, sigma_y).
     #[arg(long)]
     locs: PathBuf,
@@ -90,7 +90,7 @@ enum Linker {
     Lap,
 }
 
-pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let linker = Configured::from_args(&args)?;
     if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
         return Err(input_error(format!(
@@ -224,7 +224,7 @@ impl Configured {
 /// and blink, linked by `--linker trackpy` and by TrackPy 0.7 (python3
 /// with trackpy; skipped with a message if it cannot run).
 #[derive(Debug, Args)]
-pub struct LinkBench {
+pub(super) struct LinkBench {
     /// Particles over the recording.
     #[arg(long, default_value_t = 400)]
     particles: usize,
@@ -264,7 +264,7 @@ pub struct LinkBench {
     reference: PathBuf,
 }
 
-pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     use crate::bench::link as bench_link;
     let spec = bench_link::WalkSpec {
         particles: args.particles,

@@ -50,7 +50,7 @@ use clap::{Args, ValueEnum};
 /// The methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct LocateArgs {
+pub(super) struct LocateArgs {
     /// Localisation method.
     #[arg(long, value_enum, default_value_t = Method::CrockerGrier)]
     method: Method,
@@ -230,7 +230,7 @@ pub(super) fn describe_origin(origin: &ModelOrigin) -> String {
     }
 }
 
-pub fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let model_folder = args
         .cnn
         .model

@@ -29,7 +29,7 @@ use clap::{ArgMatches, Args, Command, FromArgMatches};
 /// `uniform:LOW,HIGH` (drawn once per frame, docs/simulator.md); for the
 /// likelihood detector a distribution is a prior it marginalises.
 #[derive(Debug, Clone, Args)]
-pub struct MicroscopeFlags {
+pub(super) struct MicroscopeFlags {
     /// Take the microscope from the `microscope:` section of this
     /// manifest-style YAML file (other sections are ignored): the flags
     /// below override its fields, and fields it leaves out keep the

@@ -17,7 +17,7 @@ use clap::{Args, Subcommand};
 /// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
 #[command(mut_arg("json", |arg| arg.global(true)))]
-pub struct RegistryArgs {
+pub(super) struct RegistryArgs {
     #[command(subcommand)]
     command: RegistryCommand,
     #[command(flatten)]
@@ -122,7 +122,7 @@ fn run_id(registry: &Registry, id: &str) -> anyhow::Result<String> {
     }
 }
 
-pub fn run(
+pub(super) fn run(
     args: RegistryArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

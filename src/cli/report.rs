@@ -18,7 +18,7 @@ use clap::Args;
 /// The metric and the paper's table: docs/metric.md. Figures are drawn with
 /// the embedded Roboto font, or the TrueType file named by SCANLOC_FONT.
 #[derive(Debug, Args)]
-pub struct ReportArgs {
+pub(super) struct ReportArgs {
     /// The run id (a unique prefix is enough), or `latest` for the most
     /// recent finished run of kind `run`.
     run: String,
@@ -32,7 +32,7 @@ pub struct ReportArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let registry = Registry::open_existing(&args.registry)?;
     let run_id = if args.run == "latest" {
         registry

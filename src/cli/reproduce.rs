@@ -16,7 +16,7 @@ use clap::Args;
 ///
 /// What a run records and what is compared: docs/registry.md.
 #[derive(Debug, Args)]
-pub struct ReproduceArgs {
+pub(super) struct ReproduceArgs {
     /// The run id (or a unique prefix of it), as `scanloc registry runs` lists.
     run: String,
     #[command(flatten)]
@@ -29,7 +29,7 @@ pub struct ReproduceArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(
+pub(super) fn run(
     args: ReproduceArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

@@ -31,7 +31,7 @@ use serde_json::json;
 ///
 /// Manifest format: docs/manifest.md; the registry: docs/registry.md.
 #[derive(Debug, Args)]
-pub struct RunArgs {
+pub(super) struct RunArgs {
     /// The manifest (YAML), e.g. experiments/smoke.yaml.
     manifest: PathBuf,
     #[command(flatten)]
@@ -44,7 +44,7 @@ pub struct RunArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     // Parse and validate before touching the registry: bad input leaves it
     // unchanged.
     let manifest = manifest::load(&args.manifest)?;

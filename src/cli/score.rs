@@ -42,7 +42,7 @@ use clap::{ArgGroup, Args};
 /// (docs/metric.md, "The test set's luck").
 #[derive(Debug, Args)]
 #[command(group(ArgGroup::new("resampling").args(["compare", "bootstrap"]).multiple(true)))]
-pub struct ScoreArgs {
+pub(super) struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).
     #[arg(long)]
     truth: PathBuf,
@@ -100,7 +100,7 @@ pub struct ScoreArgs {
     seed: u64,
 }
 
-pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(curve) = &args.curve {
         let mut inputs = vec![("--truth", args.truth.as_path()), ("--locs", &args.locs)];
         inputs.extend(

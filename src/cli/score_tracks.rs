@@ -32,7 +32,7 @@ enum TruthPositionArg {
 /// them as one JSON object instead.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct ScoreTracksArgs {
+pub(super) struct ScoreTracksArgs {
     /// Tracks CSV (frame,x,y,particle in px; other columns ignored), as
     /// `scanloc link` writes it.
     #[arg(long)]
@@ -65,7 +65,7 @@ pub struct ScoreTracksArgs {
     format: super::JsonFlag,
 }
 
-pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let gate = crate::limits::check_positive_at_most(
         "--gate-px",
         args.gate_px,

@@ -15,7 +15,7 @@ use clap::Args;
 /// the thread count.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct SimulateArgs {
+pub(super) struct SimulateArgs {
     /// Number of frames (at most 10,000,000, and 2³¹ pixels in all: the
     /// limits a manifest's datasets have).
     #[arg(long, default_value_t = 100)]
@@ -34,7 +34,7 @@ pub struct SimulateArgs {
     truth: Option<PathBuf>,
 }
 
-pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
     let params = args.microscope.params()?;
     params
         .validate()

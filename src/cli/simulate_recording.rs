@@ -19,7 +19,7 @@ use clap::Args;
 /// D, N_qd and N_bkg are fixed numbers here.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct SimulateRecordingArgs {
+pub(super) struct SimulateRecordingArgs {
     /// Number of frames.
     #[arg(long, default_value_t = 200, value_parser = super::whole_number::<usize>)]
     frames: usize,
@@ -77,7 +77,7 @@ pub struct SimulateRecordingArgs {
     truth: Option<PathBuf>,
 }
 
-pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let params = RecordingParams {
         microscope: SimParams {
             height: args.scan.flags.height,

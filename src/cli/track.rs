@@ -23,7 +23,7 @@ use super::microscope::MicroscopeArgs;
 /// track, the ensemble and, with the correction, ensemble-corrected) and
 /// DIR/settings.json (every setting used), and prints a summary.
 #[derive(Debug, Args)]
-pub struct TrackArgs {
+pub(super) struct TrackArgs {
     /// The recording: FILE.npy ((n, H, W) photon counts) or a multi-page
     /// TIFF of counts.
     recording: PathBuf,
@@ -86,7 +86,7 @@ enum MethodArg {
     CrockerGrier,
 }
 
-pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let frames = crate::io::read_frames(&args.recording)?;
     let microscope = args.microscope.resolve()?;
     for field in ["height", "width", "pixel_size_um", "dwell_us", "retrace_ms"] {

@@ -38,7 +38,7 @@ use clap::{Args, ValueEnum};
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct TrainArgs {
+pub(super) struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
@@ -150,7 +150,7 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
-pub fn run(
+pub(super) fn run(
     args: TrainArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

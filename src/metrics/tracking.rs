@@ -44,16 +44,16 @@ use crate::types::{RecordingTruthRow, Track, TrackPoint};
 
 /// The default gate ε, px: the paper's first matching radius (70 nm at
 /// 0.07 µm/px), as for localisations (`docs/metric.md`).
-pub const DEFAULT_GATE_PX: f64 = 1.0;
+pub(crate) const DEFAULT_GATE_PX: f64 = 1.0;
 
 /// Most pairs of a truth and an estimated point closer than the gate (in
 /// one frame) that a scoring examines: more means a gate far wider than
 /// the points' spacing or degenerate files, and a quadratic cost.
-pub const MAX_NEAR_PAIRS: usize = 20_000_000;
+pub(crate) const MAX_NEAR_PAIRS: usize = 20_000_000;
 
 /// Most tracks (truth + estimated) competing in one assignment problem
 /// (its matrix has the square of that many entries).
-pub const MAX_ASSIGNMENT_SIZE: usize = 4_000;
+pub(crate) const MAX_ASSIGNMENT_SIZE: usize = 4_000;
 
 /// Which position of a recording truth row a track follows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -83,7 +83,7 @@ pub struct TruthSelection {
 /// selected rows in frame order (a QD that leaves the selection and comes
 /// back keeps one track, with a gap, unless the gap is longer than
 /// `split_gaps_over` frames: then a new track starts, with the same label).
-pub fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> Vec<Track> {
+pub(crate) fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> Vec<Track> {
     let mut by_qd: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
     let kept = rows.iter().filter(|row| {
         selection
@@ -384,7 +384,7 @@ fn ratio(numerator: f64, denominator: f64) -> Option<f64> {
 /// [`MAX_EPS_PX`](crate::limits::MAX_EPS_PX)); see the module's
 /// documentation. Each track's points must be in increasing frame order,
 /// one per frame (as the tracks reader and [`truth_tracks`] give them).
-pub fn score_tracks(
+pub(crate) fn score_tracks(
     truth: &[Track],
     estimated: &[Track],
     gate_px: f64,

@@ -28,12 +28,12 @@ use crate::types::{FrameStack, Prediction, RecordingTruthRow, Track, derive_seed
 
 /// Version of `track_recording`'s recipe (the rules that choose the
 /// settings, the calibration recordings and their seeds).
-pub const TRACK_RECORDING_VERSION: &str = "scanloc-track-recording/1";
+pub(crate) const TRACK_RECORDING_VERSION: &str = "scanloc-track-recording/1";
 
 /// The localiser `track` runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
-pub enum TrackMethod {
+pub(crate) enum TrackMethod {
     /// TrackPy's `locate`, its score the mass.
     #[default]
     CrockerGrier,
@@ -42,7 +42,7 @@ pub enum TrackMethod {
 /// What the caller may set; every `None` is chosen from simulation of the
 /// microscope (and recorded in [`TrackSettings`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrackOptions {
+pub(crate) struct TrackOptions {
     pub method: TrackMethod,
     /// The detector's feature diameter, px (odd).
     pub diameter_px: Option<usize>,
@@ -103,7 +103,7 @@ impl Default for TrackOptions {
 
 /// The settings a run used, chosen or given.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrackSettings {
+pub(crate) struct TrackSettings {
     pub recipe: String,
     pub method: TrackMethod,
     pub detector: CrockerGrierParams,
@@ -125,7 +125,7 @@ pub struct TrackSettings {
 
 /// The outcome: localisations, tracks, D per track and for the ensemble.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TrackResult {
+pub(crate) struct TrackResult {
     pub frames: usize,
     pub localisations: Vec<Prediction>,
     /// Localisations linked (at or above the threshold).
@@ -142,14 +142,14 @@ pub struct TrackResult {
 
 impl TrackResult {
     /// The ensemble D to report: corrected where there is a correction.
-    pub fn d(&self) -> Option<StoredEstimate> {
+    pub(crate) fn d(&self) -> Option<StoredEstimate> {
         self.corrected.map(|c| c.estimate).or(self.ensemble)
     }
 }
 
 /// Checks `frames` against `microscope` before anything is computed; the
 /// error names the field.
-pub fn check_recording(frames: &FrameStack, microscope: &SimParams) -> anyhow::Result<()> {
+pub(crate) fn check_recording(frames: &FrameStack, microscope: &SimParams) -> anyhow::Result<()> {
     if (frames.height, frames.width) != (microscope.height, microscope.width) {
         return Err(input_error(format!(
             "height/width: the microscope's frames are {} × {} px, the recording's {} × {}",
@@ -184,14 +184,14 @@ pub fn check_recording(frames: &FrameStack, microscope: &SimParams) -> anyhow::R
 
 /// The detector's diameter for a PSF of `sigma_px`: the smallest odd
 /// number of pixels ≥ 2σ + 1, at least 3.
-pub fn diameter_for(sigma_px: f64) -> usize {
+pub(crate) fn diameter_for(sigma_px: f64) -> usize {
     let d = (2.0 * sigma_px + 1.0).ceil().max(3.0) as usize;
     if d.is_multiple_of(2) { d + 1 } else { d }
 }
 
 /// Tracks `frames`, a recording taken with `microscope` (its frame size,
 /// pixel, timing, PSF, brightness and background), under `options`.
-pub fn track_recording(
+pub(crate) fn track_recording(
     frames: &FrameStack,
     microscope: &SimParams,
     options: &TrackOptions,
@@ -404,7 +404,7 @@ fn calibration_threshold(
 /// (a prediction is right if within `gate` px of a QD of its frame not
 /// matched by a higher-scoring one), and that F1; the lowest score and 0
 /// where nothing matches.
-pub fn best_f1_threshold(
+pub(crate) fn best_f1_threshold(
     predictions: &[Prediction],
     truth: &[&RecordingTruthRow],
     gate: f64,
