@@ -17,9 +17,7 @@ use crate::sim::{self, SimParams};
 use crate::types::Dataset;
 use crate::types::derive_seed;
 
-pub(crate) use crate::run::test_sets::{
-    PAPER_FCNN, TestRow, auc_table, format_auc_table, test_set_seed,
-};
+pub(crate) use crate::run::test_sets::{auc_table, format_auc_table};
 
 /// Throughput of training and inference.
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -312,8 +312,6 @@ impl Default for SimParams {
 /// microscope), far below one photon of shot noise.
 pub(crate) const DEFAULT_PSF_CUTOFF_SIGMA: f64 = 6.0;
 
-pub(crate) use crate::limits::MAX_FRAME_SIDE;
-
 impl SimParams {
     /// Checks every parameter; an error names the parameter and says what
     /// is allowed.

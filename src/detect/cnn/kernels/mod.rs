@@ -30,10 +30,10 @@ mod head;
 mod norm;
 
 pub(crate) use conv::{Conv3x3, conv3x3_forward, conv3x3_weight_grad};
-pub(crate) use head::{Head, HeadGradients, fixed_order_sum, head_backward, head_forward};
-pub(crate) use norm::{
-    NormGradients, NormStatistics, ReluGate, bn_relu_backward, bn_relu_forward, channel_statistics,
-};
+pub(crate) use head::{Head, fixed_order_sum, head_backward, head_forward};
+pub(crate) use norm::channel_statistics;
+#[cfg(test)]
+pub(crate) use norm::{ReluGate, bn_relu_backward, bn_relu_forward};
 
 /// The shape of a zero-padded channels-last batch of maps (see the module
 /// docs): `n` maps of `height × width` interior pixels, each surrounded by
