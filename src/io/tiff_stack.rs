@@ -42,14 +42,6 @@ pub(crate) fn write_frames<W: Write + Seek>(
     Ok(())
 }
 
-/// Reads every page of a TIFF file as one frame of photon counts; see
-/// [`read_channel`].
-pub(crate) fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    read_channel(path, None)?
-        .into_counts()
-        .map_err(|e| input_error(format!("{}: {e:#}", path.display())))
-}
-
 /// Reads the frames of a TIFF stack, one greyscale page per frame; see
 /// [`read_selected`] (this is its channel selection alone, without the
 /// metadata).

@@ -26,7 +26,6 @@ pub(crate) struct RecordedManifest {
 #[derive(Debug, Clone, Deserialize)]
 pub(crate) struct RecordedDataset {
     pub name: String,
-    pub frames: usize,
     pub seed: u64,
     pub params: SimParams,
 }

@@ -21,8 +21,6 @@
 //! negative, no offset supervised), one, or several (one positive pixel
 //! each; where offset boxes overlap, the nearer emitter's offset).
 
-use burn::prelude::*;
-
 use crate::types::{FrameStack, TruthRow};
 
 /// The normalised input of a batch of `height × width` frames, row-major
@@ -52,26 +50,6 @@ pub(crate) fn normalised_input<'a>(
         }
     }
     input
-}
-
-/// The input tensor of frames `indices` of `frames`.
-pub(crate) fn input_tensor(
-    frames: &FrameStack,
-    indices: std::ops::Range<usize>,
-    edge_channel: bool,
-    device: &Device,
-) -> Tensor<4> {
-    let channels = if edge_channel { 2 } else { 1 };
-    let n = indices.len();
-    let data = normalised_input(
-        indices.map(|i| frames.frame(i)),
-        frames.frame_len(),
-        edge_channel,
-    );
-    Tensor::from_data(
-        TensorData::new(data, [n, channels, frames.height, frames.width]),
-        device,
-    )
 }
 
 /// Training targets of one batch, each row-major over `[n, channels, H, W]`.
