@@ -168,7 +168,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
 /// Dereferences to the folder's path, so a subcommand passes
 /// `&args.registry` wherever a `&Path` is wanted.
 #[derive(Debug, Clone, Args)]
-pub struct RegistryDir {
+pub(crate) struct RegistryDir {
     /// Registry folder (registry.sqlite and blobs/; see docs/registry.md).
     #[arg(
         id = "registry",
@@ -194,7 +194,7 @@ impl Deref for RegistryDir {
 /// with `mut_arg`, so it may follow their subcommand). What each command's
 /// JSON holds: its `--help`.
 #[derive(Debug, Clone, Copy, Args)]
-pub struct JsonFlag {
+pub(crate) struct JsonFlag {
     /// Print JSON on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -203,7 +203,7 @@ pub struct JsonFlag {
 /// Parses a whole-number flag (frames, counts, seeds): a negative or
 /// fractional value is answered as out of range, not as clap's "unexpected
 /// argument" or a parse error of the digits.
-pub fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
+pub(crate) fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
     text.trim()
         .parse::<T>()
         .map_err(|_| match text.trim().parse::<f64>() {
@@ -226,7 +226,7 @@ pub fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
 /// The diffusion coefficients of the test sets a command simulates
 /// (`train --test-frames`, `bench cnn-locate`), one test set per value.
 #[derive(Debug, Clone, Args)]
-pub struct TestDiffusionArgs {
+pub(crate) struct TestDiffusionArgs {
     /// Diffusion coefficients of the test sets in µm²/s, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
     pub test_diffusion: Vec<f64>,

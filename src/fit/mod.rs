@@ -48,12 +48,12 @@ use crate::types::FrameStack;
 
 /// Most pixels (frames × height × width) the fit reads; a longer recording
 /// is subsampled to evenly spaced frames.
-pub const MAX_FIT_PIXELS: usize = 24_000_000;
+pub(crate) const MAX_FIT_PIXELS: usize = 24_000_000;
 /// Most spots the brightness likelihood uses (evenly spaced among those
 /// detected).
-pub const MAX_FIT_SPOTS: usize = 1_500;
+pub(crate) const MAX_FIT_SPOTS: usize = 1_500;
 /// Fewest detected spots for a brightness estimate.
-pub const MIN_FIT_SPOTS: usize = 20;
+pub(crate) const MIN_FIT_SPOTS: usize = 20;
 /// Blocks of frames of the jackknife.
 const BLOCKS: usize = 10;
 

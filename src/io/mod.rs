@@ -34,7 +34,7 @@ use crate::types::{FrameStack, Recording};
 
 /// The frame file formats, chosen by file extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FrameFormat {
+pub(crate) enum FrameFormat {
     Npy,
     Tiff,
 }
@@ -144,7 +144,7 @@ pub fn write_frames(path: &Path, frames: &FrameStack) -> anyhow::Result<()> {
 
 /// Fills a pending output with a frame stack in the format its extension
 /// names.
-pub fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Result<()> {
+pub(crate) fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Result<()> {
     let format = FrameFormat::from_path(&pending.path)?;
     pending.fill(|writer| match format {
         FrameFormat::Npy => npy::write_frames(writer, frames),
@@ -163,7 +163,7 @@ pub fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Re
 /// destination that exists and is not a regular file (a symlink, a FIFO, a
 /// device node, a folder) instead of replacing it, and creates the file
 /// with mode 0666 minus the umask, as any other program would.
-pub struct PendingFile {
+pub(crate) struct PendingFile {
     path: PathBuf,
     temporary: tempfile::NamedTempFile,
 }
@@ -293,7 +293,7 @@ fn special_file_kind(_file_type: &std::fs::FileType) -> &'static str {
 /// (after resolving `.`, `..` and symlinks, and comparing the files
 /// themselves where they exist): writing one would silently destroy the
 /// other. `inputs` and `outputs` pair a flag name with its path.
-pub fn refuse_shared_paths(
+pub(crate) fn refuse_shared_paths(
     inputs: &[(&str, &Path)],
     outputs: &[(&str, &Path)],
 ) -> anyhow::Result<()> {
@@ -363,7 +363,7 @@ fn canonical_destination(path: &Path) -> Option<PathBuf> {
 }
 
 /// Writes `path` through `fill` atomically (see [`PendingFile`]).
-pub fn write_atomically(
+pub(crate) fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&mut BufWriter<&mut File>) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
@@ -373,7 +373,7 @@ pub fn write_atomically(
 }
 
 /// Writes `bytes` to `path` atomically (see [`write_atomically`]).
-pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+pub(crate) fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     write_atomically(path, |writer| {
         writer.write_all(bytes)?;
         Ok(())
@@ -381,6 +381,6 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
 }
 
 /// Opens a file for reading, with an input error naming it on failure.
-pub fn open_input(path: &Path) -> anyhow::Result<File> {
+pub(crate) fn open_input(path: &Path) -> anyhow::Result<File> {
     File::open(path).map_err(|e| input_error(format!("{}: cannot read: {e}", path.display())))
 }

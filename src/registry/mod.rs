@@ -61,10 +61,10 @@ use open::{BUSY_TIMEOUT, is_busy};
 
 /// The schema version this code writes; see `schema.sql` (version 1),
 /// `schema_v2.sql` and `schema_v3.sql` (the migrations to versions 2 and 3).
-pub const SCHEMA_VERSION: i64 = 3;
+pub(crate) const SCHEMA_VERSION: i64 = 3;
 
 /// The database file name inside a registry folder.
-pub const DATABASE_FILE: &str = "registry.sqlite";
+pub(crate) const DATABASE_FILE: &str = "registry.sqlite";
 
 /// The kinds of artefact the registry stores.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -230,7 +230,7 @@ pub fn host_name() -> String {
 
 /// Whether process `pid` is alive on this machine (Linux `/proc`; on other
 /// systems every process is assumed alive).
-pub fn process_alive(pid: u32) -> bool {
+pub(crate) fn process_alive(pid: u32) -> bool {
     if !Path::new("/proc/self").exists() {
         return true;
     }

@@ -88,7 +88,7 @@ pub struct RunOutcome {
 
 /// A new run id: UTC start time plus 8 hex digits that differ between
 /// runs started in the same second (hash of time, process and host).
-pub fn new_run_id() -> String {
+pub(crate) fn new_run_id() -> String {
     let now = utc_now();
     let nanos = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -107,7 +107,7 @@ pub fn new_run_id() -> String {
 }
 
 /// Runs `manifest` (its [`Plan::from_manifest`]) on `registry` and records it.
-pub fn run_manifest(
+pub(crate) fn run_manifest(
     registry: &mut Registry,
     manifest: &Manifest,
     options: &RunOptions,

@@ -160,7 +160,7 @@ fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
 /// value, when it is fixed); a model of frames of another N_qd scales
 /// [`ScanModel::sample_photons_with`] by the ratio (photons are proportional to
 /// N_qd).
-pub struct ScanModel {
+pub(crate) struct ScanModel {
     pre: Precomputed,
     /// PSF amplitude per sample at the model's N_qd.
     amplitude: f64,
@@ -229,7 +229,7 @@ impl ScanModel {
 }
 
 /// The random stream of frame `index` of a dataset with seed `seed`.
-pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
+pub(crate) fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(index as u64);
     rng

@@ -28,7 +28,7 @@ pub fn poisson<R: Rng + ?Sized>(rng: &mut R, mean: f64) -> u64 {
 /// One Poisson(mean) variate whose uniform was drawn beforehand (in bulk);
 /// means of 30 and more draw what they need from `rng` instead.
 #[inline]
-pub fn poisson_from_uniform<R: Rng + ?Sized>(uniform: f64, rng: &mut R, mean: f64) -> u64 {
+pub(crate) fn poisson_from_uniform<R: Rng + ?Sized>(uniform: f64, rng: &mut R, mean: f64) -> u64 {
     debug_assert!(mean.is_finite() && mean >= 0.0);
     if mean <= 0.0 {
         0
@@ -165,7 +165,7 @@ impl PoissonTable {
 /// Applies the detector model to a pixel's expected photons: a fixed
 /// background plus the pixel's own signal.
 #[derive(Debug, Clone)]
-pub struct Detector {
+pub(crate) struct Detector {
     background: PoissonTable,
     noise: DetectorNoise,
 }

@@ -63,7 +63,7 @@ pub const LOG_SIGMA_RANGE: (f64, f64) = (-5.0, 3.0);
 
 /// One dilated 3×3 convolution, optionally batch-normalised, then ReLU.
 #[derive(Module, Debug)]
-pub struct ConvBlock {
+pub(crate) struct ConvBlock {
     conv: Conv2d,
     norm: Option<BatchNorm>,
 }
@@ -81,7 +81,7 @@ impl ConvBlock {
 
 /// The fully convolutional localiser.
 #[derive(Module, Debug)]
-pub struct Net {
+pub(crate) struct Net {
     blocks: Vec<ConvBlock>,
     head: Conv2d,
 }
@@ -290,7 +290,7 @@ fn float_values<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
 /// burn computes the loss from the output and its gradient with respect to
 /// the output, and [`NetworkStep::gradients`] takes it back through the head
 /// and the body.
-pub struct NetworkStep {
+pub(crate) struct NetworkStep {
     layers: Vec<BodyLayer>,
     tape: Tape,
     head: Head,
