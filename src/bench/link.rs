@@ -34,7 +34,7 @@ pub(crate) struct WalkSpec {
 
 impl WalkSpec {
     /// Refuses specs that would make no walks or an unbounded field.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub(crate) fn validate(&self) -> anyhow::Result<()> {
         let limit = 10_000_000;
         if self.particles == 0
             || self.frames < 4

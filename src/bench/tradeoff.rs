@@ -152,7 +152,11 @@ pub(crate) struct TestSets {
 }
 
 impl TestSets {
-    pub fn simulate(frames: usize, static_frames: usize, brightness: f64) -> anyhow::Result<Self> {
+    pub(crate) fn simulate(
+        frames: usize,
+        static_frames: usize,
+        brightness: f64,
+    ) -> anyhow::Result<Self> {
         Ok(Self {
             moving: sim::simulate(
                 &test_params(brightness, 1.0),

@@ -234,7 +234,7 @@ pub(crate) struct TestDiffusionArgs {
 
 impl TestDiffusionArgs {
     /// The coefficients, each checked to be a finite number ≥ 0.
-    pub fn checked(&self) -> anyhow::Result<&[f64]> {
+    pub(crate) fn checked(&self) -> anyhow::Result<&[f64]> {
         for &d in &self.test_diffusion {
             crate::error::require_non_negative("--test-diffusion", d)?;
         }

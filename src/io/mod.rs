@@ -41,7 +41,7 @@ pub(crate) enum FrameFormat {
 
 impl FrameFormat {
     /// The format a path's extension names (`.npy`, `.tif`, `.tiff`).
-    pub fn from_path(path: &Path) -> anyhow::Result<Self> {
+    pub(crate) fn from_path(path: &Path) -> anyhow::Result<Self> {
         let extension = path
             .extension()
             .and_then(|e| e.to_str())
@@ -170,7 +170,7 @@ pub(crate) struct PendingFile {
 
 impl PendingFile {
     /// Starts writing `path` (its folder must exist and be writable).
-    pub fn create(path: &Path) -> anyhow::Result<Self> {
+    pub(crate) fn create(path: &Path) -> anyhow::Result<Self> {
         refuse_special_destination(path)?;
         let folder = match path.parent() {
             Some(parent) if !parent.as_os_str().is_empty() => parent,
@@ -205,18 +205,18 @@ impl PendingFile {
     }
 
     /// The destination.
-    pub fn path(&self) -> &Path {
+    pub(crate) fn path(&self) -> &Path {
         &self.path
     }
 
     /// The temporary file's path, for writers that can only write to a
     /// named file (it has the destination's extension).
-    pub fn temporary_path(&self) -> &Path {
+    pub(crate) fn temporary_path(&self) -> &Path {
         self.temporary.path()
     }
 
     /// Fills the file through a buffered writer.
-    pub fn fill(
+    pub(crate) fn fill(
         &mut self,
         fill: impl FnOnce(&mut BufWriter<&mut File>) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
@@ -230,7 +230,7 @@ impl PendingFile {
     }
 
     /// Syncs the data to disk and renames the file into place.
-    pub fn commit(self) -> anyhow::Result<()> {
+    pub(crate) fn commit(self) -> anyhow::Result<()> {
         let path = self.path;
         // Checked again: the destination may have appeared since `create`.
         refuse_special_destination(&path)?;

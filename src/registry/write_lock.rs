@@ -210,7 +210,11 @@ pub(crate) struct BlobLock {
 impl BlobLock {
     /// Takes the lock of registry folder `dir` for `purpose`, waiting at
     /// most `timeout` and saying once on standard error what it waits for.
-    pub fn take(dir: &Path, purpose: BlobLockUse, timeout: Duration) -> anyhow::Result<Self> {
+    pub(crate) fn take(
+        dir: &Path,
+        purpose: BlobLockUse,
+        timeout: Duration,
+    ) -> anyhow::Result<Self> {
         let path = dir.join(BLOB_LOCK_FILE);
         let file = std::fs::OpenOptions::new()
             .read(true)

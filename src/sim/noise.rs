@@ -172,7 +172,7 @@ pub(crate) struct Detector {
 
 impl Detector {
     /// A detector for scenes with `background` expected photons per pixel.
-    pub fn new(noise: DetectorNoise, background: f64) -> Self {
+    pub(crate) fn new(noise: DetectorNoise, background: f64) -> Self {
         Self {
             background: PoissonTable::new(background),
             noise,
@@ -184,7 +184,7 @@ impl Detector {
     /// Poisson(background) + Poisson(signal), i.e. Poisson(background +
     /// signal); a pixel without signal costs one table look-up.
     #[inline]
-    pub fn record<R: Rng + ?Sized>(&self, rng: &mut R, signal: f64) -> u64 {
+    pub(crate) fn record<R: Rng + ?Sized>(&self, rng: &mut R, signal: f64) -> u64 {
         let uniforms: [f64; 2] = [rng.random(), rng.random()];
         self.record_from_uniforms(uniforms, rng, signal)
     }
@@ -192,7 +192,7 @@ impl Detector {
     /// [`Detector::record`] with the two uniforms of the Poisson stage (the
     /// background's, the signal's) drawn beforehand in bulk.
     #[inline]
-    pub fn record_from_uniforms<R: Rng + ?Sized>(
+    pub(crate) fn record_from_uniforms<R: Rng + ?Sized>(
         &self,
         uniforms: [f64; 2],
         rng: &mut R,

@@ -94,7 +94,7 @@ impl Net {
     /// Parameter ids are numbered 1, 2, … in construction order (burn would
     /// draw them at random), so the saved record of a model is a pure
     /// function of its weights.
-    pub fn new(arch: &CnnArchitecture, seed: u64, device: &Device) -> Self {
+    pub(crate) fn new(arch: &CnnArchitecture, seed: u64, device: &Device) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut next_id = 0u64;
         let mut id = || {
@@ -154,7 +154,7 @@ impl Net {
     /// logit), with burn's own operations: the reference the kernels of
     /// [`forward_inference`](Self::forward_inference) and
     /// [`forward_training`](Self::forward_training) are tested against.
-    pub fn forward(&self, input: Tensor<4>) -> Tensor<4> {
+    pub(crate) fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let mut x = input;
         for block in &self.blocks {
             x = block.forward(x);
@@ -208,7 +208,7 @@ impl Net {
     /// the body on the deterministic kernels with batch norm folded into
     /// the convolutions, then the head. Returns `[n, OUTPUT_CHANNELS,
     /// height, width]` on `device`.
-    pub fn forward_inference(
+    pub(crate) fn forward_inference(
         &self,
         input: &[f32],
         [n, height, width]: [usize; 3],
@@ -232,7 +232,7 @@ impl Net {
     /// running statistics updated), the head in burn. Returns the output
     /// and the step whose [`NetworkStep::gradients`] completes the backward
     /// pass.
-    pub fn forward_training(
+    pub(crate) fn forward_training(
         &self,
         input: &[f32],
         [n, height, width]: [usize; 3],
@@ -308,7 +308,11 @@ impl NetworkStep {
     /// loss computed from this step's output, by the kernels' backward
     /// passes of the head and the body (sums in a fixed order, so the same
     /// bits on every CPU and thread count).
-    pub fn gradients(self, mut grads: burn::tensor::Gradients, net: &Net) -> GradientsParams {
+    pub(crate) fn gradients(
+        self,
+        mut grads: burn::tensor::Gradients,
+        net: &Net,
+    ) -> GradientsParams {
         let output_grad = self
             .output
             .grad_remove(&mut grads)
