@@ -117,9 +117,6 @@ pub fn read_truth_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<T
     Ok(truth)
 }
 
-/// Column names of a predictions table written by scanloc, in order.
-pub(crate) const PREDICTION_COLUMNS: [&str; 4] = ["frame", "x", "y", "score"];
-
 /// The optional columns of a localisation's uncertainty
 /// ([`LocalisationSigma`]), written before `score` when any prediction of
 /// the table has one.

@@ -180,17 +180,11 @@ impl Detector {
     }
 
     /// The recorded count of a pixel with expected `signal` photons (finite,
-    /// ≥ 0) on top of the background. Photons are drawn as
-    /// Poisson(background) + Poisson(signal), i.e. Poisson(background +
-    /// signal); a pixel without signal costs one table look-up.
-    #[inline]
-    pub(crate) fn record<R: Rng + ?Sized>(&self, rng: &mut R, signal: f64) -> u64 {
-        let uniforms: [f64; 2] = [rng.random(), rng.random()];
-        self.record_from_uniforms(uniforms, rng, signal)
-    }
-
-    /// [`Detector::record`] with the two uniforms of the Poisson stage (the
-    /// background's, the signal's) drawn beforehand in bulk.
+    /// ≥ 0) on top of the background, the two uniforms of the Poisson stage
+    /// (the background's, the signal's) drawn beforehand in bulk. Photons
+    /// are drawn as Poisson(background) + Poisson(signal), i.e.
+    /// Poisson(background + signal); a pixel without signal costs one table
+    /// look-up.
     #[inline]
     pub(crate) fn record_from_uniforms<R: Rng + ?Sized>(
         &self,

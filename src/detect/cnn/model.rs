@@ -19,6 +19,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::optim::GradientsParams;
 use burn::prelude::*;
+#[cfg(test)]
 use burn::tensor::activation::relu;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -69,6 +70,7 @@ pub(crate) struct ConvBlock {
 }
 
 impl ConvBlock {
+    #[cfg(test)]
     fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let x = self.conv.forward(input);
         let x = match &self.norm {
@@ -153,7 +155,9 @@ impl Net {
     /// constants (score logit, offset x, offset y, ln σx, ln σy, within-1-px
     /// logit), with burn's own operations: the reference the kernels of
     /// [`forward_inference`](Self::forward_inference) and
-    /// [`forward_training`](Self::forward_training) are tested against.
+    /// [`forward_training`](Self::forward_training) are tested against (so
+    /// compiled for the tests only).
+    #[cfg(test)]
     pub(crate) fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let mut x = input;
         for block in &self.blocks {
