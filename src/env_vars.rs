@@ -52,7 +52,7 @@ pub const RAYON_NUM_THREADS: &str = "RAYON_NUM_THREADS";
 
 /// The boolean variables scanloc reads, each checked by [`flag`] before
 /// any command runs.
-pub const BOOLEAN_FLAGS: [&str; 1] = [SCANLOC_REGISTRY_READ_ONLY];
+pub(crate) const BOOLEAN_FLAGS: [&str; 1] = [SCANLOC_REGISTRY_READ_ONLY];
 
 /// The value of the boolean variable `name`: unset is false; `1`, `true`,
 /// `yes`, `on` are true and `0`, `false`, `no`, `off` false (in any case,

@@ -93,7 +93,7 @@ impl Segment {
 
 /// Formats a path the way errors print it: keys joined by `.`, indices as
 /// `[i]` (`evaluations[0].detector`).
-pub fn display_path(path: &[Segment]) -> String {
+pub(crate) fn display_path(path: &[Segment]) -> String {
     let mut text = String::new();
     for segment in path {
         match segment {
@@ -175,7 +175,7 @@ impl From<FieldError> for anyhow::Error {
 }
 
 /// Checks that a parameter is a finite number, naming it in the error.
-pub fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
+pub(crate) fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
     if value.is_finite() {
         Ok(value)
     } else {
@@ -187,7 +187,7 @@ pub fn require_finite(name: &str, value: f64) -> Result<f64, FieldError> {
 }
 
 /// Checks that a parameter is finite and ≥ 0, naming it in the error.
-pub fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
+pub(crate) fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value < 0.0 {
         return Err(FieldError::new(
@@ -199,7 +199,7 @@ pub fn require_non_negative(name: &str, value: f64) -> Result<f64, FieldError> {
 }
 
 /// Checks that a parameter is finite and > 0, naming it in the error.
-pub fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
+pub(crate) fn require_positive(name: &str, value: f64) -> Result<f64, FieldError> {
     require_finite(name, value)?;
     if value <= 0.0 {
         return Err(FieldError::new(

@@ -8,8 +8,18 @@
 //! the bottom. [`io`] holds every file format. Coordinates everywhere
 //! follow TrackPy: `x` is the column, `y` the row, pixel centres at
 //! integers.
+//!
+//! Visibility (docs/architecture.md, "Visibility"): a module is `pub` only
+//! where something outside the library (the binary, `tests/`, `examples/`,
+//! the Python bindings) names a path through it, else `pub(crate)`; an item
+//! of a crate-private module is `pub(crate)` at most. `unreachable_pub`
+//! holds that (and `make lint` denies its warnings), so the compiler's
+//! dead-code analysis sees every item no one outside can reach.
+
+#![warn(unreachable_pub)]
 
 pub mod bench;
+pub mod cli;
 pub mod detect;
 pub mod env_vars;
 pub mod error;

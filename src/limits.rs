@@ -26,31 +26,31 @@ pub const MAX_FEATURE_PX: usize = 1_001;
 /// runs`, `registry sql`, the AUC table): longer text is cut with an
 /// ellipsis by [`display_cell`], so a recorded name of any length prints as
 /// one bounded line. `--json` prints cells whole.
-pub const MAX_CELL_CHARS: usize = 200;
+pub(crate) const MAX_CELL_CHARS: usize = 200;
 /// Longest record (row) of a CSV table, in bytes: a row of truth or
 /// localisations is a few hundred bytes, so a longer one is a file that is
 /// not such a table, refused before it is read into memory.
-pub const MAX_CSV_RECORD_BYTES: usize = 1 << 20;
+pub(crate) const MAX_CSV_RECORD_BYTES: usize = 1 << 20;
 /// Largest manifest (YAML) read, in bytes: manifests are a few kilobytes,
 /// so a larger file (or a device such as `/dev/zero`) is refused after
 /// reading this much rather than read for ever.
-pub const MAX_MANIFEST_BYTES: u64 = 4 << 20;
+pub(crate) const MAX_MANIFEST_BYTES: u64 = 4 << 20;
 /// Most memory one command may plan to hold for a dataset it makes
 /// (`simulate`'s frames and ground truth), checked before allocating;
 /// [`check_memory`] also checks the machine's available memory.
-pub const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
+pub(crate) const MAX_IN_MEMORY_BYTES: u64 = 16 << 30;
 /// Most threads of the pool scanloc computes on (`RAYON_NUM_THREADS`):
 /// far more than the CPUs of any machine this runs on, few enough to start
 /// at once.
-pub const MAX_THREADS: usize = 1024;
+pub(crate) const MAX_THREADS: usize = 1024;
 
 /// Largest matching radius ε of the metric, and gate of the tracking
 /// measures, px: far beyond any frame.
-pub const MAX_EPS_PX: f64 = 1e6;
+pub(crate) const MAX_EPS_PX: f64 = 1e6;
 /// Checks a matching radius ε: a positive number of pixels up to
 /// [`MAX_EPS_PX`]; the error is the message alone, for the caller to name
 /// the setting (a flag, or a manifest's `metrics.eps_px[i]`).
-pub fn check_radius(eps: f64) -> Result<(), String> {
+pub(crate) fn check_radius(eps: f64) -> Result<(), String> {
     if eps.is_finite() && eps > 0.0 && eps <= MAX_EPS_PX {
         return Ok(());
     }
@@ -66,7 +66,7 @@ pub fn check_radius(eps: f64) -> Result<(), String> {
 
 /// Most matching radii one score lists (columns of the AUC table per
 /// dataset), in a manifest and on the command line.
-pub const MAX_RADII: usize = 32;
+pub(crate) const MAX_RADII: usize = 32;
 
 /// Largest search range of a linker, in the localisation table's units
 /// (pixels, or whatever a user's table is in): far beyond any field, and
@@ -105,7 +105,7 @@ pub fn check_positive_at_most(name: &str, value: f64, max: f64) -> Result<f64, F
 
 /// Checks a frame count (`name` names the field or flag): 1 to
 /// [`MAX_FRAMES`].
-pub fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {
+pub(crate) fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {
     if frames == 0 {
         return Err(FieldError::new(name, "must be a positive integer"));
     }
@@ -120,7 +120,7 @@ pub fn check_frame_count(name: &str, frames: u64) -> Result<usize, FieldError> {
 
 /// Checks a frame side (`name` names the field or flag): 1 to
 /// [`MAX_FRAME_SIDE`] pixels.
-pub fn check_frame_side(name: &str, pixels: usize) -> Result<(), FieldError> {
+pub(crate) fn check_frame_side(name: &str, pixels: usize) -> Result<(), FieldError> {
     if pixels == 0 || pixels > MAX_FRAME_SIDE {
         return Err(FieldError::new(
             name,
@@ -133,7 +133,7 @@ pub fn check_frame_side(name: &str, pixels: usize) -> Result<(), FieldError> {
 /// Checks that `frames` frames of `height × width` pixels stay within
 /// [`MAX_DATASET_PIXELS`]; the error is about `name` (the frame count's
 /// field or flag).
-pub fn check_dataset_pixels(
+pub(crate) fn check_dataset_pixels(
     name: &str,
     frames: usize,
     height: usize,
@@ -187,7 +187,7 @@ pub fn check_stack_shape(
 
 /// Refuses frames without pixels (`height` or `width` 0): no detector can
 /// look for anything in them, and saying so beats an empty result.
-pub fn check_frame_not_empty(height: usize, width: usize) -> Result<(), FieldError> {
+pub(crate) fn check_frame_not_empty(height: usize, width: usize) -> Result<(), FieldError> {
     if height == 0 || width == 0 {
         return Err(FieldError::at(
             &[],
@@ -200,7 +200,7 @@ pub fn check_frame_not_empty(height: usize, width: usize) -> Result<(), FieldErr
 }
 
 /// Checks a size-like parameter in pixels: at most [`MAX_FEATURE_PX`].
-pub fn check_feature_px(name: &str, pixels: f64) -> Result<(), FieldError> {
+pub(crate) fn check_feature_px(name: &str, pixels: f64) -> Result<(), FieldError> {
     if pixels > MAX_FEATURE_PX as f64 {
         return Err(FieldError::new(
             name,
@@ -212,7 +212,7 @@ pub fn check_feature_px(name: &str, pixels: f64) -> Result<(), FieldError> {
 
 /// `text` as a table cell shows it: whole up to [`MAX_CELL_CHARS`]
 /// characters, else its first `MAX_CELL_CHARS − 1` and `…`.
-pub fn display_cell(text: &str) -> std::borrow::Cow<'_, str> {
+pub(crate) fn display_cell(text: &str) -> std::borrow::Cow<'_, str> {
     match text.char_indices().nth(MAX_CELL_CHARS - 1) {
         Some((cut, _)) if text[cut..].chars().nth(1).is_some() => {
             std::borrow::Cow::Owned(format!("{}…", &text[..cut]))
@@ -267,7 +267,7 @@ pub fn check_memory(name: &str, bytes: u64, available: Option<u64>) -> Result<()
 /// step): a number above [`MAX_THREADS`] is refused rather than a billion
 /// threads started. Empty, 0 or not a number leave rayon's default (one
 /// thread per CPU), as rayon itself does.
-pub fn check_thread_count(name: &str, value: &std::ffi::OsStr) -> anyhow::Result<()> {
+pub(crate) fn check_thread_count(name: &str, value: &std::ffi::OsStr) -> anyhow::Result<()> {
     let text = value.to_string_lossy();
     match text.parse::<u128>() {
         Ok(threads) if threads > MAX_THREADS as u128 => Err(input_error(format!(

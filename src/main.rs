@@ -1,8 +1,6 @@
-//! The `scanloc` command: a thin layer over the library that parses the
-//! command line, calls the library and maps errors to exit codes
-//! (0 success, 1 a check failed, 2 bad input).
-
-mod cli;
+//! The `scanloc` command: the process around the library's command line
+//! ([`scanloc::cli`], which parses the arguments, calls the library and
+//! maps errors to exit codes): logging, SIGPIPE, the allocator.
 
 use std::io::IsTerminal;
 use std::process::ExitCode;
@@ -17,7 +15,7 @@ fn main() -> ExitCode {
         )
         .init();
     let styled = std::io::stderr().is_terminal();
-    cli::main_with(
+    scanloc::cli::main_with(
         std::env::args_os(),
         &mut std::io::stdout(),
         &mut std::io::stderr(),

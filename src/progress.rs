@@ -11,7 +11,7 @@ use indicatif::{
 };
 
 /// How often a progress line is logged when stderr is not a terminal.
-pub const LOG_INTERVAL: Duration = Duration::from_secs(10);
+pub(crate) const LOG_INTERVAL: Duration = Duration::from_secs(10);
 
 /// A progress bar of `len` steps labelled `message`: drawn as a bar when
 /// stderr is a terminal; otherwise a line `message: pos/len (…)` is logged
@@ -36,7 +36,7 @@ pub fn bar(len: u64, message: &str) -> ProgressBar {
 
 /// A progress bar that logs one line to `sink` at most every `interval`
 /// (the first after `interval`), for stderr that is not a terminal.
-pub fn logged(
+pub(crate) fn logged(
     len: u64,
     message: &str,
     interval: Duration,
@@ -119,7 +119,7 @@ fn pace(pos: u64, elapsed: Duration) -> String {
 /// each (linking, the D estimators), of one part until the work sets its
 /// own length: it ticks every second, so that a log gets a line every
 /// [`LOG_INTERVAL`] while the work runs, not only when a part ends.
-pub fn heartbeat(message: &str) -> ProgressBar {
+pub(crate) fn heartbeat(message: &str) -> ProgressBar {
     let bar = bar(1, message);
     bar.enable_steady_tick(Duration::from_secs(1));
     bar
@@ -141,7 +141,7 @@ pub fn note(line: impl std::fmt::Display) {
 
 /// [`note`] when standard error is a terminal only: a line for someone
 /// watching, which a log file need not keep.
-pub fn note_on_terminal(line: impl std::fmt::Display) {
+pub(crate) fn note_on_terminal(line: impl std::fmt::Display) {
     if std::io::stderr().is_terminal() {
         note(line);
     }

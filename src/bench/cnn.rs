@@ -17,11 +17,11 @@ use crate::sim::{self, SimParams};
 use crate::types::Dataset;
 use crate::types::derive_seed;
 
-pub use crate::run::test_sets::{PAPER_FCNN, TestRow, auc_table, format_auc_table, test_set_seed};
+pub(crate) use crate::run::test_sets::{auc_table, format_auc_table};
 
 /// Throughput of training and inference.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Throughput {
+pub(crate) struct Throughput {
     pub architecture: CnnArchitecture,
     pub batch_size: usize,
     pub threads: usize,
@@ -40,7 +40,7 @@ pub struct Throughput {
 }
 
 /// CPU seconds (user + system) this process has used so far.
-pub fn process_cpu_seconds() -> f64 {
+pub(crate) fn process_cpu_seconds() -> f64 {
     let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
     // SAFETY: getrusage fills the struct it is given.
     let usage = unsafe {
@@ -57,7 +57,7 @@ pub fn process_cpu_seconds() -> f64 {
 /// on `train_samples` fresh frames, then locates `locate_frames` frames.
 /// The training seed is `derive_seed(seed, "detector", "throughput")`, the
 /// located frames' `derive_seed(seed, "dataset", "throughput-locate")`.
-pub fn throughput(
+pub(crate) fn throughput(
     arch: &CnnArchitecture,
     params: &SimParams,
     batch_size: usize,
@@ -116,21 +116,21 @@ pub fn throughput(
 /// after every step (as PyTorch deployments usually configure it); malloc
 /// reads these at start-up, so they are set when the interpreter is
 /// spawned (the script also re-executes itself with them).
-pub const TORCH_MALLOC_ENV: [(&str, &str); 2] = [
+pub(crate) const TORCH_MALLOC_ENV: [(&str, &str); 2] = [
     ("MALLOC_MMAP_THRESHOLD_", "33554432"),
     ("MALLOC_TRIM_THRESHOLD_", "4294967296"),
 ];
 
 /// Where and how to run the PyTorch reference of [`compare_with_torch`].
 #[derive(Debug, Clone)]
-pub struct TorchReference {
+pub(crate) struct TorchReference {
     pub python: String,
     pub script: std::path::PathBuf,
 }
 
 /// Training samples/s and inference frames/s of one timed run.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Rates {
+pub(crate) struct Rates {
     pub train_samples_per_second: f64,
     pub frames_per_second: f64,
     /// The same per CPU second of the process (see [`Throughput`]).
@@ -141,7 +141,7 @@ pub struct Rates {
 /// Medians over the repetitions at one thread count; `torch` is `None`
 /// (with the reason in `torch_skipped`) when the reference could not run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Comparison {
+pub(crate) struct Comparison {
     pub threads: usize,
     pub repeats: usize,
     pub scanloc: Rates,
@@ -167,7 +167,7 @@ fn median(values: &mut [f64]) -> f64 {
 /// intra-op threads). Reports the medians. If the first torch run fails
 /// (no interpreter, no torch) the rest of the torch runs are skipped.
 #[allow(clippy::too_many_arguments)]
-pub fn compare_with_torch(
+pub(crate) fn compare_with_torch(
     arch: &CnnArchitecture,
     params: &SimParams,
     batch_size: usize,

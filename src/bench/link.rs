@@ -17,7 +17,7 @@ use crate::types::Prediction;
 /// Random walks to link: particles at a set density that appear and
 /// disappear, some detections missing (blinks).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct WalkSpec {
+pub(crate) struct WalkSpec {
     /// Particles over the whole recording.
     pub particles: usize,
     /// Frames of the recording.
@@ -34,7 +34,7 @@ pub struct WalkSpec {
 
 impl WalkSpec {
     /// Refuses specs that would make no walks or an unbounded field.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub(crate) fn validate(&self) -> anyhow::Result<()> {
         let limit = 10_000_000;
         if self.particles == 0
             || self.frames < 4
@@ -61,7 +61,7 @@ impl WalkSpec {
 
 /// The detections of `spec`'s walks, by particle then frame (unsorted by
 /// frame on purpose: the linkers sort).
-pub fn random_walks(spec: &WalkSpec) -> Vec<Detection> {
+pub(crate) fn random_walks(spec: &WalkSpec) -> Vec<Detection> {
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
     let side = (spec.particles as f64 / spec.density_per_px2).sqrt();
     let step = Normal::new(0.0, spec.step_px).unwrap_or_else(|_| Normal::new(0.0, 1.0).unwrap());
@@ -83,7 +83,7 @@ pub fn random_walks(spec: &WalkSpec) -> Vec<Detection> {
 
 /// The best time in seconds of `repeats` runs of the TrackPy linker, and
 /// its result.
-pub fn time_trackpy_link(
+pub(crate) fn time_trackpy_link(
     detections: &[Detection],
     params: &TrackpyParams,
     repeats: usize,
@@ -100,7 +100,7 @@ pub fn time_trackpy_link(
 }
 
 /// Writes `detections` as a `frame,x,y,score` table TrackPy can read.
-pub fn write_detections(path: &Path, detections: &[Detection]) -> anyhow::Result<()> {
+pub(crate) fn write_detections(path: &Path, detections: &[Detection]) -> anyhow::Result<()> {
     let rows: Vec<Prediction> = detections
         .iter()
         .map(|d| Prediction::new(d.frame, d.x, d.y, 1.0))

@@ -8,7 +8,7 @@ use crate::types::FrameStack;
 
 /// Locates features in every frame `repeats` times (after a warm-up) and
 /// returns the best frames/s.
-pub fn time_crocker_grier(
+pub(crate) fn time_crocker_grier(
     frames: &FrameStack,
     params: &CrockerGrierParams,
     repeats: usize,

@@ -2,9 +2,9 @@
 //! is available on the machine, a reference implementation in the same run,
 //! so speed is reported as a ratio measured under the same load.
 
-pub mod cnn;
+pub(crate) mod cnn;
 pub mod link;
-pub mod locate;
-pub mod reference;
-pub mod simulate;
+pub(crate) mod locate;
+pub(crate) mod reference;
+pub(crate) mod simulate;
 pub mod tradeoff;

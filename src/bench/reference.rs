@@ -7,7 +7,7 @@ use std::process::Command;
 /// `frames_per_second=<number>`. Errors say why the reference could not run
 /// (no interpreter, missing package, bad output), so benchmarks can report
 /// it as skipped rather than fail.
-pub fn run_python(python: &str, script: &Path, args: &[&str]) -> Result<f64, String> {
+pub(crate) fn run_python(python: &str, script: &Path, args: &[&str]) -> Result<f64, String> {
     let [fps] = run_python_figures(python, script, args, &[], ["frames_per_second"])?;
     Ok(fps)
 }
@@ -15,7 +15,7 @@ pub fn run_python(python: &str, script: &Path, args: &[&str]) -> Result<f64, Str
 /// Runs `python script args…` with the extra environment variables `env`
 /// and reads, for each of `keys`, the last line of its stdout of the form
 /// `key=<number>`. Errors as [`run_python`].
-pub fn run_python_figures<const K: usize>(
+pub(crate) fn run_python_figures<const K: usize>(
     python: &str,
     script: &Path,
     args: &[&str],

@@ -7,11 +7,11 @@ use crate::progress::hidden;
 use crate::sim::{SimParams, simulate};
 
 /// The paper's total number of frames.
-pub const PAPER_FRAMES: usize = 36_688;
+pub(crate) const PAPER_FRAMES: usize = 36_688;
 
 /// One timing of the simulator.
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct SimulateTiming {
+pub(crate) struct SimulateTiming {
     pub frames: usize,
     pub threads: usize,
     /// Best of the repeats, in seconds.
@@ -21,7 +21,7 @@ pub struct SimulateTiming {
 
 /// Simulates `frames` frames with `params` `repeats` times (after one
 /// warm-up) and reports the best time.
-pub fn time_simulator(
+pub(crate) fn time_simulator(
     params: &SimParams,
     frames: usize,
     repeats: usize,

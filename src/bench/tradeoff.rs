@@ -48,7 +48,7 @@ pub struct TradeoffPoint {
 /// the reference's; above 1 is faster) and, when the points have a
 /// `training_seconds` extra, `training_time_vs_reference` (below 1 is
 /// faster). Without a reference point nothing is added.
-pub fn add_speed_ratios(points: &mut [TradeoffPoint]) {
+pub(crate) fn add_speed_ratios(points: &mut [TradeoffPoint]) {
     let Some(reference) = points.iter().find(|p| p.reference).cloned() else {
         return;
     };
@@ -90,7 +90,7 @@ pub fn pareto_flags(points: &[(f64, f64)]) -> Vec<bool> {
 }
 
 /// Marks the points no other point beats in both speed and error.
-pub fn mark_pareto_front(points: &mut [TradeoffPoint]) {
+pub(crate) fn mark_pareto_front(points: &mut [TradeoffPoint]) {
     let flags = pareto_flags(
         &points
             .iter()
@@ -146,13 +146,17 @@ fn test_params(brightness: f64, diffusion: f64) -> SimParams {
 /// The test sets every locator sweep is scored on: D = 1 µm²/s (`frames`
 /// frames, the error axis) and a static QD, D = 0 (`static_frames`, for
 /// the distance to the Cramér–Rao floor).
-pub struct TestSets {
+pub(crate) struct TestSets {
     pub moving: Dataset,
     pub still: Dataset,
 }
 
 impl TestSets {
-    pub fn simulate(frames: usize, static_frames: usize, brightness: f64) -> anyhow::Result<Self> {
+    pub(crate) fn simulate(
+        frames: usize,
+        static_frames: usize,
+        brightness: f64,
+    ) -> anyhow::Result<Self> {
         Ok(Self {
             moving: sim::simulate(
                 &test_params(brightness, 1.0),
@@ -197,7 +201,7 @@ fn score_extras(
 
 /// Radius (px) within which a static-set top prediction counts as the QD
 /// found, for [`static_extras`]' precision: the largest ε of the metric.
-pub const FOUND_RADIUS_PX: f64 = 3.0;
+pub(crate) const FOUND_RADIUS_PX: f64 = 3.0;
 
 /// The static-QD (D = 0) errors of `predictions`, as extras:
 /// `rmse_static_px` (every frame's top prediction; ∞ if none has one),
@@ -241,7 +245,7 @@ fn static_extras(
 /// so both see the same QD; the random walk does not depend on these
 /// settings except through the path's sampling), over 200 frames. Speed
 /// ratios are against the simulator's default (1 substep, 6σ cut-off).
-pub fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
+pub(crate) fn simulator_sweep(frames: usize) -> anyhow::Result<Vec<TradeoffPoint>> {
     let base = SimParams {
         margin_px: 4.0,
         ..SimParams::default()
@@ -317,7 +321,7 @@ const PAPER_DIAMETER: usize = 7;
 /// each frame's top prediction
 /// there; AUC per ε, the fraction of frames without a prediction and the
 /// static-set errors of [`static_extras`] as extras.
-pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint>> {
+pub(crate) fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint>> {
     let frames = tests.moving.frames.n;
     let mut points = Vec::new();
     for diameter in [3usize, 5, 7, 9, 11] {
@@ -357,7 +361,7 @@ pub fn crocker_grier_sweep(tests: &TestSets) -> anyhow::Result<Vec<TradeoffPoint
 
 /// What the CNN sweep trains and scores.
 #[derive(Debug, Clone)]
-pub struct CnnSweep {
+pub(crate) struct CnnSweep {
     /// Frames of the fixed training set (D uniform in [0.75, 1.75]).
     pub train_frames: usize,
     /// Hidden conv channels to try.
@@ -374,7 +378,7 @@ pub struct CnnSweep {
 /// The dilations of a network with `depth` hidden layers: rising then
 /// falling, so that the receptive field grows with depth (6 is the
 /// library's default).
-pub fn dilations_for_depth(depth: usize) -> anyhow::Result<Vec<usize>> {
+pub(crate) fn dilations_for_depth(depth: usize) -> anyhow::Result<Vec<usize>> {
     Ok(match depth {
         2 => vec![1, 2],
         3 => vec![1, 2, 1],
@@ -395,7 +399,7 @@ pub fn dilations_for_depth(depth: usize) -> anyhow::Result<Vec<usize>> {
 /// [`static_extras`], and `pareto_training`
 /// (1 if no setting trains at least as fast with at most the error).
 /// `progress` counts settings.
-pub fn cnn_sweep(
+pub(crate) fn cnn_sweep(
     sweep: &CnnSweep,
     tests: &TestSets,
     progress: &indicatif::ProgressBar,
@@ -538,7 +542,7 @@ pub fn cramer_rao_rmse_px(
 /// drawn as a line. With `floor` (the Cramér–Rao bound, which holds for a
 /// static QD) the plot also shows each setting's `precision_static_px`, so
 /// the distance to the floor can be read off.
-pub fn write_sweep(
+pub(crate) fn write_sweep(
     dir: &Path,
     name: &str,
     error_label: &str,
@@ -580,7 +584,7 @@ pub fn write_sweep(
 
 /// Plots a CNN sweep's training time against its error as
 /// `NAME_training.png`/`.svg`, with the front of `pareto_training`.
-pub fn write_training_plot(
+pub(crate) fn write_training_plot(
     dir: &Path,
     name: &str,
     error_label: &str,

@@ -5,13 +5,13 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::bench;
+use crate::sim::{Distribution, SimParams};
 use clap::{Args, Subcommand};
-use scanloc::bench;
-use scanloc::sim::{Distribution, SimParams};
 
 /// Measure throughput (frames/s) of scanloc's stages.
 #[derive(Debug, Args)]
-pub struct BenchArgs {
+pub(super) struct BenchArgs {
     #[command(subcommand)]
     command: BenchCommand,
 }
@@ -92,7 +92,7 @@ impl TradeoffArgs {
     /// Refuses settings that would make an empty or meaningless sweep;
     /// returns the brightness.
     fn validate(&self) -> anyhow::Result<f64> {
-        use scanloc::error::input_error;
+        use crate::error::input_error;
         super::microscope::paper_sized("--frames", self.frames)?;
         super::microscope::paper_sized("--static-frames", self.static_frames)?;
         let brightness = self
@@ -171,7 +171,7 @@ struct SimulateBench {
     microscope: super::MicroscopeArgs,
 }
 
-pub fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: BenchArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     match args.command {
         BenchCommand::Simulate(args) => simulate(args, stdout),
         BenchCommand::Locate(args) => locate(args, stdout),
@@ -189,8 +189,8 @@ fn locate(args: LocateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode>
         "--reference-frames",
         args.reference_frames,
     )?;
-    let dataset = scanloc::sim::simulate(&params, 7, 0..args.frames, &scanloc::progress::hidden())?;
-    let detector = scanloc::detect::crocker_grier::CrockerGrierParams {
+    let dataset = crate::sim::simulate(&params, 7, 0..args.frames, &crate::progress::hidden())?;
+    let detector = crate::detect::crocker_grier::CrockerGrierParams {
         minmass: Some(0.0),
         ..Default::default()
     };
@@ -205,13 +205,13 @@ fn locate(args: LocateBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode>
     )?;
     let folder = tempfile::tempdir()?;
     let file = folder.path().join("frames.npy");
-    let subset = scanloc::sim::simulate(
+    let subset = crate::sim::simulate(
         &params,
         7,
         0..args.reference_frames.min(args.frames),
-        &scanloc::progress::hidden(),
+        &crate::progress::hidden(),
     )?;
-    scanloc::io::write_frames(&file, &subset.frames)?;
+    crate::io::write_frames(&file, &subset.frames)?;
     let file_arg = file.to_string_lossy().into_owned();
     match bench::reference::run_python(&args.python, &args.reference, &["--input", &file_arg]) {
         Ok(reference_fps) => writeln!(
@@ -375,7 +375,7 @@ fn crocker_grier_tradeoff(
     )?;
     tradeoff::write_sweep(
         &args.out,
-        scanloc::types::DetectorKind::CrockerGrier.as_str(),
+        crate::types::DetectorKind::CrockerGrier.as_str(),
         "RMSE of top prediction, D = 1 (px)",
         &locator,
         Some(floor),
@@ -400,7 +400,7 @@ fn cnn_tradeoff(
         epochs: args.cnn_epochs.clone(),
         brightness,
     };
-    let progress = scanloc::progress::bar(0, "cnn sweep");
+    let progress = crate::progress::bar(0, "cnn sweep");
     let cnn = tradeoff::cnn_sweep(&sweep, tests, &progress)?;
     progress.finish_and_clear();
     print_sweep(

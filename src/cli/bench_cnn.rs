@@ -1,15 +1,15 @@
 //! CNN benchmarks: `scanloc bench train` (training and inference
 //! throughput) and `scanloc bench cnn-locate` (a saved model's AUC table and
 //! inference speed on fresh test sets). Thin wrappers over
-//! `scanloc::bench::cnn`.
+//! `crate::bench::cnn`.
 
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::bench;
+use crate::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 use clap::Args;
-use scanloc::bench;
-use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
 
 /// Measure CNN training and inference throughput on paper-sized frames,
 /// against PyTorch on the same network.
@@ -30,7 +30,7 @@ use scanloc::detect::cnn::{self, CnnArchitecture, TrainedCnn, TrainingSettings};
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct BenchTrainArgs {
+pub(super) struct BenchTrainArgs {
     /// Training samples to time.
     #[arg(long, default_value_t = 2000)]
     samples: usize,
@@ -74,11 +74,11 @@ pub struct BenchTrainArgs {
 const MAX_BENCH_THREADS: usize = 256;
 const MAX_REPEATS: usize = 100;
 
-pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     super::microscope::paper_sized("--samples", args.samples)?;
     super::microscope::paper_sized("--locate-frames", args.locate_frames)?;
     if args.samples == 0 || args.locate_frames == 0 {
-        scanloc::bail_input!("--samples and --locate-frames: must be ≥ 1");
+        crate::bail_input!("--samples and --locate-frames: must be ≥ 1");
     }
     if args.threads.is_empty()
         || args
@@ -86,13 +86,13 @@ pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result
             .iter()
             .any(|&t| t == 0 || t > MAX_BENCH_THREADS)
     {
-        scanloc::bail_input!(
+        crate::bail_input!(
             "--threads: each must be in 1..={MAX_BENCH_THREADS}, got {:?}",
             args.threads
         );
     }
     if args.repeats == 0 || args.repeats > MAX_REPEATS {
-        scanloc::bail_input!(
+        crate::bail_input!(
             "--repeats: must be in 1..={MAX_REPEATS}, got {}",
             args.repeats
         );
@@ -116,9 +116,9 @@ pub fn run_train(args: BenchTrainArgs, stdout: &mut dyn Write) -> anyhow::Result
     let params = args.microscope.params()?;
     params
         .validate()
-        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
+        .map_err(|e| crate::error::input_error(format!("invalid simulation parameter: {e}")))?;
     // The located frames are held at once, like a simulated dataset's.
-    scanloc::limits::check_dataset_size(
+    crate::limits::check_dataset_size(
         "--locate-frames",
         args.locate_frames,
         params.height,
@@ -214,7 +214,7 @@ fn print_table(
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct BenchLocateArgs {
+pub(super) struct BenchLocateArgs {
     /// Model folder written by `scanloc train`.
     #[arg(long)]
     model: PathBuf,
@@ -240,7 +240,10 @@ pub struct BenchLocateArgs {
     score_floor: Option<f64>,
 }
 
-pub fn run_locate(args: BenchLocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run_locate(
+    args: BenchLocateArgs,
+    stdout: &mut dyn Write,
+) -> anyhow::Result<ExitCode> {
     let params = super::microscope::bench_microscope(&args.microscope, "--frames", args.frames)?;
     args.test_diffusion.checked()?;
     let mut model = TrainedCnn::load(&args.model)?;

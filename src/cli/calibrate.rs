@@ -5,9 +5,9 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::manifest;
+use crate::sweep::{SweepKind, SweepSpec};
 use clap::Args;
-use scanloc::manifest;
-use scanloc::sweep::{SweepKind, SweepSpec};
 
 use super::sweep::{ExecutorArgs, run_sweep};
 
@@ -19,7 +19,7 @@ use super::sweep::{ExecutorArgs, run_sweep};
 ///
 /// Why and how N_qd is calibrated: docs/metric.md.
 #[derive(Debug, Args)]
-pub struct CalibrateArgs {
+pub(super) struct CalibrateArgs {
     /// The experiment manifest (needs a `reference` row for the detector).
     manifest: PathBuf,
     /// The detector to calibrate against its reference row.
@@ -37,7 +37,7 @@ pub struct CalibrateArgs {
     executor: ExecutorArgs,
 }
 
-pub fn run(args: CalibrateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: CalibrateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     let spec = SweepSpec {
         kind: SweepKind::Calibrate {

@@ -4,9 +4,9 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::manifest;
+use crate::run::Plan;
 use clap::Args;
-use scanloc::manifest;
-use scanloc::run::Plan;
 use serde_json::json;
 
 /// Validate a manifest without running it, and print it resolved: every
@@ -15,14 +15,14 @@ use serde_json::json;
 ///
 /// Manifest format: docs/manifest.md.
 #[derive(Debug, Args)]
-pub struct CheckArgs {
+pub(super) struct CheckArgs {
     /// The manifest (YAML).
     manifest: PathBuf,
     #[command(flatten)]
     format: super::JsonFlag,
 }
 
-pub fn run(
+pub(super) fn run(
     args: CheckArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
@@ -30,7 +30,7 @@ pub fn run(
     let manifest = manifest::load(&args.manifest)?;
     // Its `sweep:` block as `sweep run` reads it: a grid that would be
     // refused there (two axes on one path) is refused here too.
-    scanloc::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
+    crate::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
     let plan = Plan::from_manifest(&manifest)?;
     let steps: Vec<_> = plan
         .steps

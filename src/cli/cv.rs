@@ -4,12 +4,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::manifest;
+use crate::registry::{CrossValidationPlan, Registry};
+use crate::run::cross_validation;
+use crate::sweep::{SweepKind, SweepSpec};
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::manifest;
-use scanloc::registry::{CrossValidationPlan, Registry};
-use scanloc::run::cross_validation;
-use scanloc::sweep::{SweepKind, SweepSpec};
 
 use super::sweep::{ExecutorArgs, run_sweep};
 
@@ -25,7 +25,7 @@ use super::sweep::{ExecutorArgs, run_sweep};
 /// The cross_validation block: docs/manifest.md; how folds are stored:
 /// docs/registry.md.
 #[derive(Debug, Args)]
-pub struct CvArgs {
+pub(super) struct CvArgs {
     /// The experiment manifest.
     manifest: PathBuf,
     /// Number of folds [default: the manifest's cross_validation.folds, else 5].
@@ -51,7 +51,7 @@ pub struct CvArgs {
     executor: ExecutorArgs,
 }
 
-pub fn run(args: CvArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: CvArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let manifest = manifest::load(&args.manifest)?;
     let block = manifest.cross_validation.clone();
     let detector = args

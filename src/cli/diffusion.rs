@@ -5,10 +5,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::readable;
+use crate::track::diffusion::tables::{TableSettings, estimate_table};
+use crate::track::diffusion::{ENSEMBLE_GATE, Estimate, Exposure, Method};
 use clap::{Args, ValueEnum};
-use scanloc::error::readable;
-use scanloc::track::diffusion::tables::{TableSettings, estimate_table};
-use scanloc::track::diffusion::{ENSEMBLE_GATE, Estimate, Exposure, Method};
 
 /// Which part of the scan a localisation averages (docs/tracking.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -53,7 +53,7 @@ enum ExposureArg {
 /// period. An estimate that is not a finite number is refused too.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct DiffusionArgs {
+pub(super) struct DiffusionArgs {
     /// Tracks CSV: frame,x,y,particle (px), optional sigma_x,sigma_y (px) and time (s: in every row
     /// of a track or in none, each step longer than its two localisations' blur).
     #[arg(long)]
@@ -122,7 +122,7 @@ fn row(
     )
 }
 
-pub fn run(
+pub(super) fn run(
     args: DiffusionArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
@@ -144,7 +144,7 @@ pub fn run(
         given_sigma: args.given_sigma,
     };
     settings.check(&geometry)?;
-    let tracks = scanloc::io::tracks::read_tracks(&args.tracks)?;
+    let tracks = crate::io::tracks::read_tracks(&args.tracks)?;
     let table = estimate_table(
         tracks,
         &geometry,

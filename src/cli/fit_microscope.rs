@@ -6,11 +6,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::fit::{FittedMicroscope, KnownTiming, fit_microscope};
+use crate::io::{self, AcquisitionMetadata, MetadataSource, StackSelection};
+use crate::sim::{DetectorNoise, SimParams};
+use crate::types::FrameStack;
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::fit::{FittedMicroscope, KnownTiming, fit_microscope};
-use scanloc::io::{self, AcquisitionMetadata, MetadataSource, StackSelection};
-use scanloc::sim::{DetectorNoise, SimParams};
 
 /// Fit the microscope to a recording: background photons per pixel, QD
 /// brightness N_qd, the detector's excess noise and the lateral PSF width
@@ -23,7 +24,7 @@ use scanloc::sim::{DetectorNoise, SimParams};
 /// and, with --out, written as a `microscope:` section for
 /// `--microscope FILE.yaml`.
 #[derive(Debug, Args)]
-pub struct FitMicroscopeArgs {
+pub(super) struct FitMicroscopeArgs {
     /// The recording: a multi-page TIFF (8/16/32-bit, ImageJ hyperstack,
     /// ScanImage, BigTIFF) or a .npy (n, H, W) stack of photon counts.
     recording: PathBuf,
@@ -203,8 +204,10 @@ fn round(value: f64, digits: i32) -> f64 {
     (value * scale).round() / scale
 }
 
-pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let name = args.recording.display().to_string();
+    // The destination is checked (and claimed) before the long read, so a
+    // bad --out is refused at once.
     if let Some(out) = &args.out {
         io::refuse_shared_paths(&[("RECORDING", &args.recording)], &[("--out", out)])?;
     }
@@ -223,11 +226,34 @@ pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<Ex
         .frames
         .into_counts()
         .map_err(|e| input_error(format!("{name}: {e:#}")))?;
+    let timing = known_timing(&args, &name, &metadata, &frames)?;
+    let fitted =
+        fit_microscope(&frames, &timing).map_err(|e| input_error(format!("{name}: {e:#}")))?;
+    let params = fitted_params(&name, &frames, &timing, &fitted)?;
+    print_fit(stdout, &name, &metadata, &frames, &timing, &params, &fitted)?;
+    if let Some(mut pending) = pending {
+        let text = microscope_yaml(&name, &params, &fitted)?;
+        pending.fill(|writer| Ok(writer.write_all(text.as_bytes())?))?;
+        let path = pending.path().display().to_string();
+        pending.commit()?;
+        writeln!(stdout, "wrote {path}")?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The scan's timing from the flags and the file's metadata, refused where
+/// it is missing, impossible or disagrees with the frames or the file.
+fn known_timing(
+    args: &FitMicroscopeArgs,
+    name: &str,
+    metadata: &AcquisitionMetadata,
+    frames: &FrameStack,
+) -> anyhow::Result<KnownTiming> {
     let pixel_size_um = timing_value(
         "--pixel-size-um",
         args.pixel_size_um,
         metadata.pixel_size_um,
-        &name,
+        name,
         false,
         1e3,
     )?;
@@ -235,7 +261,7 @@ pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<Ex
         "--dwell-us",
         args.dwell_us,
         metadata.dwell_us,
-        &name,
+        name,
         false,
         1e6,
     )?;
@@ -243,7 +269,7 @@ pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<Ex
         "--retrace-ms",
         args.retrace_ms,
         metadata.retrace_ms,
-        &name,
+        name,
         true,
         1e6,
     )?;
@@ -251,47 +277,75 @@ pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<Ex
         "--sigma-z-um",
         Some(args.sigma_z_um),
         None,
-        &name,
+        name,
         false,
         1e3,
     )?;
     check_acquisition(
-        &name,
-        &metadata,
+        name,
+        metadata,
         frames.height,
         frames.width,
         dwell_us,
         retrace_ms,
     )?;
-    let timing = KnownTiming {
+    Ok(KnownTiming {
         pixel_size_um,
         dwell_us,
         retrace_ms,
         sigma_z_um: args.sigma_z_um,
-    };
-    let fitted =
-        fit_microscope(&frames, &timing).map_err(|e| input_error(format!("{name}: {e:#}")))?;
+    })
+}
+
+/// The microscope as the simulator and the estimators take it: the
+/// frames' size, the known timing and the fitted values, refused if they
+/// do not make a valid microscope.
+fn fitted_params(
+    name: &str,
+    frames: &FrameStack,
+    timing: &KnownTiming,
+    fitted: &FittedMicroscope,
+) -> anyhow::Result<SimParams> {
     let params = SimParams {
         height: frames.height,
         width: frames.width,
-        pixel_size_um,
-        dwell_us,
-        retrace_ms,
+        pixel_size_um: timing.pixel_size_um,
+        dwell_us: timing.dwell_us,
+        retrace_ms: timing.retrace_ms,
         sigma_xy_um: fitted.sigma_xy_um.value,
-        sigma_z_um: args.sigma_z_um,
+        sigma_z_um: timing.sigma_z_um,
         background: fitted.background.value.into(),
         brightness: fitted.brightness.value.into(),
-        detector_noise: detector_noise(&name, &fitted)?,
+        detector_noise: detector_noise(name, fitted)?,
         ..SimParams::default()
     };
     params
         .validate()
         .map_err(|e| input_error(format!("{name}: the fitted microscope is not valid: {e}")))?;
+    Ok(params)
+}
 
+/// Prints the fit: what was read, each estimate with its standard error
+/// (the brightness with its caveat) and the detector model.
+fn print_fit(
+    stdout: &mut dyn Write,
+    name: &str,
+    metadata: &AcquisitionMetadata,
+    frames: &FrameStack,
+    timing: &KnownTiming,
+    params: &SimParams,
+    fitted: &FittedMicroscope,
+) -> anyhow::Result<()> {
     let source = match metadata.source {
         MetadataSource::None => "flags".to_string(),
         other => format!("flags and {} metadata", other.as_str()),
     };
+    let KnownTiming {
+        pixel_size_um,
+        dwell_us,
+        retrace_ms,
+        sigma_z_um,
+    } = timing;
     writeln!(
         stdout,
         "{name}: {} frames of {}×{} px ({} used, {} spots); timing from {source}: pixel {pixel_size_um} µm, dwell {dwell_us} µs, retrace {retrace_ms} ms",
@@ -324,15 +378,8 @@ pub fn run(args: FitMicroscopeArgs, stdout: &mut dyn Write) -> anyhow::Result<Ex
     };
     writeln!(
         stdout,
-        "  detector model: {noise}; spot height with motion blur {:.3} µm; sigma_z_um {} (given)",
-        fitted.blurred_height_um, args.sigma_z_um
+        "  detector model: {noise}; spot height with motion blur {:.3} µm; sigma_z_um {sigma_z_um} (given)",
+        fitted.blurred_height_um
     )?;
-    if let Some(mut pending) = pending {
-        let text = microscope_yaml(&name, &params, &fitted)?;
-        pending.fill(|writer| Ok(writer.write_all(text.as_bytes())?))?;
-        let path = pending.path().display().to_string();
-        pending.commit()?;
-        writeln!(stdout, "wrote {path}")?;
-    }
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }

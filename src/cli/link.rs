@@ -5,10 +5,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Args, ValueEnum};
-use scanloc::error::input_error;
-use scanloc::io::{PendingFile, localisation_table};
-use scanloc::track::linker::{LinkerKind, LinkerRequest, Naming};
-use scanloc::track::{self, trackpy::TrackpyParams};
+use crate::error::input_error;
+use crate::io::{PendingFile, localisation_table};
+use crate::track::linker::{LinkerKind, LinkerRequest, Naming};
+use crate::track::{self, trackpy::TrackpyParams};
 
 /// Link localisations into trajectories (docs/tracking.md#linking).
 ///
@@ -30,7 +30,7 @@ use scanloc::track::{self, trackpy::TrackpyParams};
 /// crowd, at the price of a diffusion model to state.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct LinkArgs {
+pub(super) struct LinkArgs {
     /// Localisation table (CSV with frame, x, y; optionally sigma_x, sigma_y).
     #[arg(long)]
     locs: PathBuf,
@@ -88,7 +88,7 @@ enum Linker {
     Lap,
 }
 
-pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let linker = LinkerRequest {
         linker: match args.linker {
             Linker::Trackpy => LinkerKind::Trackpy,
@@ -106,10 +106,10 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(least) = args.min_score.filter(|least| !least.is_finite()) {
         return Err(input_error(format!(
             "--min-score: must be a finite number, got {}",
-            scanloc::error::readable(least)
+            crate::error::readable(least)
         )));
     }
-    scanloc::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
+    crate::io::refuse_shared_paths(&[("--locs", &args.locs)], &[("--out", &args.out)])?;
     let mut pending = PendingFile::create(&args.out)?;
     let mut table = localisation_table::read_localisation_table(&args.locs)?;
     let left_out = match args.min_score {
@@ -154,7 +154,7 @@ pub fn run(args: LinkArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
 /// and blink, linked by `--linker trackpy` and by TrackPy 0.7 (python3
 /// with trackpy; skipped with a message if it cannot run).
 #[derive(Debug, Args)]
-pub struct LinkBench {
+pub(super) struct LinkBench {
     /// Particles over the recording.
     #[arg(long, default_value_t = 400)]
     particles: usize,
@@ -194,8 +194,8 @@ pub struct LinkBench {
     reference: PathBuf,
 }
 
-pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    use scanloc::bench::link as bench_link;
+pub(super) fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    use crate::bench::link as bench_link;
     let spec = bench_link::WalkSpec {
         particles: args.particles,
         frames: args.frames,
@@ -227,7 +227,7 @@ pub fn bench(args: LinkBench, stdout: &mut dyn Write) -> anyhow::Result<ExitCode
     let input = folder.path().join("locs.csv");
     let output = folder.path().join("tracks.csv");
     bench_link::write_detections(&input, &detections)?;
-    let figures = scanloc::bench::reference::run_python_figures(
+    let figures = crate::bench::reference::run_python_figures(
         &args.python,
         &args.reference,
         &[

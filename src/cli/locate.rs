@@ -4,13 +4,13 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::detect::cnn::TrainedCnn;
+use crate::detect::crocker_grier::{self, CrockerGrierParams};
+use crate::detect::likelihood::{self, LikelihoodParams};
+use crate::error::input_error;
+use crate::io::{self, csv_tables};
+use crate::registry::{ModelOrigin, Registry};
 use clap::{Args, ValueEnum};
-use scanloc::detect::cnn::TrainedCnn;
-use scanloc::detect::crocker_grier::{self, CrockerGrierParams};
-use scanloc::detect::likelihood::{self, LikelihoodParams};
-use scanloc::error::input_error;
-use scanloc::io::{self, csv_tables};
-use scanloc::registry::{ModelOrigin, Registry};
 
 /// Localise QDs in every frame of a .npy or .tif stack and write a CSV.
 ///
@@ -50,7 +50,7 @@ use scanloc::registry::{ModelOrigin, Registry};
 /// The methods and their parameters: docs/detectors.md.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct LocateArgs {
+pub(super) struct LocateArgs {
     /// Localisation method.
     #[arg(long, value_enum, default_value_t = Method::CrockerGrier)]
     method: Method,
@@ -216,7 +216,7 @@ pub(super) fn registry_cnn(
     registry: &Registry,
     reference: &str,
 ) -> anyhow::Result<(TrainedCnn, ModelOrigin)> {
-    let stored = registry.stored_model(reference, scanloc::types::DetectorKind::Cnn)?;
+    let stored = registry.stored_model(reference, crate::types::DetectorKind::Cnn)?;
     let model = TrainedCnn::from_bytes(&stored.bytes)
         .map_err(|e| input_error(format!("{reference}: {e:#}")))?;
     Ok((model, stored.origin))
@@ -230,7 +230,7 @@ pub(super) fn describe_origin(origin: &ModelOrigin) -> String {
     }
 }
 
-pub fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let model_folder = args
         .cnn
         .model
@@ -251,7 +251,7 @@ pub fn run(args: LocateArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode>
 fn locate_crocker_grier(args: &LocateArgs) -> anyhow::Result<()> {
     let params = args.crocker_grier.params()?;
     let frames = io::read_recording_of_channel(&args.input, args.channel)?;
-    let bar = scanloc::progress::bar(frames.shape().0 as u64, "locating");
+    let bar = crate::progress::bar(frames.shape().0 as u64, "locating");
     let features = crocker_grier::locate_recording(&frames, &params, &bar)?;
     bar.finish_and_clear();
     csv_tables::write_localisations(
@@ -294,10 +294,10 @@ fn locate_cnn(
     stdout: &mut dyn Write,
 ) -> anyhow::Result<()> {
     let (mut model, origin) = load_cnn(&args.cnn, model_folder)?;
-    let model_sha256 = scanloc::registry::hashing::sha256_hex(&model.to_bytes()?);
+    let model_sha256 = crate::registry::hashing::sha256_hex(&model.to_bytes()?);
     decode_as_asked(&mut model, &args.candidates)?;
     let frames = io::read_frames_of_channel(&args.input, args.channel)?;
-    let bar = scanloc::progress::bar(frames.n as u64, "locating");
+    let bar = crate::progress::bar(frames.n as u64, "locating");
     let predictions = model.locate(&frames, &bar)?;
     bar.finish_and_clear();
     csv_tables::write_predictions(&args.out, &predictions)?;
@@ -353,7 +353,7 @@ fn locate_likelihood(args: &LocateArgs) -> anyhow::Result<()> {
     microscope
         .validate()
         .map_err(|e| input_error(format!("invalid microscope parameter: {e}")))?;
-    let bar = scanloc::progress::bar(frames.n as u64, "locating");
+    let bar = crate::progress::bar(frames.n as u64, "locating");
     let predictions = likelihood::locate_stack(&frames, &microscope, &settings, filter.seed, &bar)?;
     bar.finish_and_clear();
     csv_tables::write_predictions(&args.out, &predictions)

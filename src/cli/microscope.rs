@@ -18,18 +18,18 @@
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 
+use crate::error::input_error;
+use crate::sim::recording::MAX_DEAD_TIME_MS;
+use crate::sim::{DetectorNoise, Distribution, EmitterCount, SimParams};
+use crate::track::diffusion::ScanGeometry;
 use clap::parser::ValueSource;
 use clap::{ArgMatches, Args, Command, FromArgMatches};
-use scanloc::error::input_error;
-use scanloc::sim::recording::MAX_DEAD_TIME_MS;
-use scanloc::sim::{DetectorNoise, Distribution, EmitterCount, SimParams};
-use scanloc::track::diffusion::ScanGeometry;
 
 /// Every microscope field as a flag. Per-frame parameters are a number or
 /// `uniform:LOW,HIGH` (drawn once per frame, docs/simulator.md); for the
 /// likelihood detector a distribution is a prior it marginalises.
 #[derive(Debug, Clone, Args)]
-pub struct MicroscopeFlags {
+pub(super) struct MicroscopeFlags {
     /// Take the microscope from the `microscope:` section of this
     /// manifest-style YAML file (other sections are ignored): the flags
     /// below override its fields, and fields it leaves out keep the
@@ -268,7 +268,7 @@ impl MicroscopeArgs {
         }
         let mut stated = BTreeSet::new();
         if let Some(file) = &self.flags.file {
-            let (from_file, fields) = scanloc::manifest::load_microscope(file, &params)?;
+            let (from_file, fields) = crate::manifest::load_microscope(file, &params)?;
             params = from_file;
             stated.extend(fields);
         }
@@ -337,8 +337,8 @@ pub(super) fn bench_microscope(
     let params = flags.params()?;
     params
         .validate()
-        .map_err(|e| scanloc::error::input_error(format!("invalid simulation parameter: {e}")))?;
-    scanloc::limits::check_dataset_size(frames_flag, frames, params.height, params.width)?;
+        .map_err(|e| crate::error::input_error(format!("invalid simulation parameter: {e}")))?;
+    crate::limits::check_dataset_size(frames_flag, frames, params.height, params.width)?;
     Ok(params)
 }
 
@@ -346,7 +346,7 @@ pub(super) fn bench_microscope(
 /// manifest's datasets have.
 pub(super) fn paper_sized(flag: &str, frames: usize) -> anyhow::Result<()> {
     let paper = SimParams::default();
-    Ok(scanloc::limits::check_dataset_size(
+    Ok(crate::limits::check_dataset_size(
         flag,
         frames,
         paper.height,
@@ -458,7 +458,7 @@ impl ScanGeometryArgs {
                 )));
             }
         }
-        let max_side = scanloc::limits::MAX_FRAME_SIDE;
+        let max_side = crate::limits::MAX_FRAME_SIDE;
         if !(1..=max_side).contains(&self.flags.height)
             || !(1..=max_side).contains(&self.flags.width)
         {

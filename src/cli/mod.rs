@@ -29,8 +29,8 @@ use std::ops::Deref;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::env_vars;
 use clap::{Args, Parser, Subcommand};
-use scanloc::env_vars;
 
 pub use microscope::{MicroscopeArgs, ScanGeometryArgs};
 
@@ -121,7 +121,7 @@ where
         Err(error) => {
             // One line: the context chain joined by ": ".
             let _ = writeln!(stderr, "error: {error:#}").and_then(|_| stderr.flush());
-            ExitCode::from(scanloc::error::exit_code(&error) as u8)
+            ExitCode::from(crate::error::exit_code(&error) as u8)
         }
     }
 }
@@ -132,12 +132,12 @@ where
 pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::Result<ExitCode> {
     // Before the thread pool is first built: rayon would try to start
     // every thread RAYON_NUM_THREADS asks for.
-    let threads = scanloc::env_vars::RAYON_NUM_THREADS;
+    let threads = crate::env_vars::RAYON_NUM_THREADS;
     if let Some(value) = std::env::var_os(threads) {
-        scanloc::limits::check_thread_count(threads, &value)?;
+        crate::limits::check_thread_count(threads, &value)?;
     }
-    for name in scanloc::env_vars::BOOLEAN_FLAGS {
-        scanloc::env_vars::flag(name).map_err(scanloc::error::input_error)?;
+    for name in crate::env_vars::BOOLEAN_FLAGS {
+        crate::env_vars::flag(name).map_err(crate::error::input_error)?;
     }
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
@@ -168,7 +168,7 @@ pub fn run(cli: Cli, stdout: &mut dyn Write, stderr: &mut dyn Write) -> anyhow::
 /// Dereferences to the folder's path, so a subcommand passes
 /// `&args.registry` wherever a `&Path` is wanted.
 #[derive(Debug, Clone, Args)]
-pub struct RegistryDir {
+pub(crate) struct RegistryDir {
     /// Registry folder (registry.sqlite and blobs/; see docs/registry.md).
     #[arg(
         id = "registry",
@@ -194,7 +194,7 @@ impl Deref for RegistryDir {
 /// with `mut_arg`, so it may follow their subcommand). What each command's
 /// JSON holds: its `--help`.
 #[derive(Debug, Clone, Copy, Args)]
-pub struct JsonFlag {
+pub(crate) struct JsonFlag {
     /// Print JSON on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -203,21 +203,21 @@ pub struct JsonFlag {
 /// Parses a whole-number flag (frames, counts, seeds): a negative or
 /// fractional value is answered as out of range, not as clap's "unexpected
 /// argument" or a parse error of the digits.
-pub fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
+pub(crate) fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
     text.trim()
         .parse::<T>()
         .map_err(|_| match text.trim().parse::<f64>() {
             Ok(value) if value < 0.0 => format!(
                 "out of range: must be a whole number ≥ 0, got {}",
-                scanloc::error::readable(value)
+                crate::error::readable(value)
             ),
             Ok(value) if value.fract() != 0.0 => format!(
                 "must be a whole number ≥ 0, got {}",
-                scanloc::error::readable(value)
+                crate::error::readable(value)
             ),
             Ok(value) => format!(
                 "out of range: too large, got {}",
-                scanloc::error::readable(value)
+                crate::error::readable(value)
             ),
             Err(_) => format!("must be a whole number ≥ 0, got {text:?}"),
         })
@@ -226,7 +226,7 @@ pub fn whole_number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
 /// The diffusion coefficients of the test sets a command simulates
 /// (`train --test-frames`, `bench cnn-locate`), one test set per value.
 #[derive(Debug, Clone, Args)]
-pub struct TestDiffusionArgs {
+pub(crate) struct TestDiffusionArgs {
     /// Diffusion coefficients of the test sets in µm²/s, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "0.75,1.0,1.75")]
     pub test_diffusion: Vec<f64>,
@@ -234,9 +234,9 @@ pub struct TestDiffusionArgs {
 
 impl TestDiffusionArgs {
     /// The coefficients, each checked to be a finite number ≥ 0.
-    pub fn checked(&self) -> anyhow::Result<&[f64]> {
+    pub(crate) fn checked(&self) -> anyhow::Result<&[f64]> {
         for &d in &self.test_diffusion {
-            scanloc::error::require_non_negative("--test-diffusion", d)?;
+            crate::error::require_non_negative("--test-diffusion", d)?;
         }
         Ok(&self.test_diffusion)
     }

@@ -4,10 +4,10 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::error::{CheckFailed, input_error};
+use crate::registry::{Found, Registry, Table, diff, shard, sql};
+use crate::report::summary::{run_summary, run_summary_json};
 use clap::{Args, Subcommand};
-use scanloc::error::{CheckFailed, input_error};
-use scanloc::registry::{Found, Registry, Table, diff, shard, sql};
-use scanloc::report::summary::{run_summary, run_summary_json};
 
 /// Query the registry: runs, datasets, models, evaluations, one run or
 /// artefact in full, the differences between two runs, blob verification,
@@ -17,7 +17,7 @@ use scanloc::report::summary::{run_summary, run_summary_json};
 /// Tables, keys and blobs: docs/registry.md.
 #[derive(Debug, Args)]
 #[command(mut_arg("json", |arg| arg.global(true)))]
-pub struct RegistryArgs {
+pub(super) struct RegistryArgs {
     #[command(subcommand)]
     command: RegistryCommand,
     #[command(flatten)]
@@ -122,7 +122,7 @@ fn run_id(registry: &Registry, id: &str) -> anyhow::Result<String> {
     }
 }
 
-pub fn run(
+pub(super) fn run(
     args: RegistryArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,

@@ -4,8 +4,8 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::registry::{Found, Registry, RunKind};
 use clap::Args;
-use scanloc::registry::{Found, Registry, RunKind};
 
 /// Write a Markdown report of a run: the AUC table beside the reference
 /// (the paper's Table 1), localisation quality, where the AUC is lost, each
@@ -18,7 +18,7 @@ use scanloc::registry::{Found, Registry, RunKind};
 /// The metric and the paper's table: docs/metric.md. Figures are drawn with
 /// the embedded Roboto font, or the TrueType file named by SCANLOC_FONT.
 #[derive(Debug, Args)]
-pub struct ReportArgs {
+pub(super) struct ReportArgs {
     /// The run id (a unique prefix is enough), or `latest` for the most
     /// recent finished run of kind `run`.
     run: String,
@@ -32,14 +32,14 @@ pub struct ReportArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let registry = Registry::open_existing(&args.registry)?;
     let run_id = if args.run == "latest" {
         registry
             .latest_done_run(RunKind::Run)?
             .map(|run| run.id)
             .ok_or_else(|| {
-                scanloc::error::input_error(format!(
+                crate::error::input_error(format!(
                     "{}: no finished run to report on",
                     args.registry.display()
                 ))
@@ -48,14 +48,14 @@ pub fn run(args: ReportArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode>
         match registry.resolve_id(&args.run)? {
             Found::Run(id) => id,
             _ => {
-                return Err(scanloc::error::input_error(format!(
+                return Err(crate::error::input_error(format!(
                     "{}: not a run",
                     args.run
                 )));
             }
         }
     };
-    let path = scanloc::report::run_report::write_report(&registry, &run_id, &args.out)?;
+    let path = crate::report::run_report::write_report(&registry, &run_id, &args.out)?;
     writeln!(stdout, "{}", path.display())?;
     Ok(ExitCode::SUCCESS)
 }

@@ -4,10 +4,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::CheckFailed;
+use crate::registry::{Found, Registry};
+use crate::run::reproduce;
 use clap::Args;
-use scanloc::error::CheckFailed;
-use scanloc::registry::{Found, Registry};
-use scanloc::run::reproduce;
 
 /// Re-execute a recorded run from scratch (ignoring every cached artefact,
 /// into a scratch registry) and report, artefact by artefact and number by
@@ -16,7 +16,7 @@ use scanloc::run::reproduce;
 ///
 /// What a run records and what is compared: docs/registry.md.
 #[derive(Debug, Args)]
-pub struct ReproduceArgs {
+pub(super) struct ReproduceArgs {
     /// The run id (or a unique prefix of it), as `scanloc registry runs` lists.
     run: String,
     #[command(flatten)]
@@ -29,7 +29,7 @@ pub struct ReproduceArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(
+pub(super) fn run(
     args: ReproduceArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
@@ -38,7 +38,7 @@ pub fn run(
     let run_id = match registry.resolve_id(&args.run)? {
         Found::Run(id) => id,
         Found::Artefact(key) => {
-            return Err(scanloc::error::input_error(format!(
+            return Err(crate::error::input_error(format!(
                 "{key} is an artefact, not a run; give a run id"
             )));
         }

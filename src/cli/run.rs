@@ -4,10 +4,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::manifest;
+use crate::registry::Registry;
+use crate::run::{self, RunOptions, table};
 use clap::Args;
-use scanloc::manifest;
-use scanloc::registry::Registry;
-use scanloc::run::{self, RunOptions, table};
 use serde_json::json;
 
 /// Run an experiment manifest: simulate its datasets, run its detectors,
@@ -31,7 +31,7 @@ use serde_json::json;
 ///
 /// Manifest format: docs/manifest.md; the registry: docs/registry.md.
 #[derive(Debug, Args)]
-pub struct RunArgs {
+pub(super) struct RunArgs {
     /// The manifest (YAML), e.g. experiments/smoke.yaml.
     manifest: PathBuf,
     #[command(flatten)]
@@ -44,13 +44,13 @@ pub struct RunArgs {
     registry: super::RegistryDir,
 }
 
-pub fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: RunArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     // Parse and validate before touching the registry: bad input leaves it
     // unchanged.
     let manifest = manifest::load(&args.manifest)?;
     // Its `sweep:` block as `sweep run` reads it: a grid that would be
     // refused there (two axes on one path) is refused here too.
-    scanloc::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
+    crate::sweep::grid::axes(&manifest.text, &args.manifest.display().to_string())?;
     let mut registry = Registry::open(&args.registry)?;
     let outcome = run::run_manifest(
         &mut registry,

@@ -5,12 +5,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::io::{self, csv_tables};
+use crate::limits::check_frame_count;
+use crate::metrics::paired::{self, AucSpread, PairedDifference};
+use crate::metrics::{self, Score, ScoreReading};
 use clap::{ArgGroup, Args};
-use scanloc::error::input_error;
-use scanloc::io::{self, csv_tables};
-use scanloc::limits::check_frame_count;
-use scanloc::metrics::paired::{self, AucSpread, PairedDifference};
-use scanloc::metrics::{self, Score, ScoreReading};
 
 /// Score localisations against ground truth (docs/metric.md).
 ///
@@ -42,7 +42,7 @@ use scanloc::metrics::{self, Score, ScoreReading};
 /// (docs/metric.md, "The test set's luck").
 #[derive(Debug, Args)]
 #[command(group(ArgGroup::new("resampling").args(["compare", "bootstrap"]).multiple(true)))]
-pub struct ScoreArgs {
+pub(super) struct ScoreArgs {
     /// Ground truth CSV (needs columns frame,x,y).
     #[arg(long)]
     truth: PathBuf,
@@ -100,7 +100,7 @@ pub struct ScoreArgs {
     seed: u64,
 }
 
-pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     if let Some(curve) = &args.curve {
         let mut inputs = vec![("--truth", args.truth.as_path()), ("--locs", &args.locs)];
         inputs.extend(
@@ -165,7 +165,7 @@ pub fn run(args: ScoreArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
 
 /// The number of frames of the test set: --frames, checked against the
 /// truth, else the largest frame index of the truth + 1.
-fn test_set_frames(args: &ScoreArgs, truth: &[scanloc::types::TruthRow]) -> anyhow::Result<usize> {
+fn test_set_frames(args: &ScoreArgs, truth: &[crate::types::TruthRow]) -> anyhow::Result<usize> {
     // Frame numbers are below MAX_FRAMES (checked by the readers), so this
     // cannot overflow.
     let frames_with_truth = truth.iter().map(|t| t.frame + 1).max().unwrap_or(0);
@@ -218,9 +218,9 @@ type Resampled = (Option<Vec<PairedDifference>>, Option<Vec<AucSpread>>);
 /// --bootstrap, the spread of --locs' own AUC (the same resamples).
 fn resample(
     args: &ScoreArgs,
-    predictions: &[scanloc::types::Prediction],
-    compared: Option<(&std::path::Path, &[scanloc::types::Prediction])>,
-    truth: &[scanloc::types::TruthRow],
+    predictions: &[crate::types::Prediction],
+    compared: Option<(&std::path::Path, &[crate::types::Prediction])>,
+    truth: &[crate::types::TruthRow],
     frames: usize,
     resamples: usize,
 ) -> anyhow::Result<Resampled> {
@@ -297,8 +297,8 @@ fn write_json(
 fn refuse_disjoint_frames(
     locs: &std::path::Path,
     truth_path: &std::path::Path,
-    truth: &[scanloc::types::TruthRow],
-    predictions: &[scanloc::types::Prediction],
+    truth: &[crate::types::TruthRow],
+    predictions: &[crate::types::Prediction],
 ) -> anyhow::Result<()> {
     // Without truth (a set of empty frames, --frames given) every frame
     // is a frame of the set.
@@ -418,7 +418,7 @@ fn write_threshold_rows(out: &mut dyn Write, score: &Score) -> anyhow::Result<()
 /// A reliability diagram's bins, one line each, under a header line.
 fn write_bins(
     out: &mut dyn Write,
-    reliability: &scanloc::metrics::calibration::Reliability,
+    reliability: &crate::metrics::calibration::Reliability,
 ) -> anyhow::Result<()> {
     writeln!(
         out,

@@ -5,10 +5,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::io::tracks;
+use crate::metrics::tracking::{self, TrackingScore, TruthPosition, TruthSelection};
 use clap::{Args, ValueEnum};
-use scanloc::error::input_error;
-use scanloc::io::tracks;
-use scanloc::metrics::tracking::{self, TrackingScore, TruthPosition, TruthSelection};
 
 /// Which position of the truth the tracks should follow.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -32,7 +32,7 @@ enum TruthPositionArg {
 /// them as one JSON object instead.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct ScoreTracksArgs {
+pub(super) struct ScoreTracksArgs {
     /// Tracks CSV (frame,x,y,particle in px; other columns ignored), as
     /// `scanloc link` writes it.
     #[arg(long)]
@@ -65,18 +65,18 @@ pub struct ScoreTracksArgs {
     format: super::JsonFlag,
 }
 
-pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
-    let gate = scanloc::limits::check_positive_at_most(
+pub(super) fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+    let gate = crate::limits::check_positive_at_most(
         "--gate-px",
         args.gate_px,
-        scanloc::limits::MAX_EPS_PX,
+        crate::limits::MAX_EPS_PX,
     )?;
     if let Some(depth) = args.max_depth_um
         && !(depth.is_finite() && depth >= 0.0)
     {
         return Err(input_error(format!(
             "--max-depth-um: must be a finite number ≥ 0, got {}",
-            scanloc::error::readable(depth)
+            crate::error::readable(depth)
         )));
     }
     if let Some(share) = args.min_on_fraction
@@ -84,7 +84,7 @@ pub fn run(args: ScoreTracksArgs, stdout: &mut dyn Write) -> anyhow::Result<Exit
     {
         return Err(input_error(format!(
             "--min-on-fraction: must be a number from 0 to 1, got {}",
-            scanloc::error::readable(share)
+            crate::error::readable(share)
         )));
     }
     let selection = TruthSelection {

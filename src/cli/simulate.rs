@@ -3,10 +3,10 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::io::{self, PendingFile};
+use crate::sim;
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::io::{self, PendingFile};
-use scanloc::sim;
 
 /// Simulate point-scanning 2PM frames of diffusing QDs (docs/simulator.md).
 ///
@@ -15,7 +15,7 @@ use scanloc::sim;
 /// the thread count.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct SimulateArgs {
+pub(super) struct SimulateArgs {
     /// Number of frames (at most 10,000,000, and 2³¹ pixels in all: the
     /// limits a manifest's datasets have).
     #[arg(long, default_value_t = 100)]
@@ -34,19 +34,19 @@ pub struct SimulateArgs {
     truth: Option<PathBuf>,
 }
 
-pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
     let params = args.microscope.params()?;
     params
         .validate()
         .map_err(|e| input_error(format!("invalid simulation parameter: {e}")))?;
     // The manifest's limits, checked by the same functions.
-    scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
+    crate::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     // The memory the dataset takes, before any of it is allocated: a
     // failed allocation would end the process without a word.
-    scanloc::limits::check_memory(
+    crate::limits::check_memory(
         "--frames",
         sim::dataset_bytes(&params, args.frames),
-        scanloc::limits::available_memory_bytes(),
+        crate::limits::available_memory_bytes(),
     )?;
     io::FrameFormat::from_path(&args.out)?;
     let mut outputs = vec![("--out", args.out.as_path())];
@@ -65,7 +65,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<ExitCode> {
     };
     drop(open_outputs()?);
 
-    let bar = scanloc::progress::bar(args.frames as u64, "simulating");
+    let bar = crate::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(&params, args.seed, 0..args.frames, &bar)?;
     bar.finish_and_clear();
 

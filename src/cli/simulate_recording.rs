@@ -4,11 +4,11 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::error::input_error;
+use crate::io::{self, PendingFile};
+use crate::sim::SimParams;
+use crate::sim::recording::{Blinking, RecordingParams, simulate_recording_with_progress};
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::io::{self, PendingFile};
-use scanloc::sim::SimParams;
-use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording_with_progress};
 
 /// Simulate a continuous recording: frames scanned back to back on one
 /// clock while QDs diffuse in 3D through a periodic volume larger than the
@@ -19,7 +19,7 @@ use scanloc::sim::recording::{Blinking, RecordingParams, simulate_recording_with
 /// D, N_qd and N_bkg are fixed numbers here.
 #[derive(Debug, Args)]
 #[command(allow_negative_numbers = true)]
-pub struct SimulateRecordingArgs {
+pub(super) struct SimulateRecordingArgs {
     /// Number of frames.
     #[arg(long, default_value_t = 200, value_parser = super::whole_number::<usize>)]
     frames: usize,
@@ -68,7 +68,7 @@ pub struct SimulateRecordingArgs {
     /// Detector noise: `poisson`, or `pmt:F2` for a PMT with excess-noise
     /// factor F² > 1 (as `scanloc simulate`'s).
     #[arg(long, default_value = "poisson", value_parser = super::microscope::parse_detector_noise)]
-    detector_noise: scanloc::sim::DetectorNoise,
+    detector_noise: crate::sim::DetectorNoise,
     /// Output frames: FILE.npy or FILE.tif.
     #[arg(long)]
     out: PathBuf,
@@ -77,7 +77,7 @@ pub struct SimulateRecordingArgs {
     truth: Option<PathBuf>,
 }
 
-pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let params = RecordingParams {
         microscope: SimParams {
             height: args.scan.flags.height,
@@ -110,10 +110,10 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
         .map_err(|e| input_error(format!("invalid recording parameter: {e}")))?;
     // The memory the recording takes, before any of it is allocated (as
     // `simulate` checks its dataset's).
-    scanloc::limits::check_memory(
+    crate::limits::check_memory(
         "--frames",
         params.dataset_bytes(),
-        scanloc::limits::available_memory_bytes(),
+        crate::limits::available_memory_bytes(),
     )?;
     io::FrameFormat::from_path(&args.out)?;
     let mut outputs = vec![("--out", args.out.as_path())];
@@ -122,7 +122,7 @@ pub fn run(args: SimulateRecordingArgs) -> anyhow::Result<ExitCode> {
     let mut frames_out = PendingFile::create(&args.out)?;
     let mut truth_out = args.truth.as_deref().map(PendingFile::create).transpose()?;
 
-    let progress = scanloc::progress::bar(params.frames as u64, "simulating");
+    let progress = crate::progress::bar(params.frames as u64, "simulating");
     let recording = simulate_recording_with_progress(&params, args.seed, true, &progress)?;
     progress.finish_and_clear();
 

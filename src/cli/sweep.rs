@@ -5,13 +5,13 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::registry::Registry;
+use crate::sweep::{self, Executor, SweepKind, SweepSpec, slurm::SlurmOptions};
 use clap::{Args, Subcommand, ValueEnum};
-use scanloc::registry::Registry;
-use scanloc::sweep::{self, Executor, SweepKind, SweepSpec, slurm::SlurmOptions};
 
 /// Where a sweep's points run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum ExecutorName {
+pub(super) enum ExecutorName {
     /// This machine (`--jobs` processes at a time).
     Local,
     /// A Slurm cluster: one job array, then an aggregation job.
@@ -20,7 +20,7 @@ pub enum ExecutorName {
 
 /// How to execute a sweep (cv folds, calibration points, grid points).
 #[derive(Debug, Clone, Args)]
-pub struct ExecutorArgs {
+pub(super) struct ExecutorArgs {
     /// Where the points run: here, or as a Slurm job array (see README,
     /// "Running on a cluster").
     #[arg(long, value_enum, default_value = "local")]
@@ -55,7 +55,7 @@ pub struct ExecutorArgs {
 impl ExecutorArgs {
     /// Whether any executor option was given (other than the default
     /// local executor with one job).
-    pub fn is_not_default(&self) -> bool {
+    pub(super) fn is_not_default(&self) -> bool {
         self.executor != ExecutorName::Local
             || self.jobs != 1
             || self.max_parallel.is_some()
@@ -68,7 +68,7 @@ impl ExecutorArgs {
     }
 
     /// The library's executor.
-    pub fn executor(&self) -> Executor {
+    pub(super) fn executor(&self) -> Executor {
         match self.executor {
             ExecutorName::Local => Executor::Local {
                 jobs: self.jobs as usize,
@@ -88,7 +88,7 @@ impl ExecutorArgs {
 
 /// Runs sweep `spec` and prints its table (or, for a Slurm submission
 /// without --wait, the job ids): the common tail of every front end.
-pub fn run_sweep(
+pub(super) fn run_sweep(
     registry: &Path,
     spec: SweepSpec,
     executor: &ExecutorArgs,
@@ -136,7 +136,7 @@ pub fn run_sweep(
 /// a sweep stands, and the commands Slurm jobs run.
 #[derive(Debug, Args)]
 #[command(mut_arg("json", |arg| arg.global(true)))]
-pub struct SweepArgs {
+pub(super) struct SweepArgs {
     #[command(subcommand)]
     command: SweepCommand,
     #[command(flatten)]
@@ -186,7 +186,7 @@ enum SweepCommand {
     },
 }
 
-pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let json = args.format.json;
     match args.command {
         SweepCommand::Run {
@@ -195,7 +195,7 @@ pub fn run(args: SweepArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> 
             force,
         } => {
             let manifest_text = std::fs::read_to_string(&manifest).map_err(|e| {
-                scanloc::error::input_error(format!("{}: cannot read: {e}", manifest.display()))
+                crate::error::input_error(format!("{}: cannot read: {e}", manifest.display()))
             })?;
             let spec = SweepSpec {
                 kind: SweepKind::Grid,

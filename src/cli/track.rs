@@ -6,13 +6,13 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Args;
-use scanloc::error::input_error;
-use scanloc::run::track_recording::outputs::FILES;
-use scanloc::run::track_recording::{
+use crate::error::input_error;
+use crate::run::track_recording::outputs::FILES;
+use crate::run::track_recording::{
     OnStderr, TrackMethod, TrackOptions, TrackResult, check_stated, read_recording,
     track_named_recording,
 };
-use scanloc::track::pipeline::StoredEstimate;
+use crate::track::pipeline::StoredEstimate;
 
 use super::microscope::MicroscopeArgs;
 
@@ -27,7 +27,7 @@ use super::microscope::MicroscopeArgs;
 /// track, the ensemble and, with the correction, ensemble-corrected) and
 /// DIR/settings.json (every setting used), and prints a summary.
 #[derive(Debug, Args)]
-pub struct TrackArgs {
+pub(super) struct TrackArgs {
     /// The recording: FILE.npy ((n, H, W) photon counts) or a multi-page
     /// TIFF of counts.
     recording: PathBuf,
@@ -90,7 +90,7 @@ enum MethodArg {
     CrockerGrier,
 }
 
-pub fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: TrackArgs, stdout: &mut dyn Write) -> anyhow::Result<ExitCode> {
     let microscope = args.microscope.resolve()?;
     check_stated(&microscope.stated)?;
     let microscope = microscope.params;

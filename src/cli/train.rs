@@ -5,12 +5,12 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
+use crate::detect::cnn::{self, CnnArchitecture, CnnHead, CnnScore, TrainingSettings};
+use crate::error::input_error;
+use crate::metrics;
+use crate::sim::{self, EmitterCount, SimParams};
+use crate::types::derive_seed;
 use clap::{Args, ValueEnum};
-use scanloc::detect::cnn::{self, CnnArchitecture, CnnHead, CnnScore, TrainingSettings};
-use scanloc::error::input_error;
-use scanloc::metrics;
-use scanloc::sim::{self, EmitterCount, SimParams};
-use scanloc::types::derive_seed;
 
 /// Train the CNN localiser on simulated frames and save it (docs/detectors.md).
 ///
@@ -38,7 +38,7 @@ use scanloc::types::derive_seed;
     mut_arg("margin_px", |arg| arg.default_value("4")),
     mut_arg("diffusion", |arg| arg.default_value("uniform:0.75,1.75"))
 )]
-pub struct TrainArgs {
+pub(super) struct TrainArgs {
     /// Frames of the fixed (simulated) dataset.
     #[arg(long, default_value_t = 2000)]
     frames: usize,
@@ -150,7 +150,7 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
-pub fn run(
+pub(super) fn run(
     args: TrainArgs,
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
@@ -159,7 +159,7 @@ pub fn run(
     let (params, test_params) = microscopes(&args)?;
     cnn::check_model_destination(&args.out)?;
 
-    let bar = scanloc::progress::bar(args.frames as u64, "simulating");
+    let bar = crate::progress::bar(args.frames as u64, "simulating");
     let dataset = sim::simulate(
         &params,
         derive_seed(args.seed, "dataset", "training"),
@@ -168,7 +168,7 @@ pub fn run(
     )?;
     bar.finish_and_clear();
 
-    let bar = scanloc::progress::bar(0, "training");
+    let bar = crate::progress::bar(0, "training");
     let started = Instant::now();
     let model = cnn::train(
         &architecture,
@@ -186,7 +186,7 @@ pub fn run(
     write_summary(&model, seconds, &args.out, stdout)?;
 
     if args.test_frames > 0 {
-        let table = scanloc::run::test_sets::auc_table(
+        let table = crate::run::test_sets::auc_table(
             &model,
             &test_params,
             args.test_diffusion.checked()?,
@@ -196,7 +196,7 @@ pub fn run(
         write!(
             stdout,
             "{}",
-            scanloc::run::test_sets::format_auc_table(&table)
+            crate::run::test_sets::format_auc_table(&table)
         )?;
     }
     Ok(ExitCode::SUCCESS)
@@ -267,9 +267,9 @@ fn microscopes(args: &TrainArgs) -> anyhow::Result<(SimParams, SimParams)> {
     }
     args.test_diffusion.checked()?;
     // The manifest's limits, checked by the same functions.
-    scanloc::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
+    crate::limits::check_dataset_size("--frames", args.frames, params.height, params.width)?;
     if args.test_frames > 0 {
-        scanloc::limits::check_dataset_size(
+        crate::limits::check_dataset_size(
             "--test-frames",
             args.test_frames,
             params.height,

@@ -75,7 +75,7 @@ pub enum CentreSearch {
 }
 
 /// How many of the best cell centres mean shift refines per disc.
-pub const REFINED_STARTS: usize = 8;
+pub(crate) const REFINED_STARTS: usize = 8;
 
 /// Mean-shift steps at most per start (it stops when a step covers no more).
 const MEAN_SHIFT_STEPS: usize = 20;
@@ -86,7 +86,7 @@ const FINE_PER_CELL: f64 = 4.0;
 /// The cover stops when no disc could newly cover this fraction of the
 /// total weight or more: a guess scored below it would rank below every
 /// real guess of the set and add nothing measurable.
-pub const MASS_FLOOR: f64 = 1e-3;
+pub(crate) const MASS_FLOOR: f64 = 1e-3;
 
 /// The greedy disc cover of the weighted points `(x, y, weight)`: up to
 /// `max_candidates` candidates, in the order chosen (the first is the

@@ -3,7 +3,7 @@
 //! from it. Every build gives the same bits; only the speed differs.
 
 /// Whether this CPU has AVX-512 (the `avx512f` subset).
-pub fn has_avx512() -> bool {
+pub(crate) fn has_avx512() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         static DETECTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
@@ -16,7 +16,7 @@ pub fn has_avx512() -> bool {
 }
 
 /// Whether this CPU has AVX2 and FMA.
-pub fn has_avx2_fma() -> bool {
+pub(crate) fn has_avx2_fma() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         static DETECTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();

@@ -3,6 +3,6 @@
 
 pub mod candidates;
 pub mod cnn;
-pub mod cpu;
+pub(crate) mod cpu;
 pub mod crocker_grier;
 pub mod likelihood;

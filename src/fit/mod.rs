@@ -48,12 +48,12 @@ use crate::types::FrameStack;
 
 /// Most pixels (frames × height × width) the fit reads; a longer recording
 /// is subsampled to evenly spaced frames.
-pub const MAX_FIT_PIXELS: usize = 24_000_000;
+pub(crate) const MAX_FIT_PIXELS: usize = 24_000_000;
 /// Most spots the brightness likelihood uses (evenly spaced among those
 /// detected).
-pub const MAX_FIT_SPOTS: usize = 1_500;
+pub(crate) const MAX_FIT_SPOTS: usize = 1_500;
 /// Fewest detected spots for a brightness estimate.
-pub const MIN_FIT_SPOTS: usize = 20;
+pub(crate) const MIN_FIT_SPOTS: usize = 20;
 /// Blocks of frames of the jackknife.
 const BLOCKS: usize = 10;
 
@@ -112,6 +112,38 @@ pub fn fit_microscope(
     frames: &FrameStack,
     timing: &KnownTiming,
 ) -> anyhow::Result<FittedMicroscope> {
+    let used = check_fittable(frames, timing)?;
+    let blocks: Vec<&[usize]> = used.chunks(used.len().div_ceil(BLOCKS)).collect();
+    let background = fit_background(frames, &used, &blocks)?;
+    let profile = fit_spot_profile(frames, &blocks, background.level.background)?;
+    let brightness = fit_brightness(frames, &used, &background.level, &profile)?;
+    let a = timing.pixel_size_um;
+    // T₀ = N_qd / (√(2π) σz a²), corrected for the window's cut tails.
+    let scale =
+        (2.0 * std::f64::consts::PI).sqrt() * timing.sigma_z_um * a * a / brightness.captured;
+    Ok(FittedMicroscope {
+        background: background.background,
+        brightness: Estimate {
+            value: brightness.fit.total * scale,
+            standard_error: brightness.fit.standard_error * scale,
+        },
+        excess_noise_factor: background.excess,
+        sigma_xy_um: Estimate {
+            value: profile.sigma_px * a,
+            standard_error: profile.sigma_px_standard_error * a,
+        },
+        blurred_height_um: profile.blurred_px * a,
+        frames_used: used.len(),
+        spots: brightness.spots,
+        window_half_px: brightness.window_half_px,
+        spot_spread: brightness.fit.spread,
+    })
+}
+
+/// The frames the fit reads (evenly spaced, see [`used_frames`]), after
+/// refusing what it cannot read: a non-positive pixel size or σz, frames
+/// under 8×8 pixels, a constant recording.
+fn check_fittable(frames: &FrameStack, timing: &KnownTiming) -> anyhow::Result<Vec<usize>> {
     let a = timing.pixel_size_um;
     if !(a.is_finite() && a > 0.0 && timing.sigma_z_um.is_finite() && timing.sigma_z_um > 0.0) {
         return Err(input_error(format!(
@@ -136,11 +168,27 @@ pub fn fit_microscope(
                 .to_string(),
         ));
     }
-    let blocks: Vec<&[usize]> = used.chunks(used.len().div_ceil(BLOCKS)).collect();
+    Ok(used)
+}
 
-    // Background and excess noise, pixel sums per block.
+/// The background's level and its two estimates with their errors.
+struct BackgroundFit {
+    level: Level,
+    background: Estimate,
+    excess: Estimate,
+}
+
+/// Background and excess noise from the pixels away from spots. Which
+/// pixels are "away" depends on the level itself, so the level is
+/// iterated three times from the plain mean; the pixel sums are kept per
+/// block of frames for the jackknife.
+fn fit_background(
+    frames: &FrameStack,
+    used: &[usize],
+    blocks: &[&[usize]],
+) -> anyhow::Result<BackgroundFit> {
     let mut level = Level {
-        background: mean_count(frames, &used),
+        background: mean_count(frames, used),
         variance_ratio: 1.0,
     };
     let mut level_sums = Vec::new();
@@ -156,23 +204,43 @@ pub fn fit_microscope(
             ));
         }
     }
-    let background = jackknife(&level_sums, |s| Level::from_sums(s).background);
-    let excess = jackknife(&level_sums, |s| Level::from_sums(s).variance_ratio);
+    Ok(BackgroundFit {
+        level,
+        background: jackknife(&level_sums, |s| Level::from_sums(s).background),
+        excess: jackknife(&level_sums, |s| Level::from_sums(s).variance_ratio),
+    })
+}
 
-    // σxy from the rows' autocorrelation, the blurred height from the columns'.
-    let lags_x = (width - 2).min(60);
-    let lags_y = (height - 2).min(60);
+/// The spots' profile, px: σxy along the rows (with its jackknife error)
+/// and the height along the columns, motion blur included.
+struct SpotProfile {
+    sigma_px: f64,
+    sigma_px_standard_error: f64,
+    /// At least σxy: blur only widens a spot.
+    blurred_px: f64,
+}
+
+/// σxy from the rows' autocorrelation, the blurred height from the
+/// columns' (see the module's documentation); refuses frames whose pixels
+/// are uncorrelated (no spots).
+fn fit_spot_profile(
+    frames: &FrameStack,
+    blocks: &[&[usize]],
+    background: f64,
+) -> anyhow::Result<SpotProfile> {
+    let lags_x = (frames.width - 2).min(60);
+    let lags_y = (frames.height - 2).min(60);
+    // Per block: the row lags 0..=lags_x, then the column lags.
     let correlations = blocks
         .par_iter()
-        .map(|block| autocorrelation_sums(frames, block, level.background, lags_x, lags_y))
+        .map(|block| autocorrelation_sums(frames, block, background, lags_x, lags_y))
         .collect::<Vec<_>>();
     let fit_x = |sums: &[Vec<f64>]| {
         let total = sum_all_vec(sums.iter().map(|s| &s[..=lags_x]));
         fit_gaussian_lags(&total).map(|f| f.width_px)
     };
-    let total: Vec<Vec<f64>> = correlations.clone();
-    let profile_x = fit_gaussian_lags(&sum_all_vec(total.iter().map(|s| &s[..=lags_x])));
-    let profile_y = fit_gaussian_lags(&sum_all_vec(total.iter().map(|s| &s[lags_x + 1..])));
+    let profile_x = fit_gaussian_lags(&sum_all_vec(correlations.iter().map(|s| &s[..=lags_x])));
+    let profile_y = fit_gaussian_lags(&sum_all_vec(correlations.iter().map(|s| &s[lags_x + 1..])));
     let (Some(profile_x), Some(profile_y)) = (profile_x, profile_y) else {
         return Err(input_error(
             "the recording shows no spots: its pixels are uncorrelated along the rows, as noise alone would be"
@@ -180,28 +248,50 @@ pub fn fit_microscope(
         ));
     };
     let sigma_px = jackknife_vec(&correlations, |s| fit_x(s).unwrap_or(f64::NAN));
-    let sigma_xy_um = Estimate {
-        value: profile_x.width_px * a,
-        standard_error: sigma_px.standard_error * a,
-    };
-    let blurred_px = profile_y.width_px.max(profile_x.width_px);
+    Ok(SpotProfile {
+        sigma_px: profile_x.width_px,
+        sigma_px_standard_error: sigma_px.standard_error,
+        blurred_px: profile_y.width_px.max(profile_x.width_px),
+    })
+}
 
-    // Brightness from the spots' matched-filter totals.
-    let kernel = Kernel::new(profile_x.width_px, blurred_px);
+/// The in-focus total and what it was measured with.
+struct BrightnessFit {
+    fit: TotalFit,
+    /// The share of a spot's photons inside the matched filter's window.
+    captured: f64,
+    spots: usize,
+    window_half_px: usize,
+}
+
+/// The in-focus total T₀ from the spots' matched-filter totals; refuses a
+/// recording whose spots do not fit in its frames or with fewer than
+/// [`MIN_FIT_SPOTS`] spots above the cut, and keeps at most
+/// [`MAX_FIT_SPOTS`] (evenly spaced: the likelihood's cost grows with
+/// them).
+fn fit_brightness(
+    frames: &FrameStack,
+    used: &[usize],
+    level: &Level,
+    profile: &SpotProfile,
+) -> anyhow::Result<BrightnessFit> {
+    let (height, width) = (frames.height, frames.width);
+    let kernel = Kernel::new(profile.sigma_px, profile.blurred_px);
     if 2 * kernel.half_y + 1 > height || 2 * kernel.half_x + 1 > width {
         return Err(input_error(format!(
             "the spots ({:.1} × {:.1} px, blur included) do not fit in {height}×{width} frames: no brightness can be fitted",
-            2.0 * profile_x.width_px,
-            2.0 * blurred_px
+            2.0 * profile.sigma_px,
+            2.0 * profile.blurred_px
         )));
     }
-    let captured = captured_fraction(kernel.half_x, profile_x.width_px)
-        * captured_fraction(kernel.half_y, blurred_px);
+    let captured = captured_fraction(kernel.half_x, profile.sigma_px)
+        * captured_fraction(kernel.half_y, profile.blurred_px);
     let noise = kernel.noise(level.background, level.variance_ratio.max(0.5));
     let cuts = Cuts {
         selection: SELECTION_SD * noise.sd(0.0, 0.0),
         total: THRESHOLD_SD * noise.sd(0.0, 0.0),
     };
+    // Each total labelled with its block of frames, for the jackknife.
     let block_len = used.len().div_ceil(BLOCKS);
     let mut totals: Vec<(usize, f64)> = used
         .par_iter()
@@ -226,22 +316,11 @@ pub fn fit_microscope(
             .map(|i| totals[(i as f64 * step) as usize])
             .collect();
     }
-    let fit = fit_in_focus_total(&totals, &cuts, &noise);
-    // T₀ = N_qd / (√(2π) σz a²), corrected for the window's cut tails.
-    let scale = (2.0 * std::f64::consts::PI).sqrt() * timing.sigma_z_um * a * a / captured;
-    Ok(FittedMicroscope {
-        background,
-        brightness: Estimate {
-            value: fit.total * scale,
-            standard_error: fit.standard_error * scale,
-        },
-        excess_noise_factor: excess,
-        sigma_xy_um,
-        blurred_height_um: blurred_px * a,
-        frames_used: used.len(),
+    Ok(BrightnessFit {
+        fit: fit_in_focus_total(&totals, &cuts, &noise),
+        captured,
         spots: totals.len(),
         window_half_px: kernel.half_x.max(kernel.half_y),
-        spot_spread: fit.spread,
     })
 }
 
@@ -707,8 +786,44 @@ struct Cuts {
 /// likelihood's and a jackknife's over the blocks (spots of the same QD in
 /// nearby frames are not independent).
 fn fit_in_focus_total(totals: &[(usize, f64)], cuts: &Cuts, noise: &Noise) -> TotalFit {
-    let threshold = cuts.total;
-    let log_likelihood_of = |totals: &[(usize, f64)], t0: f64, spread: f64| -> f64 {
+    let likelihood = TotalLikelihood { cuts, noise };
+    let best = likelihood.maximise(totals);
+    let jackknife_error = likelihood.jackknife_error(totals, &best);
+    TotalFit {
+        total: best.total,
+        standard_error: best.profile_error.max(jackknife_error),
+        spread: best.spread,
+    }
+}
+
+/// The likelihood of detected totals given T₀ and κ (see
+/// [`fit_in_focus_total`]).
+struct TotalLikelihood<'a> {
+    cuts: &'a Cuts,
+    noise: &'a Noise,
+}
+
+/// The profile likelihood's maximum.
+struct ProfileMaximum {
+    total: f64,
+    /// κ at the maximum.
+    spread: f64,
+    /// Half the interval where the profile is within ½ of its peak (at
+    /// least half the grid's step).
+    profile_error: f64,
+}
+
+/// The spreads κ the profile likelihood maximises over (a grid: the
+/// likelihood is flat in κ, and T₀ is what is reported).
+const SPREADS: [f64; 8] = [0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6];
+
+impl TotalLikelihood<'_> {
+    /// The log likelihood of `totals` with in-focus total `t0` and spread
+    /// `spread`: the density of each total, integrated over depth u on a
+    /// grid and conditioned on detection.
+    fn log_likelihood(&self, totals: &[(usize, f64)], t0: f64, spread: f64) -> f64 {
+        let (cuts, noise) = (self.cuts, self.noise);
+        let threshold = cuts.total;
         // u from 0 to where the mean total is 1 % of the threshold.
         let top = (2.0 * (t0 / (0.01 * threshold)).ln()).max(1e-6).sqrt();
         let steps = 240;
@@ -721,6 +836,7 @@ fn fit_in_focus_total(totals: &[(usize, f64)], cuts: &Cuts, noise: &Noise) -> To
                 (mean, sd, normal_cdf((mean - cuts.selection) / sd))
             })
             .collect();
+        // The trapezoid rule's weights.
         let weight = |j: usize| if j == 0 || j == steps { 0.5 } else { 1.0 };
         let detected: f64 = grid
             .iter()
@@ -749,85 +865,94 @@ fn fit_in_focus_total(totals: &[(usize, f64)], cuts: &Cuts, noise: &Noise) -> To
             })
             .sum();
         sum - totals.len() as f64 * detected.ln()
-    };
-    let log_likelihood = |t0: f64, spread: f64| log_likelihood_of(totals, t0, spread);
-    let spreads = [0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6];
-    let profile = |t0: f64| -> (f64, f64) {
-        spreads.iter().map(|&k| (log_likelihood(t0, k), k)).fold(
-            (f64::NEG_INFINITY, 0.0),
-            |best, x| {
+    }
+
+    /// The profile likelihood at `t0`: the best over [`SPREADS`], and that
+    /// spread.
+    fn profile(&self, totals: &[(usize, f64)], t0: f64) -> (f64, f64) {
+        SPREADS
+            .iter()
+            .map(|&k| (self.log_likelihood(totals, t0, k), k))
+            .fold((f64::NEG_INFINITY, 0.0), |best, x| {
                 if x.0 > best.0 { x } else { best }
-            },
-        )
-    };
-    let high = totals.iter().map(|t| t.1).fold(threshold, f64::max) * 2.0;
-    let low = threshold;
-    // A coarse log grid, then a finer one around its best.
-    let coarse: Vec<f64> = (0..40)
-        .map(|i| low * (high / low).powf(i as f64 / 39.0))
-        .collect();
-    let scores: Vec<(f64, f64)> = coarse.iter().map(|&t| profile(t)).collect();
-    let best = (0..coarse.len())
-        .max_by(|&a, &b| scores[a].0.total_cmp(&scores[b].0))
-        .unwrap_or(0);
-    let (lo, hi) = (
-        coarse[best.saturating_sub(2)],
-        coarse[(best + 2).min(coarse.len() - 1)],
-    );
-    let fine: Vec<f64> = (0..41).map(|i| lo + (hi - lo) * i as f64 / 40.0).collect();
-    let fine_scores: Vec<(f64, f64)> = fine.iter().map(|&t| profile(t)).collect();
-    let top = (0..fine.len())
-        .max_by(|&a, &b| fine_scores[a].0.total_cmp(&fine_scores[b].0))
-        .unwrap_or(0);
-    let peak = fine_scores[top].0;
-    // The interval where the profile is within ½ of its peak.
-    let inside: Vec<f64> = fine
-        .iter()
-        .zip(&fine_scores)
-        .filter(|(_, s)| s.0 >= peak - 0.5)
-        .map(|(t, _)| *t)
-        .collect();
-    let (min, max) = inside
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| {
-            (a.min(t), b.max(t))
-        });
-    let step = (hi - lo) / 40.0;
-    let total = fine[top];
-    let spread = fine_scores[top].1;
-    let profile_error = ((max - min) / 2.0).max(step / 2.0);
-    // The jackknife: each block left out in turn, T₀ refitted on a grid of
-    // ±5 profile errors (κ kept).
-    let blocks = totals.iter().map(|t| t.0 + 1).max().unwrap_or(0);
-    let refits: Vec<f64> = (0..blocks)
-        .map(|left_out| {
-            let rest: Vec<(usize, f64)> =
-                totals.iter().copied().filter(|t| t.0 != left_out).collect();
-            let grid: Vec<f64> = (0..41)
-                .map(|i| total + profile_error * (i as f64 - 20.0) / 4.0)
-                .filter(|&t| t > threshold)
-                .collect();
-            let scores: Vec<f64> = grid
-                .iter()
-                .map(|&t| log_likelihood_of(&rest, t, spread))
-                .collect();
-            (0..grid.len())
-                .max_by(|&a, &b| scores[a].total_cmp(&scores[b]))
-                .map(|i| grid[i])
-                .unwrap_or(total)
-        })
-        .collect();
-    let jackknife_error = if refits.len() >= 2 {
+            })
+    }
+
+    /// The profile's maximum over T₀ between the threshold and twice the
+    /// largest total: a coarse log grid, then a finer one around its best.
+    fn maximise(&self, totals: &[(usize, f64)]) -> ProfileMaximum {
+        let threshold = self.cuts.total;
+        let high = totals.iter().map(|t| t.1).fold(threshold, f64::max) * 2.0;
+        let low = threshold;
+        let coarse: Vec<f64> = (0..40)
+            .map(|i| low * (high / low).powf(i as f64 / 39.0))
+            .collect();
+        let scores: Vec<(f64, f64)> = coarse.iter().map(|&t| self.profile(totals, t)).collect();
+        let best = (0..coarse.len())
+            .max_by(|&a, &b| scores[a].0.total_cmp(&scores[b].0))
+            .unwrap_or(0);
+        let (lo, hi) = (
+            coarse[best.saturating_sub(2)],
+            coarse[(best + 2).min(coarse.len() - 1)],
+        );
+        let fine: Vec<f64> = (0..41).map(|i| lo + (hi - lo) * i as f64 / 40.0).collect();
+        let fine_scores: Vec<(f64, f64)> = fine.iter().map(|&t| self.profile(totals, t)).collect();
+        let top = (0..fine.len())
+            .max_by(|&a, &b| fine_scores[a].0.total_cmp(&fine_scores[b].0))
+            .unwrap_or(0);
+        let peak = fine_scores[top].0;
+        // The interval where the profile is within ½ of its peak.
+        let inside: Vec<f64> = fine
+            .iter()
+            .zip(&fine_scores)
+            .filter(|(_, s)| s.0 >= peak - 0.5)
+            .map(|(t, _)| *t)
+            .collect();
+        let (min, max) = inside
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| {
+                (a.min(t), b.max(t))
+            });
+        let step = (hi - lo) / 40.0;
+        ProfileMaximum {
+            total: fine[top],
+            spread: fine_scores[top].1,
+            profile_error: ((max - min) / 2.0).max(step / 2.0),
+        }
+    }
+
+    /// The jackknife's standard error of T₀ over the blocks of frames
+    /// (spots of one QD in nearby frames are not independent, which the
+    /// profile's error ignores): each block left out in turn, T₀ refitted
+    /// on a grid of ±5 profile errors around `best` (κ kept). NaN with
+    /// fewer than two blocks.
+    fn jackknife_error(&self, totals: &[(usize, f64)], best: &ProfileMaximum) -> f64 {
+        let threshold = self.cuts.total;
+        let blocks = totals.iter().map(|t| t.0 + 1).max().unwrap_or(0);
+        let refits: Vec<f64> = (0..blocks)
+            .map(|left_out| {
+                let rest: Vec<(usize, f64)> =
+                    totals.iter().copied().filter(|t| t.0 != left_out).collect();
+                let grid: Vec<f64> = (0..41)
+                    .map(|i| best.total + best.profile_error * (i as f64 - 20.0) / 4.0)
+                    .filter(|&t| t > threshold)
+                    .collect();
+                let scores: Vec<f64> = grid
+                    .iter()
+                    .map(|&t| self.log_likelihood(&rest, t, best.spread))
+                    .collect();
+                (0..grid.len())
+                    .max_by(|&a, &b| scores[a].total_cmp(&scores[b]))
+                    .map(|i| grid[i])
+                    .unwrap_or(best.total)
+            })
+            .collect();
+        if refits.len() < 2 {
+            return f64::NAN;
+        }
         let k = refits.len() as f64;
         let mean = refits.iter().sum::<f64>() / k;
         ((k - 1.0) / k * refits.iter().map(|v| (v - mean).powi(2)).sum::<f64>()).sqrt()
-    } else {
-        f64::NAN
-    };
-    TotalFit {
-        total,
-        standard_error: profile_error.max(jackknife_error),
-        spread,
     }
 }
 

@@ -108,13 +108,13 @@ fn count(text: &str, key: &str) -> Option<usize> {
 }
 
 /// Whether a description is an ImageJ hyperstack's.
-pub fn is_imagej(description: &str) -> bool {
+pub(crate) fn is_imagej(description: &str) -> bool {
     description.starts_with("ImageJ=")
 }
 
 /// The ImageJ description's channels, slices, frame interval and unit;
 /// `x_resolution` is the XResolution tag (pixels per unit), if any.
-pub fn parse_imagej(description: &str, x_resolution: Option<f64>) -> AcquisitionMetadata {
+pub(crate) fn parse_imagej(description: &str, x_resolution: Option<f64>) -> AcquisitionMetadata {
     let unit = value_of(description, "unit").unwrap_or("");
     let micrometres = matches!(unit, "micron" | "um" | "µm" | "\\u00B5m" | "microns");
     let pixel_size_um = match (x_resolution, micrometres) {
@@ -133,7 +133,7 @@ pub fn parse_imagej(description: &str, x_resolution: Option<f64>) -> Acquisition
 
 /// Whether a text (the Software tag or the first page's description) holds
 /// ScanImage's header.
-pub fn is_scanimage(text: &str) -> bool {
+pub(crate) fn is_scanimage(text: &str) -> bool {
     text.lines().any(|line| {
         let line = line.trim_start();
         line.starts_with("SI.") || line.starts_with("state.acq.") || line.starts_with("SI4.")
@@ -155,7 +155,7 @@ fn list_len(value: &str) -> Option<usize> {
 /// Software tag or a description); `timestamps_s`, the first pages'
 /// `frameTimestamps_sec`, if any (their median step is the frame period
 /// when no frame rate is given).
-pub fn parse_scanimage(header: &str, timestamps_s: &[f64]) -> AcquisitionMetadata {
+pub(crate) fn parse_scanimage(header: &str, timestamps_s: &[f64]) -> AcquisitionMetadata {
     let modern = header.contains("SI.");
     let key = |modern_key: &str, legacy_key: &str| {
         if modern {
@@ -245,7 +245,7 @@ pub fn parse_scanimage(header: &str, timestamps_s: &[f64]) -> AcquisitionMetadat
 }
 
 /// The `frameTimestamps_sec` of a ScanImage page's description.
-pub fn scanimage_timestamp(description: &str) -> Option<f64> {
+pub(crate) fn scanimage_timestamp(description: &str) -> Option<f64> {
     value_of(description, "frameTimestamps_sec")?
         .parse::<f64>()
         .ok()

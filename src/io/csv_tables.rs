@@ -28,7 +28,7 @@ use crate::error::input_error;
 use crate::types::{LocalisationSigma, Prediction, TruthRow};
 
 /// Column names of a truth file, in order.
-pub const TRUTH_COLUMNS: [&str; 9] = [
+pub(crate) const TRUTH_COLUMNS: [&str; 9] = [
     "frame",
     "x",
     "y",
@@ -46,7 +46,7 @@ pub fn write_truth(path: &Path, truth: &[TruthRow]) -> anyhow::Result<()> {
 }
 
 /// Fills a pending output with truth rows.
-pub fn fill_truth(pending: &mut PendingFile, truth: &[TruthRow]) -> anyhow::Result<()> {
+pub(crate) fn fill_truth(pending: &mut PendingFile, truth: &[TruthRow]) -> anyhow::Result<()> {
     pending.fill(|writer| write_truth_to(writer, truth))
 }
 
@@ -117,18 +117,15 @@ pub fn read_truth_from<R: Read>(reader: R, source: &str) -> anyhow::Result<Vec<T
     Ok(truth)
 }
 
-/// Column names of a predictions table written by scanloc, in order.
-pub const PREDICTION_COLUMNS: [&str; 4] = ["frame", "x", "y", "score"];
-
 /// The optional columns of a localisation's uncertainty
 /// ([`LocalisationSigma`]), written before `score` when any prediction of
 /// the table has one.
-pub const SIGMA_COLUMNS: [&str; 2] = ["sigma_x", "sigma_y"];
+pub(crate) const SIGMA_COLUMNS: [&str; 2] = ["sigma_x", "sigma_y"];
 
 /// The optional column of a guess's rank in a ranked list
 /// ([`Prediction::candidate`]), written after `score` when any prediction
 /// of the table has one.
-pub const CANDIDATE_COLUMN: &str = "candidate";
+pub(crate) const CANDIDATE_COLUMN: &str = "candidate";
 
 /// Reads the `frame,x,y,score` columns of a localisation file, and
 /// `sigma_x,sigma_y` and `candidate` when present (other columns are ignored). Non-finite
@@ -152,7 +149,7 @@ pub fn read_predictions_from<R: Read>(reader: R, source: &str) -> anyhow::Result
 /// Frame numbers may be written as whole
 /// floats (`3.0`, as pandas writes them); non-finite coordinates or scores
 /// are refused, naming the row.
-pub fn read_predictions_scored_by(
+pub(crate) fn read_predictions_scored_by(
     path: &Path,
     score_column: &str,
 ) -> anyhow::Result<Vec<Prediction>> {
@@ -161,7 +158,7 @@ pub fn read_predictions_scored_by(
 
 /// [`read_predictions_scored_by`] from any reader; `name` names it in
 /// errors.
-pub fn read_predictions_scored_by_from<R: Read>(
+pub(crate) fn read_predictions_scored_by_from<R: Read>(
     reader: R,
     name: &str,
     score_column: &str,
@@ -236,7 +233,7 @@ pub fn read_predictions_scored_by_from<R: Read>(
 /// A frame number as written by scanloc (`3`) or pandas (`3.0`): a whole
 /// number from 0 to below [`MAX_FRAMES`](crate::limits::MAX_FRAMES), the
 /// limit every frame count has.
-pub fn parse_frame_number(text: &str) -> Result<usize, String> {
+pub(crate) fn parse_frame_number(text: &str) -> Result<usize, String> {
     let text = text.trim();
     let value = match text.parse::<u64>() {
         Ok(value) => value,
@@ -277,7 +274,7 @@ fn optional_number<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<
 /// then each of `rows` (as many cells as the header has). For tables whose
 /// columns the caller decides (a precision–recall curve, a bench's sweep);
 /// the fixed formats have writers of their own above and below.
-pub fn write_table<H: AsRef<str>>(
+pub(crate) fn write_table<H: AsRef<str>>(
     path: &Path,
     header: &[H],
     rows: impl IntoIterator<Item = Vec<String>>,
@@ -305,7 +302,10 @@ pub fn write_predictions(path: &Path, predictions: &[Prediction]) -> anyhow::Res
 /// without one), and `candidate` after `score` if any prediction is ranked
 /// (empty cells for unranked ones). The registry's `predictions.csv` blobs are these bytes:
 /// change them only with the blob format's version.
-pub fn write_predictions_to<W: Write>(writer: W, predictions: &[Prediction]) -> anyhow::Result<()> {
+pub(crate) fn write_predictions_to<W: Write>(
+    writer: W,
+    predictions: &[Prediction],
+) -> anyhow::Result<()> {
     write_localisations_to(writer, [], predictions.iter().map(|&p| (p, [])))
 }
 
@@ -315,7 +315,7 @@ pub fn write_predictions_to<W: Write>(writer: W, predictions: &[Prediction]) -> 
 /// any prediction is ranked (Crocker–Grier passes
 /// TrackPy's `mass,size,ecc,signal,raw_mass,ep`). Each row is a prediction
 /// and its values of the extra columns, in order.
-pub fn write_localisations<const N: usize>(
+pub(crate) fn write_localisations<const N: usize>(
     path: &Path,
     extra_columns: [&str; N],
     rows: impl IntoIterator<Item = (Prediction, [f64; N])>,

@@ -22,7 +22,7 @@ use crate::error::input_error;
 /// The longest part of a file name [`safe_file_name`] keeps from the name
 /// it is given (its hash suffix comes on top): far below the 255 bytes
 /// file systems allow, leaving room for what callers add (`pr_`, `.png`).
-pub const MAX_NAME_BYTES: usize = 100;
+pub(crate) const MAX_NAME_BYTES: usize = 100;
 
 /// Hex digits of the sha256 of the original name appended to a name that
 /// had to be changed.

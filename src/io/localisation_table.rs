@@ -22,12 +22,12 @@ use crate::io::{PendingFile, open_input};
 use crate::types::LocalisationSigma;
 
 /// The name of the column of trajectory labels.
-pub const PARTICLE_COLUMN: &str = "particle";
+pub(crate) const PARTICLE_COLUMN: &str = "particle";
 
 /// The columns of the extent along x and y (px) of the gate that
 /// admitted a row's link from its predecessor (the `lap` linker).
-pub const GATE_X_COLUMN: &str = "gate_x";
-pub const GATE_Y_COLUMN: &str = "gate_y";
+pub(crate) const GATE_X_COLUMN: &str = "gate_x";
+pub(crate) const GATE_Y_COLUMN: &str = "gate_y";
 
 /// A localisation table: its header and rows as text, and the columns the
 /// linkers use, parsed (one entry per row).
@@ -115,7 +115,7 @@ pub fn read_localisation_table(path: &Path) -> anyhow::Result<LocalisationTable>
 }
 
 /// [`read_localisation_table`] from any reader; `name` names it in errors.
-pub fn read_localisation_table_from<R: Read>(
+pub(crate) fn read_localisation_table_from<R: Read>(
     reader: R,
     name: &str,
 ) -> anyhow::Result<LocalisationTable> {
@@ -183,7 +183,7 @@ pub fn read_localisation_table_from<R: Read>(
 /// `gates`: the extent along x and y (px) of the gate that admitted
 /// each row's link from its predecessor, as `gate_x,gate_y` (empty for a
 /// trajectory's first row).
-pub fn fill_track_table(
+pub(crate) fn fill_track_table(
     pending: &mut PendingFile,
     table: &LocalisationTable,
     order: &[usize],
@@ -196,7 +196,7 @@ pub fn fill_track_table(
 /// Writes the track table (see [`fill_track_table`]) to any writer, `\n`
 /// line ends. Columns the linker writes replace the table's own of the
 /// same name.
-pub fn write_track_table_to<W: Write>(
+pub(crate) fn write_track_table_to<W: Write>(
     writer: W,
     table: &LocalisationTable,
     order: &[usize],

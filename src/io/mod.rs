@@ -11,12 +11,12 @@
 //! Readers report problems as [`InputError`](crate::error::InputError)s that
 //! name the file.
 
-pub mod acquisition;
+pub(crate) mod acquisition;
 pub mod csv_tables;
-pub mod folders;
+pub(crate) mod folders;
 pub mod localisation_table;
 pub mod npy;
-pub mod tiff_stack;
+pub(crate) mod tiff_stack;
 pub mod tracks;
 
 pub use acquisition::{AcquisitionMetadata, MetadataSource};
@@ -34,14 +34,14 @@ use crate::types::{FrameStack, Recording};
 
 /// The frame file formats, chosen by file extension.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FrameFormat {
+pub(crate) enum FrameFormat {
     Npy,
     Tiff,
 }
 
 impl FrameFormat {
     /// The format a path's extension names (`.npy`, `.tif`, `.tiff`).
-    pub fn from_path(path: &Path) -> anyhow::Result<Self> {
+    pub(crate) fn from_path(path: &Path) -> anyhow::Result<Self> {
         let extension = path
             .extension()
             .and_then(|e| e.to_str())
@@ -144,7 +144,7 @@ pub fn write_frames(path: &Path, frames: &FrameStack) -> anyhow::Result<()> {
 
 /// Fills a pending output with a frame stack in the format its extension
 /// names.
-pub fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Result<()> {
+pub(crate) fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Result<()> {
     let format = FrameFormat::from_path(&pending.path)?;
     pending.fill(|writer| match format {
         FrameFormat::Npy => npy::write_frames(writer, frames),
@@ -163,14 +163,14 @@ pub fn fill_frames(pending: &mut PendingFile, frames: &FrameStack) -> anyhow::Re
 /// destination that exists and is not a regular file (a symlink, a FIFO, a
 /// device node, a folder) instead of replacing it, and creates the file
 /// with mode 0666 minus the umask, as any other program would.
-pub struct PendingFile {
+pub(crate) struct PendingFile {
     path: PathBuf,
     temporary: tempfile::NamedTempFile,
 }
 
 impl PendingFile {
     /// Starts writing `path` (its folder must exist and be writable).
-    pub fn create(path: &Path) -> anyhow::Result<Self> {
+    pub(crate) fn create(path: &Path) -> anyhow::Result<Self> {
         refuse_special_destination(path)?;
         let folder = match path.parent() {
             Some(parent) if !parent.as_os_str().is_empty() => parent,
@@ -205,18 +205,18 @@ impl PendingFile {
     }
 
     /// The destination.
-    pub fn path(&self) -> &Path {
+    pub(crate) fn path(&self) -> &Path {
         &self.path
     }
 
     /// The temporary file's path, for writers that can only write to a
     /// named file (it has the destination's extension).
-    pub fn temporary_path(&self) -> &Path {
+    pub(crate) fn temporary_path(&self) -> &Path {
         self.temporary.path()
     }
 
     /// Fills the file through a buffered writer.
-    pub fn fill(
+    pub(crate) fn fill(
         &mut self,
         fill: impl FnOnce(&mut BufWriter<&mut File>) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
@@ -230,7 +230,7 @@ impl PendingFile {
     }
 
     /// Syncs the data to disk and renames the file into place.
-    pub fn commit(self) -> anyhow::Result<()> {
+    pub(crate) fn commit(self) -> anyhow::Result<()> {
         let path = self.path;
         // Checked again: the destination may have appeared since `create`.
         refuse_special_destination(&path)?;
@@ -293,7 +293,7 @@ fn special_file_kind(_file_type: &std::fs::FileType) -> &'static str {
 /// (after resolving `.`, `..` and symlinks, and comparing the files
 /// themselves where they exist): writing one would silently destroy the
 /// other. `inputs` and `outputs` pair a flag name with its path.
-pub fn refuse_shared_paths(
+pub(crate) fn refuse_shared_paths(
     inputs: &[(&str, &Path)],
     outputs: &[(&str, &Path)],
 ) -> anyhow::Result<()> {
@@ -363,7 +363,7 @@ fn canonical_destination(path: &Path) -> Option<PathBuf> {
 }
 
 /// Writes `path` through `fill` atomically (see [`PendingFile`]).
-pub fn write_atomically(
+pub(crate) fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&mut BufWriter<&mut File>) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
@@ -373,7 +373,7 @@ pub fn write_atomically(
 }
 
 /// Writes `bytes` to `path` atomically (see [`write_atomically`]).
-pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+pub(crate) fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     write_atomically(path, |writer| {
         writer.write_all(bytes)?;
         Ok(())
@@ -381,6 +381,6 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
 }
 
 /// Opens a file for reading, with an input error naming it on failure.
-pub fn open_input(path: &Path) -> anyhow::Result<File> {
+pub(crate) fn open_input(path: &Path) -> anyhow::Result<File> {
     File::open(path).map_err(|e| input_error(format!("{}: cannot read: {e}", path.display())))
 }

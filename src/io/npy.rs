@@ -60,7 +60,11 @@ pub fn read_recording(path: &Path) -> anyhow::Result<Recording> {
 /// Reads a frame stack of photon counts from `.npy` data of `len` bytes
 /// (header included) from any reader, as [`read_frames`]. `name` (a path,
 /// or a blob's role) names the data in errors.
-pub fn read_frames_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Result<FrameStack> {
+pub(crate) fn read_frames_from<R: Read>(
+    reader: R,
+    len: u64,
+    name: &str,
+) -> anyhow::Result<FrameStack> {
     counts_of(read_recording_from(reader, len, name)?, name)
 }
 
@@ -75,7 +79,11 @@ fn counts_of(recording: Recording, name: &str) -> anyhow::Result<FrameStack> {
 /// any reader, as [`read_recording`]; the header's shape is checked against
 /// `len` before anything is allocated. `name` (a path, or a blob's role)
 /// names the data in errors.
-pub fn read_recording_from<R: Read>(reader: R, len: u64, name: &str) -> anyhow::Result<Recording> {
+pub(crate) fn read_recording_from<R: Read>(
+    reader: R,
+    len: u64,
+    name: &str,
+) -> anyhow::Result<Recording> {
     let npy = NpyFile::new(reader)
         .map_err(|e| input_error(format!("{name}: not a readable .npy file: {e}")))?;
     if npy.order() != Order::C {

@@ -24,7 +24,10 @@ use crate::types::frames::whole_count;
 use crate::types::{FrameStack, RealFrameStack, Recording};
 
 /// Writes one page per frame.
-pub fn write_frames<W: Write + Seek>(writer: &mut W, frames: &FrameStack) -> anyhow::Result<()> {
+pub(crate) fn write_frames<W: Write + Seek>(
+    writer: &mut W,
+    frames: &FrameStack,
+) -> anyhow::Result<()> {
     let mut encoder = TiffEncoder::new(writer)?;
     let (width, height) = (frames.width as u32, frames.height as u32);
     let sixteen_bit = frames.max_count() <= u16::MAX as u32;
@@ -39,18 +42,10 @@ pub fn write_frames<W: Write + Seek>(writer: &mut W, frames: &FrameStack) -> any
     Ok(())
 }
 
-/// Reads every page of a TIFF file as one frame of photon counts; see
-/// [`read_channel`].
-pub fn read_frames(path: &Path) -> anyhow::Result<FrameStack> {
-    read_channel(path, None)?
-        .into_counts()
-        .map_err(|e| input_error(format!("{}: {e:#}", path.display())))
-}
-
 /// Reads the frames of a TIFF stack, one greyscale page per frame; see
 /// [`read_selected`] (this is its channel selection alone, without the
 /// metadata).
-pub fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
+pub(crate) fn read_channel(path: &Path, channel: Option<usize>) -> anyhow::Result<Recording> {
     let selection = StackSelection {
         channel,
         slice: None,
@@ -81,7 +76,7 @@ pub struct StackSelection {
 /// refused: no channel is ever dropped silently. The frames read so far
 /// are checked against the size limits page by page, so a file cannot make
 /// the reader hold more than [`MAX_DATASET_PIXELS`](crate::limits::MAX_DATASET_PIXELS).
-pub fn read_selected(
+pub(crate) fn read_selected(
     path: &Path,
     selection: &StackSelection,
 ) -> anyhow::Result<(Recording, AcquisitionMetadata)> {

@@ -44,7 +44,7 @@ pub const RECORDING_TRUTH_COLUMNS: [&str; 12] = [
 ];
 
 /// Fills a pending output with recording truth rows.
-pub fn fill_recording_truth(
+pub(crate) fn fill_recording_truth(
     pending: &mut PendingFile,
     truth: &[RecordingTruthRow],
 ) -> anyhow::Result<()> {
@@ -74,7 +74,7 @@ pub fn read_recording_truth(path: &Path) -> anyhow::Result<Vec<RecordingTruthRow
 }
 
 /// [`read_recording_truth`] from any reader; `source` names it in errors.
-pub fn read_recording_truth_from<R: Read>(
+pub(crate) fn read_recording_truth_from<R: Read>(
     reader: R,
     source: &str,
 ) -> anyhow::Result<Vec<RecordingTruthRow>> {
@@ -167,7 +167,7 @@ fn parse_truth_row(
 /// (empty cells where one has none); rows by frame, then particle. Floats
 /// in Rust's shortest round-trip form, so [`read_tracks_from`] gives back
 /// the same bits.
-pub fn write_tracks_to<W: Write>(writer: W, tracks: &[Track]) -> anyhow::Result<()> {
+pub(crate) fn write_tracks_to<W: Write>(writer: W, tracks: &[Track]) -> anyhow::Result<()> {
     let with_sigma = tracks
         .iter()
         .any(|t| t.points.iter().any(|p| p.sigma.is_some()));

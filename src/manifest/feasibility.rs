@@ -19,7 +19,7 @@ fn problem(path: &[&str], message: String) -> FieldError {
 }
 
 /// The first problem of `manifest` that its run would only find by running.
-pub fn check(manifest: &Manifest) -> Result<(), FieldError> {
+pub(crate) fn check(manifest: &Manifest) -> Result<(), FieldError> {
     // Every dataset that gets scored by its AUC, and by what (for the
     // message). An evaluation is not among them: it scores a set of empty
     // frames by its false localisations (docs/metric.md, "Scenes"), while a

@@ -45,8 +45,8 @@
 //! involved.
 
 mod errors;
-pub mod feasibility;
-pub mod locate;
+pub(crate) mod feasibility;
+pub(crate) mod locate;
 mod raw;
 mod resolve;
 mod serde_adapters;

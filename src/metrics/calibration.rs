@@ -13,10 +13,10 @@ use crate::types::Prediction;
 
 /// The event a probability score predicts: the localisation lies within
 /// this distance (px) of a ground truth of its frame.
-pub const RELIABILITY_RADIUS_PX: f64 = 1.0;
+pub(crate) const RELIABILITY_RADIUS_PX: f64 = 1.0;
 
 /// Equal-width bins of the reliability diagram over [0, 1].
-pub const RELIABILITY_BINS: usize = 10;
+pub(crate) const RELIABILITY_BINS: usize = 10;
 
 /// One bin of the reliability diagram: the localisations whose score is in
 /// `[lower, upper)` (the last bin also holds 1).
@@ -73,7 +73,7 @@ pub(super) fn reliability(
 /// Most candidate ranks given a reliability diagram of their own: the
 /// lists measured hold a handful of guesses, and the ranks beyond hold
 /// too few guesses per set for a diagram to say anything.
-pub const MAX_RELIABILITY_RANKS: u32 = 8;
+pub(crate) const MAX_RELIABILITY_RANKS: u32 = 8;
 
 /// The reliability diagram of the guesses of one rank of ranked lists.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -135,7 +135,7 @@ pub(super) fn reliability_by_rank(
 
 /// The reliability diagram of `(probability, event happened)` pairs, the
 /// probabilities in [0, 1].
-pub fn reliability_of(outcomes: &[(f64, bool)]) -> Reliability {
+pub(crate) fn reliability_of(outcomes: &[(f64, bool)]) -> Reliability {
     let mut count = [0usize; RELIABILITY_BINS];
     let mut score_sum = [0.0f64; RELIABILITY_BINS];
     let mut hits = [0usize; RELIABILITY_BINS];
@@ -242,7 +242,7 @@ pub(super) fn uncertainty_calibration(
 
 /// Spearman's rank correlation of two equally long samples (ties share
 /// their mean rank); `None` for fewer than two pairs or a constant side.
-pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
+pub(crate) fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
     debug_assert_eq!(a.len(), b.len());
     if a.len() < 2 {
         return None;

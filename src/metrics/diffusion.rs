@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 /// One estimate of D with its 95 % interval, µm²/s.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DiffusionInterval {
+pub(crate) struct DiffusionInterval {
     pub d: f64,
     pub low: f64,
     pub high: f64,
@@ -28,7 +28,10 @@ pub struct DiffusionScore {
 }
 
 /// Scores `estimates` of the true `truth` (> 0); `None` for no estimates.
-pub fn score_diffusion(estimates: &[DiffusionInterval], truth: f64) -> Option<DiffusionScore> {
+pub(crate) fn score_diffusion(
+    estimates: &[DiffusionInterval],
+    truth: f64,
+) -> Option<DiffusionScore> {
     if estimates.is_empty() {
         return None;
     }

@@ -71,7 +71,7 @@ impl Headroom {
 /// over. A real gap is at least of order 1/G (one top prediction more or
 /// less within ε); rounding in the sums is of order 1e-16 per term, so
 /// this separates the two for any test set below 10⁷ truths.
-pub const MIN_HEADROOM: f64 = 1e-9;
+pub(crate) const MIN_HEADROOM: f64 = 1e-9;
 
 /// The headroom of predictions `ranked` (in the metric's order) whose AUC
 /// at `eps` is `auc`, against a set of `ground_truths` truths.
@@ -131,7 +131,7 @@ pub(super) fn headroom(
 ///
 /// summed in that order (for `n = 1` the bracket is 1). For large `n` and
 /// `G = n` it approaches `(m/n)²`.
-pub fn expected_random_rank_auc(n: usize, m: usize, ground_truths: usize) -> f64 {
+pub(crate) fn expected_random_rank_auc(n: usize, m: usize, ground_truths: usize) -> f64 {
     if n == 0 || m == 0 || ground_truths == 0 {
         return 0.0;
     }

@@ -25,12 +25,12 @@
 //! empty frame), and whether one detector beats another by more than the
 //! test set's luck ([`paired`]: a paired bootstrap over frames).
 
-pub mod calibration;
-pub mod diffusion;
-pub mod headroom;
-pub mod paired;
-pub mod scenes;
-pub mod tracking;
+pub(crate) mod calibration;
+pub(crate) mod diffusion;
+pub(crate) mod headroom;
+pub(crate) mod paired;
+pub(crate) mod scenes;
+pub(crate) mod tracking;
 
 use std::cmp::Ordering;
 use std::collections::{HashMap, HashSet};

@@ -23,11 +23,11 @@ use crate::types::{Prediction, TruthRow};
 
 /// Most resamples a comparison may ask for: the differences are kept to
 /// sort them for the interval (8 bytes × resamples × radii).
-pub const MAX_RESAMPLES: usize = 100_000;
+pub(crate) const MAX_RESAMPLES: usize = 100_000;
 
 /// The paired difference of two detectors' AUC at one radius ε.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct PairedDifference {
+pub(crate) struct PairedDifference {
     pub eps_px: f64,
     /// The first detector's AUC on the test set itself.
     pub auc: f64,
@@ -49,7 +49,7 @@ pub struct PairedDifference {
 
 /// Checks a resample count (`name` names the field or flag): 1 to
 /// [`MAX_RESAMPLES`].
-pub fn check_resamples(name: &str, resamples: u64) -> Result<usize, FieldError> {
+pub(crate) fn check_resamples(name: &str, resamples: u64) -> Result<usize, FieldError> {
     if resamples == 0 || resamples > MAX_RESAMPLES as u64 {
         return Err(FieldError::new(
             name,
@@ -62,7 +62,7 @@ pub fn check_resamples(name: &str, resamples: u64) -> Result<usize, FieldError> 
 /// One detector's AUC at one radius ε with its spread over a bootstrap of
 /// the frames: how much a new test set of the same size would move it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct AucSpread {
+pub(crate) struct AucSpread {
     pub eps_px: f64,
     /// The AUC on the test set itself.
     pub auc: f64,
@@ -84,7 +84,7 @@ pub struct AucSpread {
 /// spread of either side of that paired difference.
 ///
 /// Refuses what [`paired_bootstrap`] refuses.
-pub fn bootstrap_auc(
+pub(crate) fn bootstrap_auc(
     predictions: &[Prediction],
     truth: &[TruthRow],
     frames: usize,
@@ -104,7 +104,7 @@ pub fn bootstrap_auc(
 ///
 /// Refuses what [`score`](super::score) refuses (for either detector), a
 /// resample count outside 1 to [`MAX_RESAMPLES`], and frame counts of 0.
-pub fn paired_bootstrap(
+pub(crate) fn paired_bootstrap(
     predictions: &[Prediction],
     compared: &[Prediction],
     truth: &[TruthRow],
@@ -127,7 +127,7 @@ pub fn paired_bootstrap(
 /// [`paired_bootstrap`] and the [`bootstrap_auc`] of `predictions` at
 /// once, from one set of resamples: the same figures as the two calls,
 /// with `predictions` scored on each resample once instead of twice.
-pub fn paired_bootstrap_with_spread(
+pub(crate) fn paired_bootstrap_with_spread(
     predictions: &[Prediction],
     compared: &[Prediction],
     truth: &[TruthRow],

@@ -44,16 +44,16 @@ use crate::types::{RecordingTruthRow, Track, TrackPoint};
 
 /// The default gate ε, px: the paper's first matching radius (70 nm at
 /// 0.07 µm/px), as for localisations (`docs/metric.md`).
-pub const DEFAULT_GATE_PX: f64 = 1.0;
+pub(crate) const DEFAULT_GATE_PX: f64 = 1.0;
 
 /// Most pairs of a truth and an estimated point closer than the gate (in
 /// one frame) that a scoring examines: more means a gate far wider than
 /// the points' spacing or degenerate files, and a quadratic cost.
-pub const MAX_NEAR_PAIRS: usize = 20_000_000;
+pub(crate) const MAX_NEAR_PAIRS: usize = 20_000_000;
 
 /// Most tracks (truth + estimated) competing in one assignment problem
 /// (its matrix has the square of that many entries).
-pub const MAX_ASSIGNMENT_SIZE: usize = 4_000;
+pub(crate) const MAX_ASSIGNMENT_SIZE: usize = 4_000;
 
 /// Which position of a recording truth row a track follows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -83,7 +83,7 @@ pub struct TruthSelection {
 /// selected rows in frame order (a QD that leaves the selection and comes
 /// back keeps one track, with a gap, unless the gap is longer than
 /// `split_gaps_over` frames: then a new track starts, with the same label).
-pub fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> Vec<Track> {
+pub(crate) fn truth_tracks(rows: &[RecordingTruthRow], selection: &TruthSelection) -> Vec<Track> {
     let mut by_qd: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
     let kept = rows.iter().filter(|row| {
         selection
@@ -384,7 +384,7 @@ fn ratio(numerator: f64, denominator: f64) -> Option<f64> {
 /// [`MAX_EPS_PX`](crate::limits::MAX_EPS_PX)); see the module's
 /// documentation. Each track's points must be in increasing frame order,
 /// one per frame (as the tracks reader and [`truth_tracks`] give them).
-pub fn score_tracks(
+pub(crate) fn score_tracks(
     truth: &[Track],
     estimated: &[Track],
     gate_px: f64,
@@ -394,11 +394,84 @@ pub fn score_tracks(
     let pairs = near_pairs(truth, estimated, gate)?;
     let truth_points: usize = truth.iter().map(|t| t.points.len()).sum();
     let estimated_points: usize = estimated.iter().map(|t| t.points.len()).sum();
+    let tracks = pair_tracks(truth, estimated, &pairs, gate)?;
+    let links = count_links(truth, estimated, &pairs, gate)?;
 
-    // Track pairing: per (truth, estimated) track pair with a match, the
-    // matched points and their summed distance.
+    let TrackPairing {
+        distance,
+        matched_points,
+        paired_tracks,
+        spurious_track_points,
+    } = tracks;
+    let nothing = gate * truth_points as f64;
+    let missed_tracks = truth.len() - paired_tracks;
+    let spurious_tracks = estimated.len() - paired_tracks;
+    Ok(TrackingScore {
+        gate_px,
+        alpha: ratio(nothing - distance, nothing),
+        beta: ratio(
+            nothing - distance,
+            nothing + gate * spurious_track_points as f64,
+        ),
+        jaccard_detections: ratio(
+            matched_points as f64,
+            (truth_points + estimated_points - matched_points) as f64,
+        ),
+        jaccard_tracks: ratio(
+            paired_tracks as f64,
+            (paired_tracks + missed_tracks + spurious_tracks) as f64,
+        ),
+        link_precision: ratio(links.true_links as f64, links.estimated_links as f64),
+        link_recall: ratio(links.recovered_links as f64, links.truth_links as f64),
+        truth_tracks: truth.len(),
+        estimated_tracks: estimated.len(),
+        paired_tracks,
+        missed_tracks,
+        spurious_tracks,
+        truth_points,
+        estimated_points,
+        matched_points,
+        missed_points: truth_points - matched_points,
+        false_points: estimated_points - matched_points,
+        spurious_track_points,
+        distance_px: distance,
+        distance_to_nothing_px: nothing,
+        estimated_links: links.estimated_links,
+        true_links: links.true_links,
+        truth_links: links.truth_links,
+        recovered_links: links.recovered_links,
+    })
+}
+
+/// The one-to-one pairing of whole tracks and what it costs (see the
+/// module's documentation).
+struct TrackPairing {
+    /// The pairing's distance (px): each paired track's matched distances
+    /// plus the gate for each frame only one of the pair has, and the gate
+    /// for each point of an unpaired truth track.
+    distance: f64,
+    /// Points matched within the paired tracks.
+    matched_points: usize,
+    paired_tracks: usize,
+    /// Points of the estimated tracks left unpaired.
+    spurious_track_points: usize,
+}
+
+/// Pairs truth with estimated tracks one to one at the least distance:
+/// a pair costs its matched points' distances and the gate for every
+/// frame in which only one of the two has a point; a truth track left
+/// alone costs the gate per point, an estimated one nothing (α ignores
+/// spurious tracks; β charges them afterwards).
+fn pair_tracks(
+    truth: &[Track],
+    estimated: &[Track],
+    pairs: &[NearPair],
+    gate: f64,
+) -> anyhow::Result<TrackPairing> {
+    // Per (truth, estimated) track pair with a match, the matched points
+    // and their summed distance.
     let mut matched: HashMap<(usize, usize), (usize, f64)> = HashMap::new();
-    for pair in &pairs {
+    for pair in pairs {
         let entry = matched
             .entry((pair.truth.0, pair.estimated.0))
             .or_insert((0, 0.0));
@@ -417,6 +490,8 @@ pub fn score_tracks(
             (edge, count)
         })
         .collect();
+    // Sorted, so the pairing's edges are found by binary search below
+    // (and the solver sees them in an order independent of hashing).
     track_edges.sort_by_key(|(e, _)| (e.row, e.column));
     let edges: Vec<Edge> = track_edges.iter().map(|(e, _)| *e).collect();
     let dummy: Vec<f64> = truth.iter().map(|t| gate * t.points.len() as f64).collect();
@@ -436,82 +511,72 @@ pub fn score_tracks(
             None => distance += dummy[t],
         }
     }
-    let paired_tracks = pairing.iter().flatten().count();
-    let spurious_track_points: usize = estimated
+    let spurious_track_points = estimated
         .iter()
         .zip(&paired_estimated)
         .filter(|(_, paired)| !**paired)
         .map(|(t, _)| t.points.len())
         .sum();
-    let nothing = gate * truth_points as f64;
-    let missed_tracks = truth.len() - paired_tracks;
-    let spurious_tracks = estimated.len() - paired_tracks;
+    Ok(TrackPairing {
+        distance,
+        matched_points,
+        paired_tracks: pairing.iter().flatten().count(),
+        spurious_track_points,
+    })
+}
 
-    // Links: each frame's points matched one to one.
-    let (estimated_match, truth_match) = match_points(&pairs, gate)?;
-    let mut estimated_links = 0;
-    let mut true_links = 0;
+/// Links (consecutive points of one track) counted against the
+/// frame-by-frame matching of points.
+struct LinkCounts {
+    estimated_links: usize,
+    /// Estimated links whose two points match points of one truth track.
+    true_links: usize,
+    truth_links: usize,
+    /// Truth links whose two points match consecutive points of one
+    /// estimated track.
+    recovered_links: usize,
+}
+
+/// Counts the links of both sides and those the other side has too, with
+/// each frame's points matched one to one (independently of the track
+/// pairing, so a link is judged by itself).
+fn count_links(
+    truth: &[Track],
+    estimated: &[Track],
+    pairs: &[NearPair],
+    gate: f64,
+) -> anyhow::Result<LinkCounts> {
+    let (estimated_match, truth_match) = match_points(pairs, gate)?;
+    let mut counts = LinkCounts {
+        estimated_links: 0,
+        true_links: 0,
+        truth_links: 0,
+        recovered_links: 0,
+    };
     for (e, track) in estimated.iter().enumerate() {
         for p in 1..track.points.len() {
-            estimated_links += 1;
+            counts.estimated_links += 1;
             if let (Some(a), Some(b)) = (
                 estimated_match.get(&(e, p - 1)),
                 estimated_match.get(&(e, p)),
             ) && a.0 == b.0
             {
-                true_links += 1;
+                counts.true_links += 1;
             }
         }
     }
-    let mut truth_links = 0;
-    let mut recovered_links = 0;
     for (t, track) in truth.iter().enumerate() {
         for p in 1..track.points.len() {
-            truth_links += 1;
+            counts.truth_links += 1;
             if let (Some(a), Some(b)) = (truth_match.get(&(t, p - 1)), truth_match.get(&(t, p)))
                 && a.0 == b.0
                 && a.1 + 1 == b.1
             {
-                recovered_links += 1;
+                counts.recovered_links += 1;
             }
         }
     }
-
-    Ok(TrackingScore {
-        gate_px,
-        alpha: ratio(nothing - distance, nothing),
-        beta: ratio(
-            nothing - distance,
-            nothing + gate * spurious_track_points as f64,
-        ),
-        jaccard_detections: ratio(
-            matched_points as f64,
-            (truth_points + estimated_points - matched_points) as f64,
-        ),
-        jaccard_tracks: ratio(
-            paired_tracks as f64,
-            (paired_tracks + missed_tracks + spurious_tracks) as f64,
-        ),
-        link_precision: ratio(true_links as f64, estimated_links as f64),
-        link_recall: ratio(recovered_links as f64, truth_links as f64),
-        truth_tracks: truth.len(),
-        estimated_tracks: estimated.len(),
-        paired_tracks,
-        missed_tracks,
-        spurious_tracks,
-        truth_points,
-        estimated_points,
-        matched_points,
-        missed_points: truth_points - matched_points,
-        false_points: estimated_points - matched_points,
-        spurious_track_points,
-        distance_px: distance,
-        distance_to_nothing_px: nothing,
-        estimated_links,
-        true_links,
-        truth_links,
-        recovered_links,
-    })
+    Ok(counts)
 }
 
 /// The number of frames with a point of `a` or of `b` (both in increasing

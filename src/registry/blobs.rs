@@ -249,7 +249,7 @@ fn list_folder(folder: &Path) -> anyhow::Result<Vec<StoreEntry>> {
 /// [`install`](BlobStore::install)ed. On Unix it is created 0444, so the
 /// kernel takes the umask off: the blob is read-only and readable by whom
 /// the umask allows (the open file stays writable for this write).
-pub fn temporary_blob(dir: &Path, sha256: &str) -> std::io::Result<tempfile::NamedTempFile> {
+pub(crate) fn temporary_blob(dir: &Path, sha256: &str) -> std::io::Result<tempfile::NamedTempFile> {
     let mut builder = tempfile::Builder::new();
     let prefix = format!("{sha256}.");
     builder.prefix(&prefix);

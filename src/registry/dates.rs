@@ -9,7 +9,7 @@ pub fn utc_now() -> String {
 }
 
 /// `time` as UTC ISO 8601 with milliseconds (`2026-11-22T23:05:00.123Z`).
-pub fn format_utc(time: SystemTime) -> String {
+pub(crate) fn format_utc(time: SystemTime) -> String {
     let since = time.duration_since(UNIX_EPOCH).unwrap_or_default();
     let seconds = since.as_secs() as i64;
     let (days, rest) = (seconds.div_euclid(86_400), seconds.rem_euclid(86_400));
@@ -33,7 +33,7 @@ pub fn format_utc(time: SystemTime) -> String {
 }
 
 /// Parses the UTC times [`format_utc`] writes; `None` for anything else.
-pub fn parse_utc(text: &str) -> Option<SystemTime> {
+pub(crate) fn parse_utc(text: &str) -> Option<SystemTime> {
     let number = |range: std::ops::Range<usize>| -> Option<i64> { text.get(range)?.parse().ok() };
     let (year, month, day) = (number(0..4)?, number(5..7)?, number(8..10)?);
     let (hour, minute, second) = (number(11..13)?, number(14..16)?, number(17..19)?);
@@ -52,7 +52,7 @@ pub fn parse_utc(text: &str) -> Option<SystemTime> {
 }
 
 /// Seconds from `started` to `ended` (both as [`format_utc`] writes them).
-pub fn seconds_between(started: &str, ended: &str) -> Option<f64> {
+pub(crate) fn seconds_between(started: &str, ended: &str) -> Option<f64> {
     let (a, b) = (parse_utc(started)?, parse_utc(ended)?);
     Some(b.duration_since(a).ok()?.as_secs_f64())
 }

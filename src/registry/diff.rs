@@ -11,7 +11,7 @@ use super::RunRecord;
 
 /// One difference between two runs.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Difference {
+pub(crate) struct Difference {
     /// `code`, `manifest`, `parameters`, `seeds`, `steps`, `auc`, `machine`.
     pub section: String,
     pub field: String,
@@ -21,7 +21,7 @@ pub struct Difference {
 
 /// Every leaf of `value` by its path: `a.b[2].c` (a bare leaf's path is
 /// empty).
-pub fn flatten(value: &Value) -> BTreeMap<String, Value> {
+pub(crate) fn flatten(value: &Value) -> BTreeMap<String, Value> {
     fn walk(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
         match value {
             Value::Object(map) => {
@@ -69,7 +69,7 @@ fn compare(
 /// What differs between two run records: code version, machine, manifest,
 /// resolved parameters, seeds, the artefact key of each step, and each AUC
 /// cell.
-pub fn diff_runs(a: &RunRecord, b: &RunRecord) -> Vec<Difference> {
+pub(crate) fn diff_runs(a: &RunRecord, b: &RunRecord) -> Vec<Difference> {
     let fields = |pairs: &[(&str, Value)]| -> BTreeMap<String, Value> {
         pairs
             .iter()

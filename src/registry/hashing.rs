@@ -6,13 +6,13 @@ use serde::Serialize;
 use sha2::{Digest, Sha256};
 
 /// sha256 of `bytes`, lower-case hex.
-pub fn sha256_hex(bytes: &[u8]) -> String {
+pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
 
 /// sha256 of everything `reader` yields, lower-case hex, read in 1 MiB
 /// chunks so large blobs are never held in memory for a check.
-pub fn sha256_reader(mut reader: impl Read) -> std::io::Result<String> {
+pub(crate) fn sha256_reader(mut reader: impl Read) -> std::io::Result<String> {
     let mut hasher = Sha256::new();
     let mut buffer = vec![0u8; 1 << 20];
     loop {
@@ -28,7 +28,7 @@ pub fn sha256_reader(mut reader: impl Read) -> std::io::Result<String> {
 /// Canonical JSON of `value`: object keys sorted at every level, no
 /// whitespace, numbers in serde_json's shortest round-trip form. Two values
 /// that serialise to equal JSON trees give identical text.
-pub fn canonical_json<T: Serialize + ?Sized>(value: &T) -> anyhow::Result<String> {
+pub(crate) fn canonical_json<T: Serialize + ?Sized>(value: &T) -> anyhow::Result<String> {
     let tree = serde_json::to_value(value)?;
     let mut text = String::new();
     write_canonical(&tree, &mut text);
@@ -67,7 +67,7 @@ fn write_canonical(value: &serde_json::Value, out: &mut String) {
 
 /// The content key of an artefact: sha256 of the canonical JSON of its
 /// description (resolved spec, input keys, code version).
-pub fn content_key<T: Serialize + ?Sized>(description: &T) -> anyhow::Result<String> {
+pub(crate) fn content_key<T: Serialize + ?Sized>(description: &T) -> anyhow::Result<String> {
     Ok(sha256_hex(canonical_json(description)?.as_bytes()))
 }
 

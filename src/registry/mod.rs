@@ -19,24 +19,24 @@
 //! once both write the same blob (identical bytes, atomic rename) and the
 //! second insert finds the first.
 
-pub mod blobs;
+pub(crate) mod blobs;
 mod claims;
-pub mod dates;
-pub mod diff;
-pub mod gc;
-pub mod hashing;
+pub(crate) mod dates;
+pub(crate) mod diff;
+pub(crate) mod gc;
+pub(crate) mod hashing;
 mod insert;
 mod migrate;
-pub mod models;
+pub(crate) mod models;
 mod open;
-pub mod record;
+pub(crate) mod record;
 mod runs;
 pub mod shard;
-pub mod sql;
-pub mod sql_guard;
-pub mod step_id;
-pub mod table;
-pub mod verify;
+pub(crate) mod sql;
+pub(crate) mod sql_guard;
+pub(crate) mod step_id;
+pub(crate) mod table;
+pub(crate) mod verify;
 pub mod write_lock;
 
 use std::path::{Path, PathBuf};
@@ -61,10 +61,10 @@ use open::{BUSY_TIMEOUT, is_busy};
 
 /// The schema version this code writes; see `schema.sql` (version 1),
 /// `schema_v2.sql` and `schema_v3.sql` (the migrations to versions 2 and 3).
-pub const SCHEMA_VERSION: i64 = 3;
+pub(crate) const SCHEMA_VERSION: i64 = 3;
 
 /// The database file name inside a registry folder.
-pub const DATABASE_FILE: &str = "registry.sqlite";
+pub(crate) const DATABASE_FILE: &str = "registry.sqlite";
 
 /// The kinds of artefact the registry stores.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -230,7 +230,7 @@ pub fn host_name() -> String {
 
 /// Whether process `pid` is alive on this machine (Linux `/proc`; on other
 /// systems every process is assumed alive).
-pub fn process_alive(pid: u32) -> bool {
+pub(crate) fn process_alive(pid: u32) -> bool {
     if !Path::new("/proc/self").exists() {
         return true;
     }

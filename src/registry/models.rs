@@ -16,7 +16,7 @@ use crate::error::input_error;
 use crate::types::DetectorKind;
 
 /// The blob role that holds a model's bytes.
-pub const MODEL_BLOB: BlobRole = BlobRole::Model;
+pub(crate) const MODEL_BLOB: BlobRole = BlobRole::Model;
 
 /// Shortest prefix accepted for a run id or a content key.
 const MIN_PREFIX: usize = 4;

@@ -27,7 +27,11 @@ pub struct EvaluationRow {
 }
 
 /// Runs `sql` with `args` and collects every row.
-pub fn query(conn: &Connection, sql: &str, args: &[&dyn rusqlite::ToSql]) -> anyhow::Result<Table> {
+pub(crate) fn query(
+    conn: &Connection,
+    sql: &str,
+    args: &[&dyn rusqlite::ToSql],
+) -> anyhow::Result<Table> {
     let mut statement = conn.prepare(sql)?;
     let columns: Vec<String> = statement
         .column_names()
@@ -47,16 +51,16 @@ pub fn query(conn: &Connection, sql: &str, args: &[&dyn rusqlite::ToSql]) -> any
     Ok(Table { columns, rows })
 }
 
-pub use super::sql_guard::read_only_sql;
+pub(crate) use super::sql_guard::read_only_sql;
 
 /// The longest run id, content key or model reference (`RUN:DETECTOR`)
 /// looked up, in characters: far beyond any real one (a key has 64), and
 /// short enough that no lookup or message grows with what was typed.
-pub const MAX_ID_CHARS: usize = 256;
+pub(crate) const MAX_ID_CHARS: usize = 256;
 
 /// Refuses (exit code 2, one short line) an id longer than
 /// [`MAX_ID_CHARS`], before it reaches a query or a message.
-pub fn check_id_length(id: &str) -> anyhow::Result<()> {
+pub(crate) fn check_id_length(id: &str) -> anyhow::Result<()> {
     let length = id.chars().count();
     if length > MAX_ID_CHARS {
         let start: String = id.chars().take(16).collect();
@@ -69,7 +73,7 @@ pub fn check_id_length(id: &str) -> anyhow::Result<()> {
 
 /// The `LIKE … ESCAPE '\'` pattern of the strings starting with `prefix`,
 /// taken literally (its `%`, `_` and `\` escaped).
-pub fn like_prefix(prefix: &str) -> String {
+pub(crate) fn like_prefix(prefix: &str) -> String {
     let mut pattern = String::with_capacity(prefix.len() + 1);
     for c in prefix.chars() {
         if matches!(c, '%' | '_' | '\\') {

@@ -30,17 +30,17 @@ use super::table::Table;
 use crate::error::input_error;
 
 /// Longest a `registry sql` statement may run.
-pub const SQL_TIME_LIMIT: Duration = Duration::from_secs(10);
+pub(crate) const SQL_TIME_LIMIT: Duration = Duration::from_secs(10);
 /// Most rows a `registry sql` statement may return.
-pub const SQL_MAX_ROWS: usize = 1_000_000;
+pub(crate) const SQL_MAX_ROWS: usize = 1_000_000;
 /// Most bytes of text one cell of a `registry sql` result may hold (a
 /// blob is shown by its size, whatever it holds).
-pub const SQL_MAX_CELL_BYTES: usize = 1 << 20;
+pub(crate) const SQL_MAX_CELL_BYTES: usize = 1 << 20;
 /// Most bytes of text a whole `registry sql` result may hold, counted
 /// cell by cell as the rows are collected (numbers count 8).
-pub const SQL_MAX_RESULT_BYTES: usize = 64 << 20;
+pub(crate) const SQL_MAX_RESULT_BYTES: usize = 64 << 20;
 /// Most memory SQLite may hold while running a `registry sql` statement.
-pub const SQL_HEAP_LIMIT_BYTES: i64 = 512 << 20;
+pub(crate) const SQL_HEAP_LIMIT_BYTES: i64 = 512 << 20;
 
 /// PRAGMAs that only describe the database, with or without an argument
 /// (a table or index name).
@@ -79,7 +79,7 @@ const SETTING_PRAGMAS: &[&str] = &[
 ];
 
 /// SQLite's value as JSON (blobs as their size: they are not text).
-pub fn json_value(value: ValueRef<'_>) -> Value {
+pub(crate) fn json_value(value: ValueRef<'_>) -> Value {
     match value {
         ValueRef::Null => Value::Null,
         ValueRef::Integer(i) => json!(i),
@@ -132,7 +132,7 @@ fn refusal(action: &AuthAction<'_>) -> Option<String> {
 /// registry in `dir`. Bad SQL, any attempt to write or to reach beyond the
 /// registry, and a statement over the time, memory or row limits are bad
 /// input (exit code 2) with a one-line message.
-pub fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
+pub(crate) fn read_only_sql(dir: &Path, sql: &str) -> anyhow::Result<Table> {
     let path = dir.join(DATABASE_FILE);
     if !path.is_file() {
         return Err(input_error(format!(

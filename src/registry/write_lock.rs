@@ -28,10 +28,10 @@ use serde::{Deserialize, Serialize};
 use super::{host_name, is_busy, process_alive};
 
 /// The file naming the current writer, beside the database.
-pub const HOLDER_FILE: &str = "registry.sqlite-writer";
+pub(crate) const HOLDER_FILE: &str = "registry.sqlite-writer";
 
 /// The file [`BlobLock`] locks, beside the database.
-pub const BLOB_LOCK_FILE: &str = "registry.sqlite-blob-lock";
+pub(crate) const BLOB_LOCK_FILE: &str = "registry.sqlite-blob-lock";
 
 /// How often a waiting writer tries for the lock again.
 const POLL: Duration = Duration::from_millis(100);
@@ -58,14 +58,14 @@ impl Holder {
 
 /// The holder recorded in registry folder `dir`, if its file is there and
 /// readable.
-pub fn recorded_holder(dir: &Path) -> Option<Holder> {
+pub(crate) fn recorded_holder(dir: &Path) -> Option<Holder> {
     let text = std::fs::read_to_string(dir.join(HOLDER_FILE)).ok()?;
     serde_json::from_str(&text).ok()
 }
 
 /// The line a writer prints when it has to wait for `holder`'s lock
 /// (`None`: no live scanloc process is recorded).
-pub fn waiting_message(holder: Option<&Holder>) -> String {
+pub(crate) fn waiting_message(holder: Option<&Holder>) -> String {
     match holder {
         Some(Holder {
             run: Some(run),
@@ -193,7 +193,7 @@ impl Drop for WriteTransaction<'_> {
 /// Who holds a [`BlobLock`]: copies into the registry share it, `gc`
 /// holds it alone.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BlobLockUse {
+pub(crate) enum BlobLockUse {
     /// An import, export or seeding copy: writes blobs before recording them.
     Copy,
     /// `registry gc`: deletes blobs no row records.
@@ -203,14 +203,18 @@ pub enum BlobLockUse {
 /// The lock that keeps `registry gc` from deleting the blobs a copy into
 /// the registry is writing (see the module docs); released when dropped.
 #[derive(Debug)]
-pub struct BlobLock {
+pub(crate) struct BlobLock {
     _file: std::fs::File,
 }
 
 impl BlobLock {
     /// Takes the lock of registry folder `dir` for `purpose`, waiting at
     /// most `timeout` and saying once on standard error what it waits for.
-    pub fn take(dir: &Path, purpose: BlobLockUse, timeout: Duration) -> anyhow::Result<Self> {
+    pub(crate) fn take(
+        dir: &Path,
+        purpose: BlobLockUse,
+        timeout: Duration,
+    ) -> anyhow::Result<Self> {
         let path = dir.join(BLOB_LOCK_FILE);
         let file = std::fs::OpenOptions::new()
             .read(true)

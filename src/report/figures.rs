@@ -21,10 +21,10 @@ use plotters::prelude::*;
 use crate::error::input_error;
 
 /// Roboto Regular (Google, Apache License 2.0; `assets/fonts/README.md`).
-pub const EMBEDDED_FONT: &[u8] = include_bytes!("../../assets/fonts/Roboto-Regular.ttf");
+pub(crate) const EMBEDDED_FONT: &[u8] = include_bytes!("../../assets/fonts/Roboto-Regular.ttf");
 
 /// The environment variable naming a TrueType font file to draw text with.
-pub const FONT_VARIABLE: &str = crate::env_vars::SCANLOC_FONT;
+pub(crate) const FONT_VARIABLE: &str = crate::env_vars::SCANLOC_FONT;
 
 /// Registers the font figures are drawn with, as plotters' `sans-serif`:
 /// the file `requested` (the value of `SCANLOC_FONT`) if it is a readable
@@ -60,7 +60,7 @@ fn register_figure_font(requested: Option<&Path>) -> Result<Option<String>, Stri
 
 /// Largest font file `SCANLOC_FONT` may name: TrueType fonts with every
 /// CJK glyph are about 20 MB.
-pub const MAX_FONT_BYTES: u64 = 64 << 20;
+pub(crate) const MAX_FONT_BYTES: u64 = 64 << 20;
 
 /// The bytes of the font file `path`, if it is a regular file (after
 /// symbolic links) of at most [`MAX_FONT_BYTES`]; else why not. A FIFO, a
@@ -334,7 +334,7 @@ fn draw_frame_panels<DB: DrawingBackend>(
 /// lines, the estimated tracks as thin lines, one colour per track; where
 /// a track is in the shown frame, a circle (truth) or a cross (estimate).
 #[derive(Debug, Clone)]
-pub struct TrackPanel {
+pub(crate) struct TrackPanel {
     pub title: String,
     pub height: usize,
     pub width: usize,
@@ -348,7 +348,7 @@ pub struct TrackPanel {
 }
 
 /// Draws track panels side by side, as `base.png`/`base.svg`.
-pub fn track_panels(base: &Path, panels: &[TrackPanel]) -> anyhow::Result<()> {
+pub(crate) fn track_panels(base: &Path, panels: &[TrackPanel]) -> anyhow::Result<()> {
     let columns = panels.len().max(1) as u32;
     write_figure(
         base,
@@ -421,7 +421,7 @@ fn draw_track_panels<DB: DrawingBackend>(
 /// same true value do not hide each other; what lies above the y range is
 /// left out (intervals are cut at its top).
 #[derive(Debug, Clone)]
-pub struct EstimateChart {
+pub(crate) struct EstimateChart {
     pub title: String,
     pub x_label: String,
     pub y_label: String,
@@ -434,14 +434,14 @@ pub struct EstimateChart {
 /// One estimator's estimates: (true value, estimate, low, high) and,
 /// lighter, single estimates as (true value, estimate).
 #[derive(Debug, Clone)]
-pub struct EstimateSeries {
+pub(crate) struct EstimateSeries {
     pub label: String,
     pub points: Vec<(f64, f64, f64, f64)>,
     pub scatter: Vec<(f64, f64)>,
 }
 
 /// Draws `chart` as `base.png`/`base.svg`.
-pub fn estimate_chart(base: &Path, chart: &EstimateChart) -> anyhow::Result<()> {
+pub(crate) fn estimate_chart(base: &Path, chart: &EstimateChart) -> anyhow::Result<()> {
     write_figure(
         base,
         (640, 520),
@@ -605,7 +605,7 @@ fn draw_line_chart<DB: DrawingBackend>(
 /// settings differ by orders of magnitude in speed and in error; values
 /// must be positive (others are left out).
 #[derive(Debug, Clone)]
-pub struct TradeoffChart {
+pub(crate) struct TradeoffChart {
     pub title: String,
     pub x_label: String,
     pub y_label: String,
@@ -621,7 +621,7 @@ pub struct TradeoffChart {
 }
 
 /// Draws `chart` as `base.png`/`base.svg`.
-pub fn tradeoff_chart(base: &Path, chart: &TradeoffChart) -> anyhow::Result<()> {
+pub(crate) fn tradeoff_chart(base: &Path, chart: &TradeoffChart) -> anyhow::Result<()> {
     write_figure(
         base,
         (720, 520),

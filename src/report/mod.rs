@@ -2,6 +2,6 @@
 //! figures (PNG and SVG).
 
 pub mod figures;
-pub mod recorded;
-pub mod run_report;
-pub mod summary;
+pub(crate) mod recorded;
+pub(crate) mod run_report;
+pub(crate) mod summary;

@@ -11,7 +11,7 @@ use crate::sim::SimParams;
 /// The parts of a recorded resolved manifest that readers use (the rest
 /// of the document is ignored).
 #[derive(Debug, Clone, Deserialize)]
-pub struct RecordedManifest {
+pub(crate) struct RecordedManifest {
     pub name: String,
     /// The master seed.
     pub seed: u64,
@@ -24,16 +24,15 @@ pub struct RecordedManifest {
 
 /// A dataset as the run resolved it.
 #[derive(Debug, Clone, Deserialize)]
-pub struct RecordedDataset {
+pub(crate) struct RecordedDataset {
     pub name: String,
-    pub frames: usize,
     pub seed: u64,
     pub params: SimParams,
 }
 
 /// A detector as the run resolved it.
 #[derive(Debug, Clone, Deserialize)]
-pub struct RecordedDetector {
+pub(crate) struct RecordedDetector {
     pub name: String,
     pub spec: DetectorSpec,
 }
@@ -41,7 +40,7 @@ pub struct RecordedDetector {
 impl RecordedManifest {
     /// The resolved manifest `record` holds; an error names the run and
     /// the column if it does not have the expected shape.
-    pub fn of(record: &RunRecord) -> anyhow::Result<Self> {
+    pub(crate) fn of(record: &RunRecord) -> anyhow::Result<Self> {
         RecordedManifest::deserialize(&record.resolved).with_context(|| {
             format!(
                 "run {}: column runs.resolved is not a resolved manifest this scanloc reads",
@@ -50,11 +49,11 @@ impl RecordedManifest {
         })
     }
 
-    pub fn dataset(&self, name: &str) -> Option<&RecordedDataset> {
+    pub(crate) fn dataset(&self, name: &str) -> Option<&RecordedDataset> {
         self.datasets.iter().find(|d| d.name == name)
     }
 
-    pub fn detector(&self, name: &str) -> Option<&RecordedDetector> {
+    pub(crate) fn detector(&self, name: &str) -> Option<&RecordedDetector> {
         self.detectors.iter().find(|d| d.name == name)
     }
 }

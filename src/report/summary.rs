@@ -13,7 +13,7 @@ use crate::run::{TrackingRow, recorded_tracking, table};
 
 /// `record` as text, for people (programs read the record as JSON); its
 /// tracking tables are rebuilt from the evaluations in `registry`.
-pub fn run_summary(registry: &Registry, record: &RunRecord) -> String {
+pub(crate) fn run_summary(registry: &Registry, record: &RunRecord) -> String {
     let tracking =
         recorded_tracking(registry, record).map(|found| found.into_iter().map(|t| t.row).collect());
     let mut out = String::new();
@@ -23,7 +23,7 @@ pub fn run_summary(registry: &Registry, record: &RunRecord) -> String {
 
 /// `record` as JSON, for programs: the record with a `tracking` key, the
 /// rows of its tracking tables as `scanloc run --json` gives them.
-pub fn run_summary_json(
+pub(crate) fn run_summary_json(
     registry: &Registry,
     record: &RunRecord,
 ) -> anyhow::Result<serde_json::Value> {

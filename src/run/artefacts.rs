@@ -41,7 +41,7 @@ pub struct RecordingData {
 }
 
 /// Version of the blob encodings below.
-pub const FORMAT_VERSION: &str = "scanloc-blobs/1";
+pub(crate) const FORMAT_VERSION: &str = "scanloc-blobs/1";
 
 /// An artefact in memory.
 #[derive(Debug, Clone)]
@@ -171,7 +171,7 @@ fn decode_frames(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<FrameStack> {
 }
 
 /// Decodes a dataset from its `frames.npy` and `truth.csv` blobs.
-pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> {
+pub(crate) fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> {
     let frames = decode_frames(blobs)?;
     let truth =
         csv_tables::read_truth_from(blob(blobs, BlobRole::Truth)?, BlobRole::Truth.as_str())?;
@@ -180,18 +180,18 @@ pub fn decode_dataset(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Dataset> 
 
 /// Whether a dataset's blobs hold a recording (its truth has a `qd`
 /// column) rather than per-frame frames.
-pub fn holds_recording(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+pub(crate) fn holds_recording(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
     header_has(blobs, BlobRole::Truth, "qd")
 }
 
 /// Whether a predictions artefact's blobs hold tracks (a `particle` column).
-pub fn holds_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+pub(crate) fn holds_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
     header_has(blobs, BlobRole::Predictions, "particle")
 }
 
 /// Whether an evaluation's `score.json` is a tracking evaluation (a
 /// top-level `tracking` object).
-pub fn holds_track_evaluation(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
+pub(crate) fn holds_track_evaluation(blobs: &[(BlobRole, Vec<u8>)]) -> bool {
     blob(blobs, BlobRole::Score).is_ok_and(|json| {
         serde_json::from_slice::<serde_json::Value>(json)
             .is_ok_and(|v| v.get("tracking").is_some_and(|t| t.is_object()))
@@ -208,7 +208,7 @@ fn header_has(blobs: &[(BlobRole, Vec<u8>)], role: BlobRole, column: &str) -> bo
 }
 
 /// Decodes a recording from its `frames.npy` and `truth.csv` blobs.
-pub fn decode_recording(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<RecordingData> {
+pub(crate) fn decode_recording(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<RecordingData> {
     let frames = decode_frames(blobs)?;
     let truth = crate::io::tracks::read_recording_truth_from(
         blob(blobs, BlobRole::Truth)?,
@@ -218,7 +218,7 @@ pub fn decode_recording(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Recordi
 }
 
 /// Decodes tracks from their `predictions.csv` blob.
-pub fn decode_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Track>> {
+pub(crate) fn decode_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Track>> {
     crate::io::tracks::read_tracks_from(
         blob(blobs, BlobRole::Predictions)?,
         BlobRole::Predictions.as_str(),
@@ -226,12 +226,14 @@ pub fn decode_tracks(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Track>
 }
 
 /// Decodes a tracking evaluation from its `score.json` blob.
-pub fn decode_track_evaluation(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<TrackEvaluation> {
+pub(crate) fn decode_track_evaluation(
+    blobs: &[(BlobRole, Vec<u8>)],
+) -> anyhow::Result<TrackEvaluation> {
     serde_json::from_slice(blob(blobs, BlobRole::Score)?).context("decoding score.json")
 }
 
 /// Decodes predictions from their `predictions.csv` blob.
-pub fn decode_predictions(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Prediction>> {
+pub(crate) fn decode_predictions(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<Prediction>> {
     csv_tables::read_predictions_from(
         blob(blobs, BlobRole::Predictions)?,
         BlobRole::Predictions.as_str(),
@@ -239,7 +241,7 @@ pub fn decode_predictions(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Vec<P
 }
 
 /// Decodes an evaluation from its `score.json` blob.
-pub fn decode_score(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Score> {
+pub(crate) fn decode_score(blobs: &[(BlobRole, Vec<u8>)]) -> anyhow::Result<Score> {
     serde_json::from_slice(blob(blobs, BlobRole::Score)?).context("decoding score.json")
 }
 

@@ -16,7 +16,7 @@ use crate::registry::AucRow;
 
 /// One grid point of the sweep.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct CalibrationPoint {
+pub(crate) struct CalibrationPoint {
     pub brightness: f64,
     /// The recorded run of this point.
     pub run: String,
@@ -31,7 +31,7 @@ pub struct CalibrationPoint {
 
 /// The sweep's result: every point and the best one.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Calibration {
+pub(crate) struct Calibration {
     pub detector: String,
     pub points: Vec<CalibrationPoint>,
     pub best_brightness: f64,
@@ -40,7 +40,7 @@ pub struct Calibration {
 /// The manifest with only `detector`'s evaluations, every dataset at
 /// `brightness` (a brightness the manifest gives as a distribution is
 /// replaced too: a grid point is one N_qd for every frame).
-pub fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
+pub(crate) fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manifest {
     let mut point = manifest.clone();
     point.microscope.brightness = brightness.into();
     for dataset in &mut point.datasets {
@@ -55,7 +55,7 @@ pub fn restricted(manifest: &Manifest, detector: &str, brightness: f64) -> Manif
 /// Checks a calibration's inputs: `detector` exists and has a reference
 /// row, and `grid` is a non-empty list of brightness values ≥ 0. Returns
 /// the reference row.
-pub fn reference_row<'a>(
+pub(crate) fn reference_row<'a>(
     manifest: &'a Manifest,
     detector: &str,
     grid: &[f64],
@@ -86,7 +86,7 @@ pub fn reference_row<'a>(
 }
 
 /// Scores one grid point (run `run`, AUC table `auc`) against `reference`.
-pub fn score_point(
+pub(crate) fn score_point(
     reference: &ReferenceRow,
     brightness: f64,
     run: String,
@@ -118,7 +118,7 @@ pub fn score_point(
 }
 
 /// The sweep's result from its points: the best is the smallest SSE.
-pub fn conclude(detector: &str, points: Vec<CalibrationPoint>) -> Calibration {
+pub(crate) fn conclude(detector: &str, points: Vec<CalibrationPoint>) -> Calibration {
     let best_brightness = points
         .iter()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))

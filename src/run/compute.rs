@@ -7,13 +7,15 @@ use std::sync::Arc;
 use anyhow::Context;
 
 use super::artefacts::Artefact;
-use super::plan::{Action, Plan, Step};
+use super::plan::{Action, PipelineSteps, Plan, Step};
 use super::stored::load_step_artefact;
 use crate::manifest::{
-    CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, MetricsSpec, RecordingSpec,
+    CnnSpec, DatasetSpec, DetectorEntry, DetectorSpec, LinkerEntry, MetricsSpec, RecordingSpec,
 };
 use crate::registry::Registry;
-use crate::track::pipeline::BiasCorrection;
+use crate::track::pipeline::{
+    BiasCorrection, BiasSetup, CorrectedEnsemble, TrackEvaluation, TrackScoring,
+};
 
 /// Artefacts held in memory for the steps still to come, each dropped after
 /// the last step that reads it.
@@ -115,16 +117,7 @@ pub(super) fn compute(
         } => {
             let spec = recording_spec(plan, *recording)?;
             let predictions = read_input(*predictions)?;
-            let progress = crate::progress::heartbeat(&step.name());
-            let tracks = crate::track::pipeline::link_predictions(
-                predictions.predictions()?,
-                *min_score,
-                &linker.spec,
-                &spec.geometry(),
-            )
-            .with_context(|| format!("linking {}", step.name()))?;
-            progress.finish_and_clear();
-            Ok(Artefact::Tracks(Arc::new(tracks)))
+            link(step, spec, &predictions, *min_score, linker)
         }
         Action::ScoreTracks {
             recording,
@@ -136,61 +129,111 @@ pub(super) fn compute(
             let spec = recording_spec(plan, *recording)?;
             let data = read_input(*recording)?;
             let tracks = read_input(*tracks)?;
-            let progress = crate::progress::heartbeat(&step.name());
-            let mut evaluation = crate::track::pipeline::evaluate(
-                &data.recording()?.truth,
-                tracks.tracks()?,
-                &spec.geometry(),
-                scoring,
-                spec.diffusion(),
-                &progress,
-            )
-            .with_context(|| format!("scoring {}", step.name()))?;
-            progress.finish_and_clear();
+            let mut evaluation = score_tracks(step, spec, &data, &tracks, scoring)?;
             if let (BiasCorrection::Simulated { recordings }, Some(bias)) =
                 (scoring.bias_correction, bias)
             {
-                let predictions = read_input(bias.predictions)?;
-                let model = bias.model.map(&mut read_input).transpose()?;
-                let min_score = bias.min_score;
-                let kept = predictions
-                    .predictions()?
-                    .iter()
-                    .filter(|p| crate::track::pipeline::scores_at_least(p, min_score))
-                    .count();
-                let setup = crate::track::pipeline::BiasSetup {
+                let setup = BiasSetup {
                     recording: &spec.params,
                     seed: step
                         .seed
                         .context("a bias correction draws from the step's seed")?,
                     recordings,
-                    min_score,
+                    min_score: bias.min_score,
                     linker: &bias.linker.spec,
                     scoring,
                 };
-                let model = model.as_ref();
-                let microscope = &spec.params.microscope;
-                let mut localise = |label: &str, frames: &crate::types::FrameStack| {
-                    locate_frames(label, &bias.detector, frames, model, Some(microscope))
-                };
-                evaluation.corrected_ensemble = match evaluation
-                    .estimator(crate::track::diffusion::Method::Ml)
-                    .and_then(|e| e.ensemble)
-                {
-                    Some(recorded) => crate::track::pipeline::correct_ensemble(
-                        &step.name(),
-                        &setup,
-                        &recorded,
-                        kept,
-                        evaluation.true_diffusion_um2_s,
-                        &mut localise,
-                    ),
-                    None => Ok(None),
-                }
-                .with_context(|| format!("correcting the bias of {}", step.name()))?;
+                evaluation.corrected_ensemble =
+                    correct_bias(step, &setup, bias, &evaluation, &mut read_input)
+                        .with_context(|| format!("correcting the bias of {}", step.name()))?;
             }
             Ok(Artefact::TrackEvaluation(Arc::new(evaluation)))
         }
+    }
+}
+
+/// Links `predictions` (those scoring at least `min_score`) on the
+/// recording `spec` into tracks with `linker`.
+fn link(
+    step: &Step,
+    spec: &RecordingSpec,
+    predictions: &Artefact,
+    min_score: Option<f64>,
+    linker: &LinkerEntry,
+) -> anyhow::Result<Artefact> {
+    let progress = crate::progress::heartbeat(&step.name());
+    let tracks = crate::track::pipeline::link_predictions(
+        predictions.predictions()?,
+        min_score,
+        &linker.spec,
+        &spec.geometry(),
+    )
+    .with_context(|| format!("linking {}", step.name()))?;
+    progress.finish_and_clear();
+    Ok(Artefact::Tracks(Arc::new(tracks)))
+}
+
+/// Scores `tracks` against the truth of the recording `data` (made from
+/// `spec`): the tracking measures and the estimates of D.
+fn score_tracks(
+    step: &Step,
+    spec: &RecordingSpec,
+    data: &Artefact,
+    tracks: &Artefact,
+    scoring: &TrackScoring,
+) -> anyhow::Result<TrackEvaluation> {
+    let progress = crate::progress::heartbeat(&step.name());
+    let evaluation = crate::track::pipeline::evaluate(
+        &data.recording()?.truth,
+        tracks.tracks()?,
+        &spec.geometry(),
+        scoring,
+        spec.diffusion(),
+        &progress,
+    )
+    .with_context(|| format!("scoring {}", step.name()))?;
+    progress.finish_and_clear();
+    Ok(evaluation)
+}
+
+/// The ML ensemble's estimate of D corrected for the pipeline's bias by
+/// simulating recordings like this one and putting them through the same
+/// localiser and linker (`bias`); `None` when the evaluation has no ML
+/// ensemble to correct.
+fn correct_bias(
+    step: &Step,
+    setup: &BiasSetup,
+    bias: &PipelineSteps,
+    evaluation: &TrackEvaluation,
+    read_input: &mut dyn FnMut(usize) -> anyhow::Result<Artefact>,
+) -> anyhow::Result<Option<CorrectedEnsemble>> {
+    let predictions = read_input(bias.predictions)?;
+    let model = bias.model.map(&mut *read_input).transpose()?;
+    // The simulated recordings are made to have as many localisations as
+    // the pipeline kept on the real one.
+    let kept = predictions
+        .predictions()?
+        .iter()
+        .filter(|p| crate::track::pipeline::scores_at_least(p, setup.min_score))
+        .count();
+    let model = model.as_ref();
+    let microscope = &setup.recording.microscope;
+    let mut localise = |label: &str, frames: &crate::types::FrameStack| {
+        locate_frames(label, &bias.detector, frames, model, Some(microscope))
+    };
+    match evaluation
+        .estimator(crate::track::diffusion::Method::Ml)
+        .and_then(|e| e.ensemble)
+    {
+        Some(recorded) => crate::track::pipeline::correct_ensemble(
+            &step.name(),
+            setup,
+            &recorded,
+            kept,
+            evaluation.true_diffusion_um2_s,
+            &mut localise,
+        ),
+        None => Ok(None),
     }
 }
 

@@ -27,7 +27,7 @@ use crate::types::derive_seed;
 
 /// Mean and spread of one (dataset, ε) cell over the folds.
 #[derive(Debug, Clone, Serialize)]
-pub struct CvCell {
+pub(crate) struct CvCell {
     pub dataset: String,
     pub diffusion: Option<f64>,
     pub eps_px: f64,
@@ -44,7 +44,7 @@ pub struct CvCell {
 
 /// Mean and spread over the folds of the best-guess-per-frame AUC.
 #[derive(Debug, Clone, Serialize)]
-pub struct BestGuessCell {
+pub(crate) struct BestGuessCell {
     pub mean: f64,
     /// As [`CvCell::std`].
     pub std: Option<f64>,
@@ -63,7 +63,7 @@ fn mean_and_std(values: &[f64]) -> (f64, Option<f64>) {
 
 /// The outcome of a cross-validation run.
 #[derive(Debug, Clone, Serialize)]
-pub struct CrossValidationOutcome {
+pub(crate) struct CrossValidationOutcome {
     pub detector: String,
     pub folds: usize,
     pub run: RunOutcome,
@@ -72,7 +72,7 @@ pub struct CrossValidationOutcome {
 
 /// The frames of each fold: a seeded permutation of `0..frames` cut into
 /// `folds` nearly equal parts (each sorted).
-pub fn fold_frames(frames: usize, folds: usize, seed: u64) -> Vec<Vec<usize>> {
+pub(crate) fn fold_frames(frames: usize, folds: usize, seed: u64) -> Vec<Vec<usize>> {
     let mut order: Vec<usize> = (0..frames).collect();
     order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
     (0..folds)
@@ -111,7 +111,7 @@ fn folds_run(cv: &CrossValidationPlan) -> Vec<usize> {
 /// With `cv.fold` just that fold's steps run: the same artefacts, under the
 /// same keys, as in the whole sweep, so with `force` one fold of a recorded
 /// sweep is recomputed and checked against the stored results.
-pub fn cross_validate(
+pub(crate) fn cross_validate(
     registry: &mut Registry,
     manifest: &Manifest,
     cv: &CrossValidationPlan,
@@ -279,7 +279,11 @@ const HELD_OUT_LABEL: &str = "held-out fold";
 /// (dataset, ε), the AUCs of the fold models with their mean and sample
 /// standard deviation. Each fold's own held-out subset is one column,
 /// "held-out fold"; every other dataset (whatever its name) is its own.
-pub fn summarise(auc: &[AucRow], cv: &CrossValidationPlan, training_set: &str) -> Vec<CvCell> {
+pub(crate) fn summarise(
+    auc: &[AucRow],
+    cv: &CrossValidationPlan,
+    training_set: &str,
+) -> Vec<CvCell> {
     let folds = folds_run(cv);
     // The fold whose model scored `row`, and the column the row belongs in.
     let place = |row: &AucRow| -> Option<(usize, String)> {
@@ -349,13 +353,13 @@ pub fn summarise(auc: &[AucRow], cv: &CrossValidationPlan, training_set: &str) -
 
 /// A standard deviation for a table: three decimals, `—` when there is
 /// none (a single fold).
-pub fn format_std(std: Option<f64>) -> String {
+pub(crate) fn format_std(std: Option<f64>) -> String {
     std.map_or("—".to_string(), |std| format!("{std:.3}"))
 }
 
 /// The cross-validation table as text: one line per dataset, `mean ± std`
 /// per ε.
-pub fn render(outcome: &CrossValidationOutcome) -> String {
+pub(crate) fn render(outcome: &CrossValidationOutcome) -> String {
     let mut out = format!(
         "{}-fold cross-validation of {} (run {}): AUC mean ± standard deviation over folds\n",
         outcome.folds, outcome.detector, outcome.run.run

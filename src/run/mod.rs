@@ -13,19 +13,19 @@
 //! process dies stays `running` until the next run on the same host marks
 //! it `unfinished`.
 
-pub mod artefacts;
-pub mod calibrate;
+pub(crate) mod artefacts;
+pub(crate) mod calibrate;
 mod compute;
 pub mod cross_validation;
 mod descriptions;
 mod details;
 mod execution;
-pub mod plan;
-pub mod reproduce;
+pub(crate) mod plan;
+pub(crate) mod reproduce;
 mod rows;
 mod stored;
-pub mod table;
-pub mod test_sets;
+pub(crate) mod table;
+pub(crate) mod test_sets;
 pub mod track_recording;
 
 use std::time::Instant;
@@ -88,7 +88,7 @@ pub struct RunOutcome {
 
 /// A new run id: UTC start time plus 8 hex digits that differ between
 /// runs started in the same second (hash of time, process and host).
-pub fn new_run_id() -> String {
+pub(crate) fn new_run_id() -> String {
     let now = utc_now();
     let nanos = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -107,7 +107,7 @@ pub fn new_run_id() -> String {
 }
 
 /// Runs `manifest` (its [`Plan::from_manifest`]) on `registry` and records it.
-pub fn run_manifest(
+pub(crate) fn run_manifest(
     registry: &mut Registry,
     manifest: &Manifest,
     options: &RunOptions,

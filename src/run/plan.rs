@@ -39,11 +39,11 @@ use crate::track::pipeline::{
 use crate::types::derive_seed;
 
 /// Version of the frame-subset step (cross-validation folds).
-pub const SUBSET_VERSION: &str = "scanloc-subset/1";
+pub(crate) const SUBSET_VERSION: &str = "scanloc-subset/1";
 
 /// Version of the scoring step (the metric of `docs/metric.md` and its
 /// `score.json`).
-pub const METRIC_VERSION: &str = "scanloc-metric/5";
+pub(crate) const METRIC_VERSION: &str = "scanloc-metric/5";
 
 /// What a step does.
 #[derive(Debug, Clone)]

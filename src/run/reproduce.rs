@@ -26,7 +26,7 @@ use crate::registry::{
 
 /// One blob of one artefact, three ways.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct BlobComparison {
+pub(crate) struct BlobComparison {
     pub role: BlobRole,
     pub recorded: Option<String>,
     /// `intact`, `missing`, or `damaged (hashes to …)`; `-` if not recorded.
@@ -39,7 +39,7 @@ pub struct BlobComparison {
 /// `intact`, `missing`, `damaged (hashes to …)`, or `-` for a blob the
 /// run did not record.
 #[derive(Debug, Clone, PartialEq)]
-pub enum StoredBlob {
+pub(crate) enum StoredBlob {
     NotRecorded,
     Checked(BlobState),
 }
@@ -65,7 +65,7 @@ impl Serialize for StoredBlob {
 
 /// One artefact of the run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct ArtefactComparison {
+pub(crate) struct ArtefactComparison {
     pub step: StepId,
     pub recorded_key: Option<String>,
     pub reproduced_key: Option<String>,
@@ -77,7 +77,7 @@ pub struct ArtefactComparison {
 
 /// One AUC cell.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct NumberComparison {
+pub(crate) struct NumberComparison {
     pub detector: String,
     pub dataset: String,
     pub eps_px: f64,
@@ -88,7 +88,7 @@ pub struct NumberComparison {
 
 /// Everything `reproduce` found.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct ReproduceReport {
+pub(crate) struct ReproduceReport {
     pub run: String,
     /// The run recorded in the main registry for this reproduction.
     pub reproduction_run: String,
@@ -102,7 +102,7 @@ pub struct ReproduceReport {
 
 impl ReproduceReport {
     /// A human-readable summary.
-    pub fn render(&self) -> String {
+    pub(crate) fn render(&self) -> String {
         let mut out = format!(
             "reproduce {}: {}\n",
             self.run,
@@ -199,7 +199,7 @@ fn differing_numbers(a: &[u8], b: &[u8], limit: usize) -> Vec<String> {
 /// folder that must not hold a registry yet) and compares. Records the
 /// reproduction as a run of kind `reproduce` in `registry`. Returns the
 /// report; the caller decides the exit code from `identical`.
-pub fn reproduce(
+pub(crate) fn reproduce(
     registry: &mut Registry,
     run_id: &str,
     scratch: &Path,
@@ -530,7 +530,9 @@ fn recorded_plan(record: &RunRecord, manifest: &manifest::Manifest) -> anyhow::R
 
 /// A scratch folder for a reproduction: `dir` if given, else a new
 /// temporary folder (removed when the returned guard drops, unless kept).
-pub fn scratch_dir(dir: Option<&Path>) -> anyhow::Result<(PathBuf, Option<tempfile::TempDir>)> {
+pub(crate) fn scratch_dir(
+    dir: Option<&Path>,
+) -> anyhow::Result<(PathBuf, Option<tempfile::TempDir>)> {
     match dir {
         Some(dir) => Ok((dir.to_path_buf(), None)),
         None => {

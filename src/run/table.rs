@@ -20,14 +20,14 @@ use crate::registry::AucRow;
 const BEST_GUESS: &str = ", best guess";
 
 /// The widest a printed table may be, in characters (a terminal's 120).
-pub const MAX_TABLE_CHARS: usize = 120;
+pub(crate) const MAX_TABLE_CHARS: usize = 120;
 
 /// The most columns of figures a table (or one block of it) may hold.
-pub const MAX_FIGURE_COLUMNS: usize = 12;
+pub(crate) const MAX_FIGURE_COLUMNS: usize = 12;
 
 /// A scored set's name split into the test set and, for an evaluation of
 /// its first N frames (`DATASET+firstN`), N.
-pub fn frames_scored(dataset: &str) -> (&str, Option<usize>) {
+pub(crate) fn frames_scored(dataset: &str) -> (&str, Option<usize>) {
     match dataset.rsplit_once("+first") {
         Some((base, n)) if !base.is_empty() => match n.parse() {
             Ok(n) => (base, Some(n)),
@@ -39,13 +39,13 @@ pub fn frames_scored(dataset: &str) -> (&str, Option<usize>) {
 
 /// `items` in order, cut into consecutive blocks of at most `per_block`
 /// (at least one each).
-pub fn blocks<T>(items: &[T], per_block: usize) -> std::slice::Chunks<'_, T> {
+pub(crate) fn blocks<T>(items: &[T], per_block: usize) -> std::slice::Chunks<'_, T> {
     items.chunks(per_block.max(1))
 }
 
 /// The test sets of one block of columns: at most [`MAX_FIGURE_COLUMNS`]
 /// figures, `eps` of them per set.
-pub fn sets_per_block(eps: usize) -> usize {
+pub(crate) fn sets_per_block(eps: usize) -> usize {
     (MAX_FIGURE_COLUMNS / eps.max(1)).max(1)
 }
 
@@ -54,7 +54,7 @@ pub fn sets_per_block(eps: usize) -> usize {
 /// rows has a best-guess AUC that differs from the whole lists'. The
 /// whole test sets come first; each first-N-frames subset follows in a
 /// table of its own.
-pub fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
+pub(crate) fn render(rows: &[AucRow], reference: Option<&Reference>) -> String {
     if rows.is_empty() {
         return "no AUC: the manifest scores no detector on a dataset with ground truth\n"
             .to_string();
@@ -276,7 +276,7 @@ fn render_group(rows: &[&AucRow], reference: Option<&Reference>) -> String {
 
 /// Renders the false localisations per empty frame of `rows` (one line
 /// per evaluation, in their order), under a heading; nothing without rows.
-pub fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
+pub(crate) fn render_empty_frames(rows: &[EmptyFramesRow]) -> String {
     if rows.is_empty() {
         return String::new();
     }
@@ -371,7 +371,7 @@ fn ratio(value: Option<f64>) -> String {
 /// A titled table of cells, as [`tracking_tables`] gives them: printed as
 /// text by [`render_tracking`] and as Markdown by the report.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CellTable<const N: usize> {
+pub(crate) struct CellTable<const N: usize> {
     pub title: String,
     pub headers: [&'static str; N],
     pub cells: Vec<[String; N]>,
@@ -380,7 +380,7 @@ pub struct CellTable<const N: usize> {
 /// The tracking pipelines' figures (docs/tracking.md, "The tracking
 /// experiment"): one table of the tracking measures and one of D per
 /// estimator; none without rows.
-pub fn tracking_tables(rows: &[TrackingRow]) -> Vec<CellTable<10>> {
+pub(crate) fn tracking_tables(rows: &[TrackingRow]) -> Vec<CellTable<10>> {
     if rows.is_empty() {
         return Vec::new();
     }
@@ -476,7 +476,7 @@ pub fn tracking_tables(rows: &[TrackingRow]) -> Vec<CellTable<10>> {
 }
 
 /// Renders the [`tracking_tables`] as text; nothing without rows.
-pub fn render_tracking(rows: &[TrackingRow]) -> String {
+pub(crate) fn render_tracking(rows: &[TrackingRow]) -> String {
     tracking_tables(rows)
         .iter()
         .map(|table| render_cells(&table.title, &table.headers, &table.cells))

@@ -18,7 +18,7 @@ use crate::types::derive_seed;
 
 /// The paper's FCNN row of Table 1 (AUC at ε = 1, 2, 3 px for D = 0.75,
 /// 1.0, 1.75 µm²/s).
-pub const PAPER_FCNN: [(f64, [f64; 3]); 3] = [
+pub(crate) const PAPER_FCNN: [(f64, [f64; 3]); 3] = [
     (0.75, [0.48, 0.91, 0.99]),
     (1.0, [0.41, 0.87, 0.98]),
     (1.75, [0.26, 0.72, 0.92]),
@@ -26,7 +26,7 @@ pub const PAPER_FCNN: [(f64, [f64; 3]); 3] = [
 
 /// AUCs of a model on one test set.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct TestRow {
+pub(crate) struct TestRow {
     pub diffusion: f64,
     pub frames: usize,
     /// Seed the test set was simulated with.
@@ -46,7 +46,7 @@ pub struct TestRow {
 /// `params`, fixed D; the set of D = d µm²/s with seed
 /// [`test_set_seed`]`(seed, d)`) of `frames` frames and scores `model` on
 /// each.
-pub fn auc_table(
+pub(crate) fn auc_table(
     model: &TrainedCnn,
     params: &SimParams,
     diffusions: &[f64],
@@ -88,12 +88,12 @@ pub fn auc_table(
 
 /// The seed of [`auc_table`]'s test set of D = `diffusion` µm²/s:
 /// `derive_seed(seed, "dataset", "test-D{diffusion}")`.
-pub fn test_set_seed(seed: u64, diffusion: f64) -> u64 {
+pub(crate) fn test_set_seed(seed: u64, diffusion: f64) -> u64 {
     derive_seed(seed, "dataset", &format!("test-D{diffusion}"))
 }
 
 /// The table as text, with the paper's FCNN row beside each D it has.
-pub fn format_auc_table(rows: &[TestRow]) -> String {
+pub(crate) fn format_auc_table(rows: &[TestRow]) -> String {
     let mut out = String::from(
         "D (µm²/s)  frames   AUC ε=1   ε=2   ε=3   | paper FCNN ε=1  ε=2  ε=3 | RMSE top  none\n",
     );

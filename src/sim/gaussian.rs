@@ -58,9 +58,11 @@ fn tables() -> &'static Tables {
     })
 }
 
-/// A standard normal variate (mean 0, variance 1) from the ziggurat.
-#[inline]
-pub fn standard_normal<R: Rng + ?Sized>(rng: &mut R) -> f64 {
+/// A standard normal variate (mean 0, variance 1) from the ziggurat (the
+/// simulator draws through [`standard_normal_from_bits`]; this serves the
+/// tests).
+#[cfg(test)]
+pub(crate) fn standard_normal<R: Rng + ?Sized>(rng: &mut R) -> f64 {
     let bits = rng.next_u32();
     standard_normal_from_bits(bits, rng)
 }
@@ -70,7 +72,7 @@ pub fn standard_normal<R: Rng + ?Sized>(rng: &mut R) -> f64 {
 /// single draws). In the rare rejections (about 1.5 %) further bits come
 /// from `rng`.
 #[inline]
-pub fn standard_normal_from_bits<R: Rng + ?Sized>(bits: u32, rng: &mut R) -> f64 {
+pub(crate) fn standard_normal_from_bits<R: Rng + ?Sized>(bits: u32, rng: &mut R) -> f64 {
     let tables = tables();
     let layer = (bits & 0x7f) as usize;
     // Arithmetic shift: a signed 25-bit abscissa from the upper bits.

@@ -21,9 +21,9 @@
 //! be drawn keep their frames bit for bit. Frames are therefore identical
 //! whatever the thread count and however a dataset is split into calls.
 
-pub mod gaussian;
+pub(crate) mod gaussian;
 pub mod noise;
-pub mod params;
+pub(crate) mod params;
 pub mod recording;
 
 use std::ops::Range;
@@ -160,7 +160,7 @@ fn start_ranges_px(params: &SimParams) -> ((f64, f64), (f64, f64)) {
 /// value, when it is fixed); a model of frames of another N_qd scales
 /// [`ScanModel::sample_photons_with`] by the ratio (photons are proportional to
 /// N_qd).
-pub struct ScanModel {
+pub(crate) struct ScanModel {
     pre: Precomputed,
     /// PSF amplitude per sample at the model's N_qd.
     amplitude: f64,
@@ -170,7 +170,7 @@ pub struct ScanModel {
 
 impl ScanModel {
     /// The model of the microscope `params` (assumed valid).
-    pub fn new(params: &SimParams) -> Self {
+    pub(crate) fn new(params: &SimParams) -> Self {
         let pre = Precomputed::new(params, 0);
         Self {
             amplitude: pre.amplitude(params, params.brightness.bounds().1),
@@ -181,12 +181,12 @@ impl ScanModel {
     }
 
     /// The beam's x (µm) at every sample of a row.
-    pub fn beam_x_um(&self) -> &[f64] {
+    pub(crate) fn beam_x_um(&self) -> &[f64] {
         &self.pre.beam_x
     }
 
     /// The beam's y (µm) along row `row`.
-    pub fn beam_y_um(&self, row: usize) -> f64 {
+    pub(crate) fn beam_y_um(&self, row: usize) -> f64 {
         (row as f64 + 0.5) * self.pixel_size_um
     }
 
@@ -198,7 +198,13 @@ impl ScanModel {
     /// likelihood detector's inner loop), `amplitude · exp(exponent)` within
     /// the cut-off, exactly 0 beyond it, without a branch.
     #[inline(always)]
-    pub fn sample_photons_with(&self, dx: f64, dy: f64, z: f64, exp: impl Fn(f64) -> f64) -> f64 {
+    pub(crate) fn sample_photons_with(
+        &self,
+        dx: f64,
+        dy: f64,
+        z: f64,
+        exp: impl Fn(f64) -> f64,
+    ) -> f64 {
         let (r2, exponent) = self.pre.psf_terms(dx, dy, z);
         let photons = self.amplitude * exp(exponent);
         if r2 <= self.pre.cutoff2 { photons } else { 0.0 }
@@ -207,29 +213,29 @@ impl ScanModel {
     /// Standard deviations (µm per axis) of the Brownian step between two
     /// samples of a row and of the step across a retrace (from the last
     /// sample of a row to the first of the next), at `diffusion` µm²/s.
-    pub fn step_sds(&self, diffusion: f64) -> (f64, f64) {
+    pub(crate) fn step_sds(&self, diffusion: f64) -> (f64, f64) {
         self.pre.step_sds(diffusion)
     }
 
     /// The intervals (TrackPy pixels) a QD's start x and y are drawn
     /// uniformly from.
-    pub fn start_ranges_px(&self) -> ((f64, f64), (f64, f64)) {
+    pub(crate) fn start_ranges_px(&self) -> ((f64, f64), (f64, f64)) {
         self.start_ranges_px
     }
 
     /// A coordinate in TrackPy pixels as the simulator's µm.
-    pub fn px_to_um(&self, px: f64) -> f64 {
+    pub(crate) fn px_to_um(&self, px: f64) -> f64 {
         (px + 0.5) * self.pixel_size_um
     }
 
     /// A coordinate in the simulator's µm as TrackPy pixels.
-    pub fn um_to_px(&self, um: f64) -> f64 {
+    pub(crate) fn um_to_px(&self, um: f64) -> f64 {
         um / self.pixel_size_um - 0.5
     }
 }
 
 /// The random stream of frame `index` of a dataset with seed `seed`.
-pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
+pub(crate) fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(index as u64);
     rng

@@ -28,7 +28,7 @@ pub fn poisson<R: Rng + ?Sized>(rng: &mut R, mean: f64) -> u64 {
 /// One Poisson(mean) variate whose uniform was drawn beforehand (in bulk);
 /// means of 30 and more draw what they need from `rng` instead.
 #[inline]
-pub fn poisson_from_uniform<R: Rng + ?Sized>(uniform: f64, rng: &mut R, mean: f64) -> u64 {
+pub(crate) fn poisson_from_uniform<R: Rng + ?Sized>(uniform: f64, rng: &mut R, mean: f64) -> u64 {
     debug_assert!(mean.is_finite() && mean >= 0.0);
     if mean <= 0.0 {
         0
@@ -165,14 +165,14 @@ impl PoissonTable {
 /// Applies the detector model to a pixel's expected photons: a fixed
 /// background plus the pixel's own signal.
 #[derive(Debug, Clone)]
-pub struct Detector {
+pub(crate) struct Detector {
     background: PoissonTable,
     noise: DetectorNoise,
 }
 
 impl Detector {
     /// A detector for scenes with `background` expected photons per pixel.
-    pub fn new(noise: DetectorNoise, background: f64) -> Self {
+    pub(crate) fn new(noise: DetectorNoise, background: f64) -> Self {
         Self {
             background: PoissonTable::new(background),
             noise,
@@ -180,19 +180,13 @@ impl Detector {
     }
 
     /// The recorded count of a pixel with expected `signal` photons (finite,
-    /// ≥ 0) on top of the background. Photons are drawn as
-    /// Poisson(background) + Poisson(signal), i.e. Poisson(background +
-    /// signal); a pixel without signal costs one table look-up.
+    /// ≥ 0) on top of the background, the two uniforms of the Poisson stage
+    /// (the background's, the signal's) drawn beforehand in bulk. Photons
+    /// are drawn as Poisson(background) + Poisson(signal), i.e.
+    /// Poisson(background + signal); a pixel without signal costs one table
+    /// look-up.
     #[inline]
-    pub fn record<R: Rng + ?Sized>(&self, rng: &mut R, signal: f64) -> u64 {
-        let uniforms: [f64; 2] = [rng.random(), rng.random()];
-        self.record_from_uniforms(uniforms, rng, signal)
-    }
-
-    /// [`Detector::record`] with the two uniforms of the Poisson stage (the
-    /// background's, the signal's) drawn beforehand in bulk.
-    #[inline]
-    pub fn record_from_uniforms<R: Rng + ?Sized>(
+    pub(crate) fn record_from_uniforms<R: Rng + ?Sized>(
         &self,
         uniforms: [f64; 2],
         rng: &mut R,

@@ -310,9 +310,7 @@ impl Default for SimParams {
 /// Default lateral cut-off: at 6 σ the skipped PSF term is below
 /// `exp(−18) ≈ 1.5e−8` of the in-focus peak (≈ 1e−7 photons for the paper's
 /// microscope), far below one photon of shot noise.
-pub const DEFAULT_PSF_CUTOFF_SIGMA: f64 = 6.0;
-
-pub use crate::limits::MAX_FRAME_SIDE;
+pub(crate) const DEFAULT_PSF_CUTOFF_SIGMA: f64 = 6.0;
 
 impl SimParams {
     /// Checks every parameter; an error names the parameter and says what
@@ -481,18 +479,18 @@ impl SimParams {
 }
 
 /// Most QDs a frame can hold.
-pub const MAX_EMITTERS: u32 = 10_000;
+pub(crate) const MAX_EMITTERS: u32 = 10_000;
 
 /// Largest diffusion coefficient accepted, µm²/s: beyond small molecules
 /// in water (a few hundred µm²/s; a QD's is tens at most), so no particle
 /// a two-photon microscope follows in a liquid diffuses faster.
-pub const MAX_DIFFUSION_UM2_S: f64 = 1_000.0;
+pub(crate) const MAX_DIFFUSION_UM2_S: f64 = 1_000.0;
 
 /// Largest RMS distance, in fields (the frame's larger side), a QD may
 /// move along one axis during one frame: a QD that crosses the field many
 /// times per frame leaves no image to localise, and a bound keeps every
 /// simulated or inferred position finite and near the field.
-pub const MAX_FRAME_TRAVEL_FIELDS: f64 = 100.0;
+pub(crate) const MAX_FRAME_TRAVEL_FIELDS: f64 = 100.0;
 
 /// `value` as plain digits when short, in scientific notation when very
 /// large or small (an error quoting 1e300 stays one readable line).
@@ -507,7 +505,7 @@ fn readable(value: f64) -> String {
 /// Largest expected photon number of one pixel (every emitter in focus on
 /// it, plus the background) accepted: counts are stored as uint32
 /// (at most 4.29e9), and this leaves room for the noise of the draw.
-pub const MAX_EXPECTED_PHOTONS_PER_PIXEL: f64 = 1e9;
+pub(crate) const MAX_EXPECTED_PHOTONS_PER_PIXEL: f64 = 1e9;
 
 #[cfg(test)]
 mod tests {

@@ -47,7 +47,7 @@ use crate::types::{FrameStack, RecordingTruthRow};
 
 /// Version of the recording simulator (its walk, truth and frames); part
 /// of every recording's content key.
-pub const RECORDING_VERSION: &str = "scanloc-recording/2";
+pub(crate) const RECORDING_VERSION: &str = "scanloc-recording/2";
 
 /// Most QDs a recording's volume may hold (the per-frame simulator's limit).
 pub const MAX_RECORDING_QDS: u64 = super::params::MAX_EMITTERS as u64;

@@ -16,7 +16,7 @@ use crate::run::{Plan, RunOptions};
 
 /// A calibration of `detector` over the brightness values `brightness`
 /// (point `i` is `brightness[i]`).
-pub struct CalibrateSweep<'a> {
+pub(crate) struct CalibrateSweep<'a> {
     pub detector: &'a str,
     pub brightness: &'a [f64],
 }

@@ -14,7 +14,7 @@ use crate::run::cross_validation::{self, CrossValidationOutcome};
 use crate::run::{RunOptions, execute};
 
 /// A cross-validation of `detector` with `folds` folds.
-pub struct CvSweep<'a> {
+pub(crate) struct CvSweep<'a> {
     pub detector: &'a str,
     pub folds: usize,
 }

@@ -34,7 +34,7 @@ use crate::track::diffusion::Method;
 
 /// One axis of the grid.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Axis {
+pub(crate) struct Axis {
     pub name: String,
     /// Keys from the top of the manifest.
     pub path: Vec<String>,
@@ -43,17 +43,17 @@ pub struct Axis {
 
 /// One point of the grid: its label (`channels=8 epochs=2`) and manifest.
 #[derive(Debug, Clone)]
-pub struct GridPoint {
+pub(crate) struct GridPoint {
     pub label: String,
     pub manifest: Manifest,
 }
 
 /// Largest number of grid points one sweep may have.
-pub const MAX_POINTS: usize = 10_000;
+pub(crate) const MAX_POINTS: usize = 10_000;
 
 /// The axes of `text`'s `sweep:` block (none without one). `source` names
 /// the manifest in errors.
-pub fn axes(text: &str, source: &str) -> anyhow::Result<Vec<Axis>> {
+pub(crate) fn axes(text: &str, source: &str) -> anyhow::Result<Vec<Axis>> {
     let document: Value = serde_yaml::from_str(text)
         .map_err(|e| input_error(format!("{source}: {}", one_line(&e.to_string()))))?;
     let Some(block) = document.get("sweep") else {
@@ -181,7 +181,7 @@ fn resolved_keys(document: &Value, path: &[String]) -> Vec<String> {
 }
 
 /// Every point of the grid of `text` (whose axes are `axes`), resolved.
-pub fn points(text: &str, source: &str, axes: &[Axis]) -> anyhow::Result<Vec<GridPoint>> {
+pub(crate) fn points(text: &str, source: &str, axes: &[Axis]) -> anyhow::Result<Vec<GridPoint>> {
     let mut document: Value = serde_yaml::from_str(text)
         .map_err(|e| input_error(format!("{source}: {}", one_line(&e.to_string()))))?;
     if let Some(mapping) = document.as_mapping_mut() {
@@ -292,7 +292,7 @@ fn get_path_mut<'a>(document: &'a mut Value, path: &[String]) -> &'a mut Value {
 /// grid; the aggregation lists each finished point's AUC rows and its
 /// tracking pipelines' figures (JSON: `tracking`, the rows of `scanloc run
 /// --json`).
-pub struct GridSweep;
+pub(crate) struct GridSweep;
 
 impl FrontEnd for GridSweep {
     fn name(&self) -> &'static str {

@@ -23,12 +23,12 @@
 //! submitted again finds the same folder and the registry's cache, and
 //! runs only its missing points.
 
-pub mod calibrate;
-pub mod cv;
-pub mod front_end;
-pub mod grid;
+pub(crate) mod calibrate;
+pub(crate) mod cv;
+pub(crate) mod front_end;
+pub(crate) mod grid;
 pub mod slurm;
-pub mod state;
+pub(crate) mod state;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -51,11 +51,11 @@ pub use front_end::FrontEnd;
 pub use state::PointStatus;
 
 /// The folder of a registry that holds its sweeps.
-pub const SWEEPS_DIR: &str = "sweeps";
+pub(crate) const SWEEPS_DIR: &str = "sweeps";
 /// A sweep folder's description file.
-pub const SWEEP_FILE: &str = "sweep.json";
+pub(crate) const SWEEP_FILE: &str = "sweep.json";
 /// A sweep folder's result file, written by the aggregation.
-pub const RESULT_FILE: &str = "result.json";
+pub(crate) const RESULT_FILE: &str = "result.json";
 
 /// What is swept, by which front end.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -117,7 +117,7 @@ pub fn points(spec: &SweepSpec) -> anyhow::Result<(Arc<Manifest>, Vec<Point>)> {
 
 /// Runs point `point` of a sweep into `registry`, recorded as its front
 /// end says (a run of kind `cv`, `calibrate` or `sweep`).
-pub fn run_point(
+pub(crate) fn run_point(
     registry: &mut Registry,
     point: &Point,
     force: bool,
@@ -135,7 +135,7 @@ pub fn run_point(
 
 /// Whether every artefact of `point` is stored in `registry` (rows only:
 /// the blobs are re-hashed when a run uses them).
-pub fn point_is_stored(registry: &Registry, point: &Point) -> anyhow::Result<bool> {
+pub(crate) fn point_is_stored(registry: &Registry, point: &Point) -> anyhow::Result<bool> {
     for step in &point.plan.steps {
         if registry.artefact(&step.key)?.is_none() {
             return Ok(false);
@@ -146,7 +146,7 @@ pub fn point_is_stored(registry: &Registry, point: &Point) -> anyhow::Result<boo
 
 /// The AUC table of `point` read from the stored evaluations (rows in plan
 /// order, as the point's run records them).
-pub fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRow>> {
+pub(crate) fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRow>> {
     let mut rows = Vec::new();
     for step in &point.plan.steps {
         if matches!(step.action, Action::Score { .. }) {
@@ -159,7 +159,10 @@ pub fn point_auc(registry: &Registry, point: &Point) -> anyhow::Result<Vec<AucRo
 
 /// The tracking rows of `point` (its tracking pipelines' figures, as its
 /// run prints them) read from the stored evaluations, in plan order.
-pub fn point_tracking(registry: &Registry, point: &Point) -> anyhow::Result<Vec<TrackingRow>> {
+pub(crate) fn point_tracking(
+    registry: &Registry,
+    point: &Point,
+) -> anyhow::Result<Vec<TrackingRow>> {
     let mut rows = Vec::new();
     for step in &point.plan.steps {
         if matches!(step.action, Action::ScoreTracks { .. }) {
@@ -594,7 +597,7 @@ pub fn task(dir: &Path, index: usize, direct: bool, force: bool) -> anyhow::Resu
 /// A shard whose point is then complete is removed (its blobs were re-hashed
 /// into the main registry); the others stay for `sweep status` to explain.
 /// Returns (point, error) for the shards that could not be imported.
-pub fn import_shards(
+pub(crate) fn import_shards(
     registry: &mut Registry,
     file: &SweepFile,
     points: &[Point],
@@ -740,7 +743,10 @@ fn point_states(
 
 /// The aggregation step of a sweep folder (what the Slurm aggregation job
 /// runs): imports the shards, then aggregates.
-pub fn import_and_aggregate(registry: &mut Registry, dir: &Path) -> anyhow::Result<SweepResult> {
+pub(crate) fn import_and_aggregate(
+    registry: &mut Registry,
+    dir: &Path,
+) -> anyhow::Result<SweepResult> {
     let file = SweepFile::load(dir)?;
     let (base, points) = points(&file.spec)?;
     let problems = import_shards(registry, &file, &points)?;

@@ -127,7 +127,7 @@ fn fields(line: &str) -> BTreeMap<&str, &str> {
 
 /// One job, or one task of an array, as `scontrol` reports it.
 #[derive(Debug, Clone, PartialEq)]
-pub struct JobRecord {
+pub(crate) struct JobRecord {
     /// The array index, for a task of an array.
     pub task: Option<usize>,
     /// `PENDING`, `RUNNING`, `COMPLETED`, `FAILED`, `CANCELLED`, …
@@ -138,7 +138,7 @@ pub struct JobRecord {
 
 /// What `scontrol -o show job ID` says: a record per job or array task;
 /// `None` if Slurm no longer knows the job.
-pub fn job_states(job: &str) -> anyhow::Result<Option<Vec<JobRecord>>> {
+pub(crate) fn job_states(job: &str) -> anyhow::Result<Option<Vec<JobRecord>>> {
     let output = Command::new("scontrol")
         .args(["-o", "show", "job", job])
         .output()
@@ -251,7 +251,7 @@ fn check_options(options: &SlurmOptions) -> anyhow::Result<()> {
 /// Submits the missing points of the sweep (after importing shards left by
 /// an earlier submission) and, with `wait`, follows the jobs and returns
 /// the result. With nothing missing, aggregates at once without Slurm.
-pub fn submit(
+pub(crate) fn submit(
     registry: &mut Registry,
     mut file: SweepFile,
     base: &Arc<Manifest>,

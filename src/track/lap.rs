@@ -45,20 +45,20 @@ use crate::error::input_error;
 
 /// The default gate on a link's Mahalanobis distance: 3 (2 degrees of
 /// freedom: 1 − e^(−9/2) = 98.9 % of true links inside).
-pub const GATE_SIGMAS: f64 = 3.0;
+pub(crate) const GATE_SIGMAS: f64 = 3.0;
 
 /// Birth and death cost as a multiple of the largest candidate link cost
 /// (Jaqaman et al. 2008).
-pub const ALTERNATIVE_COST_FACTOR: f64 = 1.05;
+pub(crate) const ALTERNATIVE_COST_FACTOR: f64 = 1.05;
 
 /// The most candidate links one LAP gathers (1.2 GB of them): a recording
 /// of docs/tracking.md has about three per localisation.
-pub const MAX_CANDIDATE_LINKS: usize = 50_000_000;
+pub(crate) const MAX_CANDIDATE_LINKS: usize = 50_000_000;
 
 /// The smallest step variance q, px²: with it, and localisation σ at most
 /// [`MAX_SEARCH_RANGE`](crate::limits::MAX_SEARCH_RANGE), every cost and
 /// gate extent is a finite number (q² and `v_x v_y` stay within `f64`).
-pub const MIN_STEP_VARIANCE: f64 = 1e-100;
+pub(crate) const MIN_STEP_VARIANCE: f64 = 1e-100;
 
 /// The LAP linker's parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]

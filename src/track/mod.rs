@@ -96,7 +96,7 @@ pub struct LinkStats {
 }
 
 /// The indices of `detections` sorted by frame, ties in input order.
-pub fn frame_order(detections: &[Detection]) -> Vec<usize> {
+pub(crate) fn frame_order(detections: &[Detection]) -> Vec<usize> {
     let frames = || detections.iter().map(|d| d.frame);
     let (Some(first), Some(last)) = (frames().min(), frames().max()) else {
         return Vec::new();
@@ -143,7 +143,7 @@ pub fn same_partition(a: &[usize], b: &[usize]) -> bool {
 /// A possible link of an assignment problem: source `from`, destination
 /// `to`, its cost (≥ 0).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Candidate {
+pub struct Candidate {
     pub from: usize,
     pub to: usize,
     pub cost: f64,
@@ -154,7 +154,7 @@ pub(crate) struct Candidate {
 /// docs/tracking.md gives problems of at most ten; only a search range or
 /// gap far beyond the particles' steps, over localisations that crowd the
 /// field, joins thousands into one.
-pub const MAX_ASSIGNMENT_SIZE: usize = 10_000;
+pub(crate) const MAX_ASSIGNMENT_SIZE: usize = 10_000;
 
 /// The least-cost links between `sources` sources and `destinations`
 /// destinations: minimises the sum of the chosen candidates' costs plus

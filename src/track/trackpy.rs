@@ -41,7 +41,7 @@ use std::ops::Range;
 use super::{Candidate, Detection, LinkStats, Linking, assign, frame_order};
 
 /// TrackPy's largest number of candidate sources per destination.
-pub const MAX_NEIGHBORS: usize = 10;
+pub(crate) const MAX_NEIGHBORS: usize = 10;
 
 /// TrackPy's slack on the search range (its k-d tree query's bound).
 const RANGE_SLACK: f64 = 1e-7;

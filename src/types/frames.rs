@@ -200,7 +200,7 @@ impl Recording {
 }
 
 /// `Some(count)` if `value` is a whole number representable as `u32`.
-pub fn whole_count(value: f64) -> Option<u32> {
+pub(crate) fn whole_count(value: f64) -> Option<u32> {
     if value.is_finite() && value >= 0.0 && value <= u32::MAX as f64 && value.fract() == 0.0 {
         Some(value as u32)
     } else {

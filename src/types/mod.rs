@@ -7,14 +7,14 @@
 //! use these types without importing each other. Coordinates follow TrackPy:
 //! `x` is the column, `y` the row, pixel centres at integers.
 
-pub mod detector_kind;
-pub mod distribution;
-pub mod frames;
-pub mod names;
-pub mod prediction;
-pub mod seed;
-pub mod tracks;
-pub mod truth;
+pub(crate) mod detector_kind;
+pub(crate) mod distribution;
+pub(crate) mod frames;
+pub(crate) mod names;
+pub(crate) mod prediction;
+pub(crate) mod seed;
+pub(crate) mod tracks;
+pub(crate) mod truth;
 
 pub use detector_kind::DetectorKind;
 pub use distribution::{Distribution, RandomDistribution};

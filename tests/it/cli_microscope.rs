@@ -6,8 +6,8 @@
 
 use std::path::Path;
 
-use crate::cli;
 use crate::common::{scanloc, stderr};
+use scanloc::cli;
 
 /// A microscope unlike the paper's in frame size, pixel size, timing and
 /// PSF: as flags, and as the `microscope:` section of a manifest-style file.

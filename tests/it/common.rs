@@ -217,7 +217,7 @@ pub fn cli_in_process(args: &[&str]) -> (u8, String, String) {
     let mut err = Vec::new();
     let mut argv = vec!["scanloc"];
     argv.extend_from_slice(args);
-    let exit = crate::cli::main_with(argv, &mut out, &mut err, false);
+    let exit = scanloc::cli::main_with(argv, &mut out, &mut err, false);
     let code = (0..=2u8)
         .find(|&c| exit == std::process::ExitCode::from(c))
         .unwrap_or(u8::MAX);

@@ -18,9 +18,9 @@
 //! malformed or extreme. `make fuzz` runs these with `SCANLOC_FUZZ_CASES`
 //! cases per property.
 
-use crate::cli;
 use crate::common;
 use crate::hostile_fuzz_guard;
+use scanloc::cli;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};

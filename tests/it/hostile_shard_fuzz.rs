@@ -18,7 +18,9 @@ use rusqlite::types::Value;
 use sha2::{Digest, Sha256};
 
 use crate::hostile_shards::{assert_verify_clean, runs, shard_copy, template};
-use crate::{cli, common, hostile_fuzz_guard};
+use scanloc::cli;
+
+use crate::{common, hostile_fuzz_guard};
 
 /// The durable tables and the columns damage is aimed at.
 const TABLES: &[&str] = &[

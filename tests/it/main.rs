@@ -5,12 +5,6 @@
 
 mod common;
 
-/// The command line itself, compiled into the tests so the CLI fuzz
-/// properties call it in-process (`cli::main_with`) instead of spawning
-/// the binary per case.
-#[path = "../../src/cli/mod.rs"]
-mod cli;
-
 /// Counts live heap bytes, so the in-process CLI fuzz cases can be refused
 /// allocations no small case needs (`hostile_fuzz_guard`).
 #[global_allocator]

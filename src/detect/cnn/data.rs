@@ -21,13 +21,11 @@
 //! negative, no offset supervised), one, or several (one positive pixel
 //! each; where offset boxes overlap, the nearer emitter's offset).
 
-use burn::prelude::*;
-
 use crate::types::{FrameStack, TruthRow};
 
 /// The normalised input of a batch of `height × width` frames, row-major
 /// `[n, channels, H, W]`.
-pub fn normalised_input<'a>(
+pub(crate) fn normalised_input<'a>(
     frames: impl ExactSizeIterator<Item = &'a [u32]>,
     frame_len: usize,
     edge_channel: bool,
@@ -54,29 +52,9 @@ pub fn normalised_input<'a>(
     input
 }
 
-/// The input tensor of frames `indices` of `frames`.
-pub fn input_tensor(
-    frames: &FrameStack,
-    indices: std::ops::Range<usize>,
-    edge_channel: bool,
-    device: &Device,
-) -> Tensor<4> {
-    let channels = if edge_channel { 2 } else { 1 };
-    let n = indices.len();
-    let data = normalised_input(
-        indices.map(|i| frames.frame(i)),
-        frames.frame_len(),
-        edge_channel,
-    );
-    Tensor::from_data(
-        TensorData::new(data, [n, channels, frames.height, frames.width]),
-        device,
-    )
-}
-
 /// Training targets of one batch, each row-major over `[n, channels, H, W]`.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Targets {
+pub(crate) struct Targets {
     /// Weight of each negative pixel in the focal loss, `(1 − heat)⁴` off
     /// the positive pixels and 0 on them; 1 channel.
     pub negative_weight: Vec<f32>,
@@ -90,14 +68,14 @@ pub struct Targets {
 
 /// The target settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TargetShape {
+pub(crate) struct TargetShape {
     pub sigma_px: f64,
     pub offset_radius_px: usize,
 }
 
 /// Builds the targets of a batch of `height × width` frames from the
 /// emitters `(x, y)` of each frame.
-pub fn targets(
+pub(crate) fn targets(
     height: usize,
     width: usize,
     emitters: &[&[(f64, f64)]],
@@ -159,7 +137,10 @@ pub fn targets(
 
 /// Groups truth rows by frame: entry `i` lists `(x, y)` of frame `i`'s
 /// emitters. Rows naming a frame ≥ `n_frames` are an error.
-pub fn truth_by_frame(truth: &[TruthRow], n_frames: usize) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
+pub(crate) fn truth_by_frame(
+    truth: &[TruthRow],
+    n_frames: usize,
+) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let mut grouped = vec![Vec::new(); n_frames];
     for row in truth {
         let Some(slot) = grouped.get_mut(row.frame) else {

@@ -215,7 +215,7 @@ fn check_finite(
 /// The network produced a NaN or infinity: its weights are damaged (a
 /// corrupted model file, or a training that diverged).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct NonFiniteOutput {
+pub(crate) struct NonFiniteOutput {
     pub frame: usize,
     pub channel: usize,
     pub pixel: usize,
@@ -537,7 +537,7 @@ pub const GAUSS_HERMITE: [(f64, f64); 3] = [
 
 /// One frame's maps as the categorical head reads them (row-major, the
 /// frame's `width`).
-pub struct CategoricalMaps<'a> {
+pub(crate) struct CategoricalMaps<'a> {
     pub logits: &'a [f32],
     pub dx: &'a [f32],
     pub dy: &'a [f32],
@@ -559,7 +559,10 @@ pub struct CategoricalMaps<'a> {
 /// falling order of mass (the cover's centre search is a heuristic, so a
 /// later disc may hold a little more than an earlier one; the rank follows
 /// the score, so rank 1 is the frame's best guess).
-pub fn categorical_guesses(maps: &CategoricalMaps<'_>, arch: &CnnArchitecture) -> Vec<Candidate> {
+pub(crate) fn categorical_guesses(
+    maps: &CategoricalMaps<'_>,
+    arch: &CnnArchitecture,
+) -> Vec<Candidate> {
     let mut points: Vec<(f64, f64, f64)> = Vec::new();
     let mut kept = 0.0;
     for (p, mass) in softmax(maps.logits).into_iter().enumerate() {
@@ -676,7 +679,7 @@ fn refined_position(
 /// edges). A plateau yields one pixel: a pixel must be strictly greater than
 /// window neighbours earlier in raster order and at least equal to later
 /// ones. Returned in raster order.
-pub fn local_maxima(
+pub(crate) fn local_maxima(
     map: &[f32],
     height: usize,
     width: usize,

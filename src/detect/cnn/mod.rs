@@ -28,10 +28,10 @@
 //! ensembles existed.
 
 mod config;
-pub mod data;
+pub(crate) mod data;
 mod ensemble;
 pub mod inference;
-pub mod kernels;
+pub(crate) mod kernels;
 mod loss;
 pub mod model;
 mod model_folder;
@@ -51,7 +51,7 @@ pub use model_folder::{
 pub use training::{ValidationScore, ValidationSet, train, train_selecting_on};
 
 /// Names the serialisation format; bump on any incompatible change.
-pub const FORMAT: &str = "scanloc-cnn/2";
+pub(crate) const FORMAT: &str = "scanloc-cnn/2";
 /// Version of the training and inference code, part of the content key of
 /// every model and prediction in the registry: bump it whenever a change
 /// would alter trained weights (initialisation, batching, loss, optimiser,
@@ -68,16 +68,17 @@ pub const CODE_VERSION: &str = "scanloc-cnn/3";
 /// (`training.teacher_particles` > 0): the training's and the likelihood
 /// detector's ([`crate::detect::likelihood::CODE_VERSION`]), whose
 /// predictions became its targets, so a change to either renews it.
-pub const TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2";
+pub(crate) const TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2";
 /// The code version of a categorical head's model trained with a teacher:
 /// [`TEACHER_CODE_VERSION`] and `posterior/1`, the teacher's whole
 /// posterior over the pixels as the softmax's target (before it, such a
 /// model learnt the pixel of the posterior mean, as a peaks head does).
-pub const CATEGORICAL_TEACHER_CODE_VERSION: &str = "scanloc-cnn/3+scanloc-likelihood/2+posterior/1";
+pub(crate) const CATEGORICAL_TEACHER_CODE_VERSION: &str =
+    "scanloc-cnn/3+scanloc-likelihood/2+posterior/1";
 
 /// The code version of a model of `head` trained with a teacher
 /// (`training.teacher_particles` > 0).
-pub fn teacher_code_version(head: CnnHead) -> &'static str {
+pub(crate) fn teacher_code_version(head: CnnHead) -> &'static str {
     match head {
         CnnHead::Peaks => TEACHER_CODE_VERSION,
         CnnHead::Categorical => CATEGORICAL_TEACHER_CODE_VERSION,
@@ -93,10 +94,10 @@ pub fn teacher_code_version(head: CnnHead) -> &'static str {
 /// `decode/1`: σ from the within-1-px head (docs/cnn.md,
 /// "Uncertainty"); before it, the predictions' key had [`CODE_VERSION`]
 /// alone.
-pub const DECODE_VERSION: &str = "scanloc-cnn/3+decode/1";
+pub(crate) const DECODE_VERSION: &str = "scanloc-cnn/3+decode/1";
 
 /// The device models run on: burn's pure-Rust CPU backend.
-pub fn inference_device() -> Device {
+pub(crate) fn inference_device() -> Device {
     Device::flex()
 }
 

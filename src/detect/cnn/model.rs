@@ -19,6 +19,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::optim::GradientsParams;
 use burn::prelude::*;
+#[cfg(test)]
 use burn::tensor::activation::relu;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -63,12 +64,13 @@ pub const LOG_SIGMA_RANGE: (f64, f64) = (-5.0, 3.0);
 
 /// One dilated 3×3 convolution, optionally batch-normalised, then ReLU.
 #[derive(Module, Debug)]
-pub struct ConvBlock {
+pub(crate) struct ConvBlock {
     conv: Conv2d,
     norm: Option<BatchNorm>,
 }
 
 impl ConvBlock {
+    #[cfg(test)]
     fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let x = self.conv.forward(input);
         let x = match &self.norm {
@@ -81,7 +83,7 @@ impl ConvBlock {
 
 /// The fully convolutional localiser.
 #[derive(Module, Debug)]
-pub struct Net {
+pub(crate) struct Net {
     blocks: Vec<ConvBlock>,
     head: Conv2d,
 }
@@ -94,7 +96,7 @@ impl Net {
     /// Parameter ids are numbered 1, 2, … in construction order (burn would
     /// draw them at random), so the saved record of a model is a pure
     /// function of its weights.
-    pub fn new(arch: &CnnArchitecture, seed: u64, device: &Device) -> Self {
+    pub(crate) fn new(arch: &CnnArchitecture, seed: u64, device: &Device) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut next_id = 0u64;
         let mut id = || {
@@ -153,8 +155,10 @@ impl Net {
     /// constants (score logit, offset x, offset y, ln σx, ln σy, within-1-px
     /// logit), with burn's own operations: the reference the kernels of
     /// [`forward_inference`](Self::forward_inference) and
-    /// [`forward_training`](Self::forward_training) are tested against.
-    pub fn forward(&self, input: Tensor<4>) -> Tensor<4> {
+    /// [`forward_training`](Self::forward_training) are tested against (so
+    /// compiled for the tests only).
+    #[cfg(test)]
+    pub(crate) fn forward(&self, input: Tensor<4>) -> Tensor<4> {
         let mut x = input;
         for block in &self.blocks {
             x = block.forward(x);
@@ -208,7 +212,7 @@ impl Net {
     /// the body on the deterministic kernels with batch norm folded into
     /// the convolutions, then the head. Returns `[n, OUTPUT_CHANNELS,
     /// height, width]` on `device`.
-    pub fn forward_inference(
+    pub(crate) fn forward_inference(
         &self,
         input: &[f32],
         [n, height, width]: [usize; 3],
@@ -232,7 +236,7 @@ impl Net {
     /// running statistics updated), the head in burn. Returns the output
     /// and the step whose [`NetworkStep::gradients`] completes the backward
     /// pass.
-    pub fn forward_training(
+    pub(crate) fn forward_training(
         &self,
         input: &[f32],
         [n, height, width]: [usize; 3],
@@ -290,7 +294,7 @@ fn float_values<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
 /// burn computes the loss from the output and its gradient with respect to
 /// the output, and [`NetworkStep::gradients`] takes it back through the head
 /// and the body.
-pub struct NetworkStep {
+pub(crate) struct NetworkStep {
     layers: Vec<BodyLayer>,
     tape: Tape,
     head: Head,
@@ -308,7 +312,11 @@ impl NetworkStep {
     /// loss computed from this step's output, by the kernels' backward
     /// passes of the head and the body (sums in a fixed order, so the same
     /// bits on every CPU and thread count).
-    pub fn gradients(self, mut grads: burn::tensor::Gradients, net: &Net) -> GradientsParams {
+    pub(crate) fn gradients(
+        self,
+        mut grads: burn::tensor::Gradients,
+        net: &Net,
+    ) -> GradientsParams {
         let output_grad = self
             .output
             .grad_remove(&mut grads)

@@ -4,7 +4,7 @@
 
 /// Reusable per-thread buffers of the image operations.
 #[derive(Default)]
-pub struct Buffers {
+pub(super) struct Buffers {
     background: Vec<f64>,
     lowpass: Vec<f64>,
     scratch: Vec<f64>,
@@ -25,7 +25,7 @@ pub struct Buffers {
 /// Every pixel sees the same floating-point operations in the same order as
 /// in scipy; the column passes are written as operations on whole rows so
 /// they vectorise.
-pub fn bandpass<'a, P: super::Pixel>(
+pub(super) fn bandpass<'a, P: super::Pixel>(
     raw: &[P],
     height: usize,
     width: usize,
@@ -204,7 +204,7 @@ fn gaussian_kernel(sigma: f64) -> Vec<f64> {
 
 /// numpy's pairwise summation of a contiguous float array, so sums agree
 /// with numpy to the last bit.
-pub fn numpy_sum(values: &[f64]) -> f64 {
+pub(super) fn numpy_sum(values: &[f64]) -> f64 {
     let n = values.len();
     if n < 8 {
         return values.iter().fold(0.0, |sum, &v| sum + v);
@@ -254,7 +254,7 @@ fn percentile(values: &mut [u64], q: f64) -> f64 {
 /// `⌊2·separation/√2⌋` (zero outside the frame), above the percentile of
 /// the non-zero pixels, and not within `margin` of an edge. Row-major order.
 #[allow(clippy::too_many_arguments)]
-pub fn local_maxima(
+pub(super) fn local_maxima(
     image: &[u64],
     height: usize,
     width: usize,
@@ -312,7 +312,7 @@ pub fn local_maxima(
 /// TrackPy's `measure_noise`: the mean and (population) standard deviation
 /// of the raw pixels farther than the mask radius from every non-zero pixel
 /// of the band-passed image. NaN where too few such pixels exist.
-pub fn measure_noise<P: super::Pixel>(
+pub(super) fn measure_noise<P: super::Pixel>(
     image: &[u64],
     raw: &[P],
     height: usize,

@@ -96,7 +96,7 @@ fn default_threshold<P: Pixel>() -> f64 {
 
 /// Most centroid refinement steps: each moves the mask by at most a pixel,
 /// so more than a feature's width of steps only repeats an oscillation.
-pub const MAX_ITERATIONS: usize = crate::limits::MAX_FEATURE_PX;
+pub(crate) const MAX_ITERATIONS: usize = crate::limits::MAX_FEATURE_PX;
 
 /// Version of the locator's output, part of the content key of every
 /// prediction it makes in the registry: bump it whenever a change alters any
@@ -273,7 +273,7 @@ pub struct Feature {
 /// `frame,x,y,score` (score = mass): TrackPy's, in the order of
 /// [`Feature::column_values`]. `ep` is `NaN` where TrackPy's would be (no
 /// background to measure the noise on).
-pub const FEATURE_COLUMNS: [&str; 6] = ["mass", "size", "ecc", "signal", "raw_mass", "ep"];
+pub(crate) const FEATURE_COLUMNS: [&str; 6] = ["mass", "size", "ecc", "signal", "raw_mass", "ep"];
 
 impl Feature {
     /// The prediction this feature makes on `frame`: its centroid, scored
@@ -808,7 +808,7 @@ pub fn locate_frames_in_range<P: Pixel>(
 }
 
 /// Predictions for the metric: score = mass.
-pub fn to_predictions(features: &[(usize, Feature)]) -> Vec<Prediction> {
+pub(crate) fn to_predictions(features: &[(usize, Feature)]) -> Vec<Prediction> {
     features
         .iter()
         .map(|(frame, f)| f.prediction(*frame))

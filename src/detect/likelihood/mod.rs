@@ -56,7 +56,7 @@ const RESAMPLE_BELOW_ESS_FRACTION: f64 = 0.5;
 
 /// Most particles per frame: memory is about 80 bytes per particle and
 /// thread, the time linear in the count.
-pub const MAX_PARTICLES: usize = 10_000_000;
+pub(crate) const MAX_PARTICLES: usize = 10_000_000;
 
 /// The likelihood localiser's parameters (manifest `likelihood: {...}`).
 ///

@@ -24,7 +24,7 @@ const MANTISSA_BITS: u64 = (1 << 52) - 1;
 /// are clamped there (e^−708 ≈ 3·10⁻³⁰⁸, the smallest normal scale the
 /// reduction can build); NaN stays NaN.
 #[inline(always)]
-pub fn exp(x: f64) -> f64 {
+pub(super) fn exp(x: f64) -> f64 {
     let x = x.clamp(-708.0, 709.0);
     // x = n·ln 2 + r with n an integer and |r| ≤ ln 2 / 2.
     let shifted = x * std::f64::consts::LOG2_E + ROUND_SHIFT;
@@ -55,14 +55,14 @@ pub fn exp(x: f64) -> f64 {
 /// ln m for a positive, finite, normal m, absolute error below 3·10⁻¹⁶ + a
 /// few units in the last place of the result.
 #[inline(always)]
-pub fn ln(m: f64) -> f64 {
+pub(super) fn ln(m: f64) -> f64 {
     ln_with_correction(m, 0.0)
 }
 
 /// ln(1 + u) for u > −1 (finite), accurate for small u as well: the part
 /// of u that rounding 1 + u loses is added back to first order.
 #[inline(always)]
-pub fn ln_1p(u: f64) -> f64 {
+pub(super) fn ln_1p(u: f64) -> f64 {
     let m = 1.0 + u;
     ln_with_correction(m, (u - (m - 1.0)) / m)
 }

@@ -137,7 +137,7 @@ impl CopyReport {
 /// read a sweep task's record). A folder without one, a file that is not
 /// a registry, a registry of a schema version this scanloc does not read
 /// or one that fails SQLite's quick check is bad input naming it.
-pub fn open_read_only(dir: &Path) -> anyhow::Result<Connection> {
+pub(crate) fn open_read_only(dir: &Path) -> anyhow::Result<Connection> {
     let path = dir.join(DATABASE_FILE);
     if !path.is_file() {
         return Err(input_error(format!(

@@ -12,7 +12,7 @@ use crate::types::names::{MAX_NAME_LEN, is_plain_name};
 
 /// How a table's rows are selected for a copy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum KeyedBy {
+pub(super) enum KeyedBy {
     /// By blob (`blobs.sha256`).
     Blob,
     /// By run id, in this column.
@@ -23,7 +23,7 @@ pub enum KeyedBy {
 
 /// A table of the record that a copy carries over.
 #[derive(Debug, Clone, Copy)]
-pub struct Durable {
+pub(super) struct Durable {
     pub name: &'static str,
     pub keyed: KeyedBy,
     /// The columns that name one row in a message (its primary key).
@@ -35,7 +35,7 @@ pub struct Durable {
 /// one by one. `step_claims` is not one: it says who computes what at the
 /// moment, and a copied claim would make a run wait for a process that is
 /// not there.
-pub const DURABLE: &[Durable] = &[
+pub(super) const DURABLE: &[Durable] = &[
     durable("blobs", KeyedBy::Blob, &["sha256"]),
     durable("artefacts", KeyedBy::Artefact("key"), &["key"]),
     durable(
@@ -64,24 +64,24 @@ pub const DURABLE: &[Durable] = &[
 /// The oldest schema version a source may have: one whose durable tables
 /// lack only columns of [`ADDED_COLUMNS`], which are read as NULL (as a
 /// migration leaves them in rows recorded before it).
-pub const OLDEST_SOURCE_SCHEMA: i64 = 2;
+pub(super) const OLDEST_SOURCE_SCHEMA: i64 = 2;
 
 /// Columns of durable tables added after [`OLDEST_SOURCE_SCHEMA`]: (the
 /// schema version that added it, table, column).
-pub const ADDED_COLUMNS: &[(i64, &str, &str)] = &[
+pub(super) const ADDED_COLUMNS: &[(i64, &str, &str)] = &[
     (3, "auc", "auc_best_per_frame"),
     (3, "run_auc", "auc_best_per_frame"),
 ];
 
 /// Whether `table.column` is one a source of schema `version` lacks.
-pub fn added_after(version: i64, table: &str, column: &str) -> bool {
+pub(super) fn added_after(version: i64, table: &str, column: &str) -> bool {
     ADDED_COLUMNS
         .iter()
         .any(|&(added, t, c)| version < added && t == table && c == column)
 }
 
 /// Tables of the moment: present in a registry, never copied.
-pub const TRANSIENT: &[&str] = &["step_claims"];
+pub(super) const TRANSIENT: &[&str] = &["step_claims"];
 
 const fn durable(name: &'static str, keyed: KeyedBy, row_key: &'static [&'static str]) -> Durable {
     Durable {
@@ -94,7 +94,7 @@ const fn durable(name: &'static str, keyed: KeyedBy, row_key: &'static [&'static
 /// Longest run id, and longest name a run derives from a manifest's names
 /// (`DETECTOR@DATASET+firstN`, `TRAINING-cvKofN-held-out`): room for a few
 /// of the manifest's longest names.
-pub const MAX_RECORDED_NAME_LEN: usize = 4 * MAX_NAME_LEN;
+pub(super) const MAX_RECORDED_NAME_LEN: usize = 4 * MAX_NAME_LEN;
 
 /// What a column's values must be.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -145,7 +145,7 @@ fn rule(table: &str, column: &str) -> (Rule, bool) {
 }
 
 /// Whether `text` is a content key or blob hash (64 lower-case hex digits).
-pub fn is_key(text: &str) -> bool {
+pub(super) fn is_key(text: &str) -> bool {
     text.len() == 64 && text.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
 }
 
@@ -203,7 +203,7 @@ fn size_problem(value: &Value) -> Option<String> {
 }
 
 /// A value as a message shows it: quoted, and cut short when long.
-pub fn shown(value: &Value) -> String {
+pub(super) fn shown(value: &Value) -> String {
     const LONGEST: usize = 80;
     match value {
         Value::Null => "NULL".to_string(),
@@ -219,7 +219,7 @@ pub fn shown(value: &Value) -> String {
 }
 
 /// The row's key columns as a message names the row: `(run_id="…", ordinal=3)`.
-pub fn row_label(table: &Durable, columns: &[String], values: &[Value]) -> String {
+pub(super) fn row_label(table: &Durable, columns: &[String], values: &[Value]) -> String {
     let parts: Vec<String> = table
         .row_key
         .iter()
@@ -234,7 +234,7 @@ pub fn row_label(table: &Durable, columns: &[String], values: &[Value]) -> Strin
 /// Why the row `values` (of `columns`) of `table` may not be copied, if
 /// it may not: a name that is not plain, a key that is not a key, a size
 /// that is not one, an artefact whose spec does not hash to its key.
-pub fn row_problem(table: &Durable, columns: &[String], values: &[Value]) -> Option<String> {
+pub(super) fn row_problem(table: &Durable, columns: &[String], values: &[Value]) -> Option<String> {
     for (column, value) in columns.iter().zip(values) {
         let (rule, nullable) = rule(table.name, column);
         if let Some(problem) = problem(rule, nullable, value) {

@@ -23,7 +23,7 @@ use crate::error::input_error;
 use crate::registry::{DATABASE_FILE, SCHEMA_VERSION};
 
 /// An open source database.
-pub struct Source {
+pub(super) struct Source {
     conn: Connection,
     /// Its schema version, [`rules::OLDEST_SOURCE_SCHEMA`] to this
     /// scanloc's: columns added since are read as NULL.
@@ -33,7 +33,7 @@ pub struct Source {
 }
 
 /// Rows of one durable table, in the destination's column order.
-pub struct TableRows {
+pub(super) struct TableRows {
     pub table: &'static Durable,
     pub columns: Vec<String>,
     pub rows: Vec<Vec<Value>>,
@@ -49,7 +49,7 @@ fn absolute(path: &Path) -> PathBuf {
 /// messages name `shown`; returns it with its schema version. A file that
 /// is not a registry, one of a schema version this scanloc does not read
 /// or one that fails SQLite's quick check is bad input.
-pub fn open_database(path: &Path, shown: &Path) -> anyhow::Result<(Connection, i64)> {
+pub(super) fn open_database(path: &Path, shown: &Path) -> anyhow::Result<(Connection, i64)> {
     let conn = Connection::open_with_flags(
         absolute(path),
         OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
@@ -97,7 +97,7 @@ fn checked_source(conn: Connection, shown: &Path) -> anyhow::Result<(Connection,
 impl Source {
     /// Opens the shard in folder `dir` through a private copy of its
     /// database in `staging`.
-    pub fn open_shard(dir: &Path, staging: &Staging) -> anyhow::Result<Self> {
+    pub(super) fn open_shard(dir: &Path, staging: &Staging) -> anyhow::Result<Self> {
         let database = dir.join(DATABASE_FILE);
         if std::fs::symlink_metadata(&database).is_err() {
             return Err(input_error(format!(
@@ -128,7 +128,7 @@ impl Source {
     }
 
     /// Opens the registry in folder `dir` (this user's) read-only in place.
-    pub fn open_registry(dir: &Path) -> anyhow::Result<Self> {
+    pub(super) fn open_registry(dir: &Path) -> anyhow::Result<Self> {
         let database = dir.join(DATABASE_FILE);
         if !database.is_file() {
             return Err(input_error(format!(
@@ -159,12 +159,12 @@ impl Source {
     }
 
     /// The source folder.
-    pub fn dir(&self) -> &Path {
+    pub(super) fn dir(&self) -> &Path {
         &self.dir
     }
 
     /// The refusal of this source because of `problem`, in `table`.
-    pub fn damaged(&self, table: Option<&str>, problem: &str) -> anyhow::Error {
+    pub(super) fn damaged(&self, table: Option<&str>, problem: &str) -> anyhow::Error {
         let place = table.map(|t| format!(" table {t}:")).unwrap_or_default();
         input_error(format!(
             "{}: damaged shard:{place} {problem}",
@@ -173,7 +173,7 @@ impl Source {
     }
 
     /// The refusal of row `label` of `table` because of `problem`.
-    pub fn refuse_row(&self, table: &str, label: &str, problem: &str) -> anyhow::Error {
+    pub(super) fn refuse_row(&self, table: &str, label: &str, problem: &str) -> anyhow::Error {
         input_error(format!(
             "{}: damaged shard: table {table}, row {label}: {problem}",
             self.dir.display()
@@ -183,7 +183,7 @@ impl Source {
     /// Checks that every durable table of the source is a real table with
     /// exactly the columns `expected` gives for it (the destination's), and
     /// that the source has no table a registry does not.
-    pub fn check_schema(&self, expected: &Connection) -> anyhow::Result<()> {
+    pub(super) fn check_schema(&self, expected: &Connection) -> anyhow::Result<()> {
         let sql_err = |e: rusqlite::Error| self.damaged(None, &e.to_string());
         let mut tables = self
             .conn
@@ -244,7 +244,7 @@ impl Source {
 
     /// Every value of `column` of `table` as text (a planning query over
     /// key columns; a value that is not text is refused).
-    pub fn texts(&self, table: &str, column: &str) -> anyhow::Result<Vec<String>> {
+    pub(super) fn texts(&self, table: &str, column: &str) -> anyhow::Result<Vec<String>> {
         self.rows(table, &[column])?
             .into_iter()
             .map(|mut row| match row.pop() {
@@ -262,7 +262,7 @@ impl Source {
 
     /// Every row of `table`, the values of `columns` (NULL for a column
     /// added after the source's schema version).
-    pub fn rows(&self, table: &str, columns: &[&str]) -> anyhow::Result<Vec<Vec<Value>>> {
+    pub(super) fn rows(&self, table: &str, columns: &[&str]) -> anyhow::Result<Vec<Vec<Value>>> {
         let list: Vec<String> = columns
             .iter()
             .map(|c| {
@@ -304,7 +304,7 @@ impl Source {
     /// The rows of durable table `table` that `wanted` selects (by the
     /// table's key column), every one checked against the rules; `columns`
     /// are the destination's.
-    pub fn selected_rows(
+    pub(super) fn selected_rows(
         &self,
         table: &'static Durable,
         columns: Vec<String>,
@@ -343,7 +343,7 @@ impl Source {
 
 /// The columns of `table` in database `conn` (`main`), with their
 /// `hidden` flag (generated columns are hidden).
-pub fn columns(conn: &Connection, table: &str) -> rusqlite::Result<Vec<(String, i64)>> {
+pub(super) fn columns(conn: &Connection, table: &str) -> rusqlite::Result<Vec<(String, i64)>> {
     conn.prepare(&format!("PRAGMA main.table_xinfo(\"{table}\")"))?
         .query_map([], |row| Ok((row.get(1)?, row.get(6)?)))?
         .collect()

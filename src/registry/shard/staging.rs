@@ -19,7 +19,7 @@ use crate::registry::BlobStore;
 /// A file opened only if it is a regular file: not a symlink (not
 /// followed), not a FIFO (opened without blocking, then refused), not a
 /// device. Returns the file and its size, as its own metadata says.
-pub fn open_regular(path: &Path) -> Result<(File, u64), String> {
+pub(super) fn open_regular(path: &Path) -> Result<(File, u64), String> {
     let file = std::fs::OpenOptions::new()
         .read(true)
         .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
@@ -84,7 +84,7 @@ fn copy_hashing(from: File, size: u64, to: &mut impl Write) -> Result<String, St
 }
 
 /// One copy's staging folder.
-pub struct Staging {
+pub(super) struct Staging {
     dir: TempDir,
     /// Blobs staged and not yet moved into the store: (sha256, file).
     blobs: Vec<(String, TempPath)>,
@@ -92,7 +92,7 @@ pub struct Staging {
 
 impl Staging {
     /// A new staging folder in the temporary folder of `store`.
-    pub fn new(store: &BlobStore) -> anyhow::Result<Self> {
+    pub(super) fn new(store: &BlobStore) -> anyhow::Result<Self> {
         let dir = tempfile::Builder::new()
             .prefix("import-")
             .tempdir_in(store.tmp_dir())
@@ -104,7 +104,7 @@ impl Staging {
     }
 
     /// Copies the regular file `from` to `name` in the staging folder.
-    pub fn copy_file(&self, from: &Path, name: &str) -> Result<PathBuf, String> {
+    pub(super) fn copy_file(&self, from: &Path, name: &str) -> Result<PathBuf, String> {
         let (file, size) = open_regular(from)?;
         let to = self.dir.path().join(name);
         let mut out = File::create(&to).map_err(|e| format!("cannot be copied: {e}"))?;
@@ -116,7 +116,7 @@ impl Staging {
     /// as `recorded_bytes` long, hashing it on the way: a file that is not
     /// a regular file, of another size or other bytes is refused.
     /// Returns the size.
-    pub fn stage_blob(
+    pub(super) fn stage_blob(
         &mut self,
         from: &Path,
         sha256: &str,
@@ -144,7 +144,7 @@ impl Staging {
     }
 
     /// Moves every staged blob into `store`.
-    pub fn install(&mut self, store: &BlobStore) -> anyhow::Result<()> {
+    pub(super) fn install(&mut self, store: &BlobStore) -> anyhow::Result<()> {
         for (sha256, file) in self.blobs.drain(..) {
             store.install(file, &sha256)?;
         }

@@ -61,7 +61,7 @@ struct Evaluation {
 /// is replaced whole. Figures named after a dataset get a file name made
 /// by [`safe_file_name`](crate::io::safe_file_name): recorded names are
 /// data, never paths.
-pub fn write_report(
+pub(crate) fn write_report(
     registry: &Registry,
     run_id: &str,
     destination: &Path,
@@ -161,11 +161,11 @@ pub fn write_report(
 }
 
 /// The Markdown file of a report folder.
-pub const REPORT_FILE: &str = "report.md";
+pub(crate) const REPORT_FILE: &str = "report.md";
 
 /// Whether `name` is a file a report folder holds: `report.md` and the
 /// figures (`.png`, `.svg`).
-pub fn is_report_file(name: &str) -> bool {
+pub(crate) fn is_report_file(name: &str) -> bool {
     name == REPORT_FILE || name.ends_with(".png") || name.ends_with(".svg")
 }
 

@@ -24,7 +24,7 @@ use super::{Estimate, Series, Z_95, extent, fit_weight, steps};
 
 /// Fewest steps (both axes counted) for which the normal interval is
 /// stated valid.
-pub const MIN_STEPS: usize = 200;
+pub(crate) const MIN_STEPS: usize = 200;
 
 /// Moments pooled over series and axes.
 #[derive(Debug, Default)]
@@ -79,7 +79,7 @@ impl Moments {
 }
 
 /// The CVE over `series` pooled; `None` without two steps in a row.
-pub fn estimate(series: &[&Series]) -> Option<Estimate> {
+pub(crate) fn estimate(series: &[&Series]) -> Option<Estimate> {
     let mut moments = Moments::default();
     for s in series {
         moments.add(s);

@@ -43,7 +43,7 @@ use super::{Estimate, Series, normal_cdf};
 
 /// Fewest steps per axis for which the likelihood-ratio interval is stated
 /// valid.
-pub const MIN_STEPS: usize = 10;
+pub(crate) const MIN_STEPS: usize = 10;
 
 /// χ²₁ quantile of 0.95.
 const CHI2_95: f64 = 3.841_458_820_694_124;
@@ -337,7 +337,7 @@ const FIRST_REACH: f64 = 0.05;
 
 /// The maximum-likelihood estimate over `series` jointly; `None` without a
 /// step of non-zero length.
-pub fn estimate(series: &[&Series]) -> Option<Estimate> {
+pub(crate) fn estimate(series: &[&Series]) -> Option<Estimate> {
     estimate_with_dispersion(series, 1.0)
 }
 
@@ -345,7 +345,7 @@ pub fn estimate(series: &[&Series]) -> Option<Estimate> {
 /// `series` jointly (the given variances' mean where every series has
 /// them), without the interval of D that [`estimate`] also searches for;
 /// `None` as for [`estimate`].
-pub fn localisation_variance(series: &[&Series]) -> Option<f64> {
+pub(crate) fn localisation_variance(series: &[&Series]) -> Option<f64> {
     let fit = Fit::new(series, Steps::All)?;
     Some(match fit.known {
         true => mean_given_variance(series),
@@ -356,7 +356,7 @@ pub fn localisation_variance(series: &[&Series]) -> Option<f64> {
 /// [`estimate`] with the interval widened for a dispersion `phi` (≥ 1):
 /// the D whose −2 log L is within `phi` × 3.84 of its minimum (the
 /// quasi-likelihood interval; [`dispersion`]).
-pub fn estimate_with_dispersion(series: &[&Series], phi: f64) -> Option<Estimate> {
+pub(crate) fn estimate_with_dispersion(series: &[&Series], phi: f64) -> Option<Estimate> {
     Some(Fit::new(series, Steps::All)?.estimate(phi))
 }
 
@@ -502,7 +502,7 @@ impl Fit<'_> {
 const FIRST_PROBE: f64 = 0.005;
 
 /// Fewest tracks [`dispersion`] is measured on.
-pub const MIN_DISPERSION_TRACKS: usize = 20;
+pub(crate) const MIN_DISPERSION_TRACKS: usize = 20;
 
 /// How much more the tracks' estimates scatter than the likelihood says:
 /// `φ̂ = n/(n − 1) · Σₖ Uₖ² / I`, with `Uₖ` the score (∂ log L/∂D) of
@@ -516,7 +516,7 @@ pub const MIN_DISPERSION_TRACKS: usize = 20;
 /// track's σ² told, so D is the one parameter); `None` with fewer than
 /// [`MIN_DISPERSION_TRACKS`] series of a step or more, or where the
 /// information is not positive.
-pub fn dispersion(series: &[&Series]) -> Option<f64> {
+pub(crate) fn dispersion(series: &[&Series]) -> Option<f64> {
     let series = measurable(series)?;
     dispersion_at(&series, estimate(&series)?.d, Steps::All)
 }
@@ -575,7 +575,7 @@ fn dispersion_at(series: &[&Series], joint: f64, steps: Steps) -> Option<f64> {
 /// between recordings too, by √φ̂ in standard error (the quasi-likelihood
 /// interval, as for each track). φ̂ is measured with each series' σ² told
 /// as the joint estimate's, so D is the one parameter.
-pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
+pub(crate) fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
     let (series, steps) = ensemble_runs(series);
     let fit = Fit::new(&series, steps)?;
     let joint = fit.estimate(1.0);
@@ -595,7 +595,7 @@ pub fn ensemble(series: &[&Series]) -> Option<(Estimate, Option<f64>)> {
 /// [`ensemble`]'s estimate without the dispersion and its widening: the
 /// same D̂ and σ̂², for a caller that needs only those (the linker's
 /// relink pass).
-pub fn ensemble_estimate(series: &[&Series]) -> Option<Estimate> {
+pub(crate) fn ensemble_estimate(series: &[&Series]) -> Option<Estimate> {
     let (series, steps) = ensemble_runs(series);
     Some(Fit::new(&series, steps)?.estimate(1.0))
 }

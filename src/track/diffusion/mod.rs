@@ -24,10 +24,10 @@
 //! and `Cov(Δᵢ, Δᵢ₊₁) = 2Dτᵢ₊₁ − σᵢ₊₁²` (τ the blur time, σ² the
 //! localisation variance). x and y are independent and share D.
 
-pub mod cve;
-pub mod ml;
-pub mod msd;
-pub mod scan;
+pub(crate) mod cve;
+pub(crate) mod ml;
+pub(crate) mod msd;
+pub(crate) mod scan;
 mod search;
 pub mod tables;
 
@@ -38,7 +38,7 @@ use rayon::prelude::*;
 use crate::types::Track;
 
 /// The quantile of the standard normal for two-sided 95 % intervals.
-pub const Z_95: f64 = 1.959_963_984_540_054;
+pub(crate) const Z_95: f64 = 1.959_963_984_540_054;
 
 /// A track prepared for estimation.
 #[derive(Debug, Clone, PartialEq)]
@@ -189,7 +189,7 @@ pub const ENSEMBLE_GATE: f64 = 2.0 / 3.0;
 /// 1/√2 of the gate's extent on both axes, a displacement is inside the
 /// (elliptic) gate, so the narrowed box is all the ensemble is conditioned
 /// on.
-pub const MAX_ENSEMBLE_GATE: f64 = std::f64::consts::FRAC_1_SQRT_2;
+pub(crate) const MAX_ENSEMBLE_GATE: f64 = std::f64::consts::FRAC_1_SQRT_2;
 
 /// `series` cut where a step leaves `fraction` (at most
 /// [`MAX_ENSEMBLE_GATE`]) of the extent of the gate that admitted it, on
@@ -204,7 +204,7 @@ pub const MAX_ENSEMBLE_GATE: f64 = std::f64::consts::FRAC_1_SQRT_2;
 /// (2 σ: 91 % of a true step's displacements per axis), and ML, conditioned
 /// on each step's gate as on the field, reads D from the rest without
 /// the truncation's bias (docs/tracking.md, "Wrong links").
-pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
+pub(crate) fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
     let mut pieces = Vec::new();
     for s in series {
         let mut start = 0;
@@ -242,7 +242,7 @@ pub fn within_gates(series: &[Series], fraction: f64) -> Vec<Series> {
 /// field), which the [`DetectionProfile`], a function of position, does
 /// not describe (docs/tracking.md, "Near the field's edges"). A margin
 /// of 0 keeps every series whole.
-pub fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
+pub(crate) fn within_margin(series: &[Series], margin: f64) -> Vec<Series> {
     if margin <= 0.0 {
         return series.to_vec();
     }
@@ -363,7 +363,7 @@ pub fn estimate_recording(
 /// for a share of 1) and `ensemble_margin` µm inside the field, each
 /// conditioned on its box; with the runs' dispersion where it was
 /// measured.
-pub fn ml_ensemble(
+pub(crate) fn ml_ensemble(
     series: &[Series],
     ensemble_gate: f64,
     ensemble_margin: f64,
@@ -578,7 +578,7 @@ impl Estimate {
 /// D = 1 µm²/s in the paper's 1.7 µm field. Weighting each stretch by
 /// this factor (Horvitz–Thompson) removes the bias. Capped at 20 (an
 /// extent above 95 % of the field, which only noise can give).
-pub fn fit_weight(extent: f64, length: f64) -> f64 {
+pub(crate) fn fit_weight(extent: f64, length: f64) -> f64 {
     length / (length - extent).max(0.05 * length)
 }
 
@@ -595,7 +595,7 @@ pub(crate) fn extent(values: impl IntoIterator<Item = f64>) -> f64 {
 /// The standard normal's cumulative distribution function Φ, to a
 /// relative error below 1.2·10⁻⁷ (the Chebyshev fit of erfc in Press et
 /// al., *Numerical Recipes*, §6.2).
-pub fn normal_cdf(x: f64) -> f64 {
+pub(crate) fn normal_cdf(x: f64) -> f64 {
     let z = (x / std::f64::consts::SQRT_2).abs();
     let t = 1.0 / (1.0 + 0.5 * z);
     let polynomial = -z * z - 1.265_512_23

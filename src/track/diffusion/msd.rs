@@ -23,7 +23,7 @@
 use super::{Estimate, Series, Z_95, fit_weight};
 
 /// Most lags fitted.
-pub const MAX_LAGS: usize = 10;
+pub(crate) const MAX_LAGS: usize = 10;
 
 /// A pair of localisations of one series: indices `i < j`.
 type Pair = (usize, usize);
@@ -227,7 +227,7 @@ fn variance(series: &[&Series], pairs: &[Vec<Vec<Pair>>], fit: &Fit) -> f64 {
 
 /// The MSD fit over `series` pooled with the optimal number of lags;
 /// `None` without two lags holding pairs.
-pub fn estimate(series: &[&Series]) -> Option<Estimate> {
+pub(crate) fn estimate(series: &[&Series]) -> Option<Estimate> {
     let longest = series.iter().map(|s| s.len()).max()?;
     let max_lag = MAX_LAGS.min(longest / 2).max(2);
     let pairs: Vec<Vec<Vec<Pair>>> = series.iter().map(|s| pairs_by_lag(s, max_lag)).collect();

@@ -59,7 +59,7 @@ const ROWS_CUTOFF_SIGMA: f64 = 6.0;
 
 /// A field this many σxy tall or less is "small": [`ScanGeometry::auto_exposure`]
 /// picks [`Exposure::WholeFrame`] for it.
-pub const SMALL_FIELD_SIGMAS: f64 = 10.0;
+pub(crate) const SMALL_FIELD_SIGMAS: f64 = 10.0;
 
 impl ScanGeometry {
     /// Line time `L = W·δt + t_retrace`, s.

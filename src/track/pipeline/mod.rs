@@ -13,11 +13,11 @@
 //! - [`evaluate`](mod@evaluate): tracks scored against the truth;
 //! - [`bias`]: the bias correction's procedure, generic over the localiser.
 
-pub mod bias;
-pub mod config;
+pub(crate) mod bias;
+pub(crate) mod config;
 pub mod evaluate;
-pub mod link;
-pub mod records;
+pub(crate) mod link;
+pub(crate) mod records;
 
 pub use bias::{
     BIAS_CORRECTION_VERSION, BiasSetup, Localiser, SimulatedBias, correct_ensemble, measure_bias,

@@ -14,7 +14,7 @@ use super::{
 
 /// Batch norm parameters and running statistics of one layer.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LayerNorm {
+pub(crate) struct LayerNorm {
     pub gamma: Vec<f32>,
     pub beta: Vec<f32>,
     pub running_mean: Vec<f32>,
@@ -27,7 +27,7 @@ pub struct LayerNorm {
 /// `[9][in_channels][out_channels]`, see [`weights_from_oihw`]), then
 /// batch norm if `norm` is set, then ReLU.
 #[derive(Debug, Clone, PartialEq)]
-pub struct BodyLayer {
+pub(crate) struct BodyLayer {
     pub dilation: usize,
     pub in_channels: usize,
     pub out_channels: usize,
@@ -37,7 +37,7 @@ pub struct BodyLayer {
 }
 
 /// burn's conv weights `[out][in][3][3]` as `[9][in][out]`.
-pub fn weights_from_oihw(oihw: &[f32], in_channels: usize, out_channels: usize) -> Vec<f32> {
+pub(crate) fn weights_from_oihw(oihw: &[f32], in_channels: usize, out_channels: usize) -> Vec<f32> {
     assert_eq!(oihw.len(), 9 * in_channels * out_channels);
     let mut out = vec![0.0; oihw.len()];
     for co in 0..out_channels {
@@ -52,7 +52,11 @@ pub fn weights_from_oihw(oihw: &[f32], in_channels: usize, out_channels: usize) 
 }
 
 /// `[9][in][out]` weights as burn's `[out][in][3][3]`.
-pub fn oihw_from_weights(weights: &[f32], in_channels: usize, out_channels: usize) -> Vec<f32> {
+pub(crate) fn oihw_from_weights(
+    weights: &[f32],
+    in_channels: usize,
+    out_channels: usize,
+) -> Vec<f32> {
     assert_eq!(weights.len(), 9 * in_channels * out_channels);
     let mut out = vec![0.0; weights.len()];
     for co in 0..out_channels {
@@ -127,7 +131,7 @@ const INFERENCE_GROUP_PIXELS: usize = 8192;
 /// (`[n, in_channels, height, width]`), batch norm with its running
 /// statistics folded into the convolutions. Maps are processed in groups;
 /// a map's output does not depend on the others.
-pub fn infer(
+pub(crate) fn infer(
     layers: &[BodyLayer],
     input: &[f32],
     n: usize,
@@ -177,7 +181,7 @@ pub fn infer(
 
 /// What the backward pass of one training step needs.
 #[derive(Debug)]
-pub struct Tape {
+pub(crate) struct Tape {
     geometry: Geometry,
     /// The input and each layer's output (after ReLU), padded.
     activations: Vec<Vec<f32>>,
@@ -208,7 +212,7 @@ impl Drop for Tape {
 
 /// One layer's updated running statistics after a training forward pass.
 #[derive(Debug, Clone, PartialEq)]
-pub struct RunningStatistics {
+pub(crate) struct RunningStatistics {
     pub mean: Vec<f32>,
     pub var: Vec<f32>,
 }
@@ -218,7 +222,7 @@ pub struct RunningStatistics {
 /// width]`, the tape for [`backward`], and each batch-norm layer's running
 /// statistics updated as burn's `BatchNorm` does
 /// (`running · (1 − momentum) + batch · momentum`, biased variance).
-pub fn train_forward(
+pub(crate) fn train_forward(
     layers: &[BodyLayer],
     input: &[f32],
     n: usize,
@@ -319,7 +323,7 @@ pub fn train_forward(
 
 /// Gradients of one layer's parameters.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LayerGradients {
+pub(crate) struct LayerGradients {
     /// `[9][in_channels][out_channels]`.
     pub weights: Vec<f32>,
     /// Conv bias (layers without batch norm).
@@ -332,7 +336,11 @@ pub struct LayerGradients {
 /// The backward pass of [`train_forward`]: from the gradient of the loss
 /// with respect to the body's output (`[n, out_channels, height, width]`)
 /// to the gradients of every layer's parameters, in layer order.
-pub fn backward(layers: &[BodyLayer], tape: &Tape, output_grad: &[f32]) -> Vec<LayerGradients> {
+pub(crate) fn backward(
+    layers: &[BodyLayer],
+    tape: &Tape,
+    output_grad: &[f32],
+) -> Vec<LayerGradients> {
     let geometry = &tape.geometry;
     let out_channels = layers.last().map_or(0, |l| l.out_channels);
     let mut grad = padded_from_nchw(output_grad, out_channels, geometry);

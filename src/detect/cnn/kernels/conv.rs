@@ -16,7 +16,7 @@ use crate::detect::cpu::{has_avx2_fma, has_avx512};
 
 /// One convolution's parameters.
 #[derive(Debug, Clone, Copy)]
-pub struct Conv3x3<'a> {
+pub(crate) struct Conv3x3<'a> {
     /// `[9][in_channels][out_channels]`.
     pub weights: &'a [f32],
     /// Added before the taps (`out_channels` values), if any.
@@ -32,7 +32,7 @@ impl Conv3x3<'_> {
     /// The weights of the convolution that maps an output gradient to the
     /// input gradient: tap `8 − t` of the forward weights, in and out
     /// channels swapped (`[9][out_channels][in_channels]`).
-    pub fn transposed_weights(&self) -> Vec<f32> {
+    pub(crate) fn transposed_weights(&self) -> Vec<f32> {
         let (ci_n, co_n) = (self.in_channels, self.out_channels);
         let mut out = vec![0.0; 9 * ci_n * co_n];
         for tap in 0..9 {
@@ -74,7 +74,12 @@ impl Conv3x3<'_> {
 /// convolution of `input` (padded, `in_channels` per pixel, border zero).
 /// Rows are computed in parallel; each output value sums the bias, then
 /// the taps in raster order, each over the input channels in order.
-pub fn conv3x3_forward(input: &[f32], output: &mut [f32], geometry: &Geometry, conv: &Conv3x3) {
+pub(crate) fn conv3x3_forward(
+    input: &[f32],
+    output: &mut [f32],
+    geometry: &Geometry,
+    conv: &Conv3x3,
+) {
     conv3x3_forward_on(input, output, geometry, conv, Isa::Detect)
 }
 
@@ -231,7 +236,7 @@ fn conv_row_portable(
 /// pixels of input(pixel + tap) × output_gradient(pixel). Maps are
 /// processed in parallel, each summing its pixels in raster order; the
 /// per-map sums are then added in map order.
-pub fn conv3x3_weight_grad(
+pub(crate) fn conv3x3_weight_grad(
     input: &[f32],
     output_grad: &[f32],
     geometry: &Geometry,

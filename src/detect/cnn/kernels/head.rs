@@ -27,7 +27,7 @@ const LANES: usize = 16;
 /// The head's parameters: `weights[o · in_channels + c]` (output channel
 /// `o`, input channel `c`) and one bias per output channel.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Head {
+pub(crate) struct Head {
     pub weights: Vec<f32>,
     pub bias: Vec<f32>,
     pub in_channels: usize,
@@ -36,7 +36,7 @@ pub struct Head {
 
 /// The head's gradients (see [`head_backward`]).
 #[derive(Debug, Clone, PartialEq)]
-pub struct HeadGradients {
+pub(crate) struct HeadGradients {
     /// `[out_channels][in_channels]`, as [`Head::weights`].
     pub weights: Vec<f32>,
     pub bias: Vec<f32>,
@@ -47,7 +47,7 @@ pub struct HeadGradients {
 /// The head's output `[n, out_channels, pixels]` for `features` `[n,
 /// in_channels, pixels]`: `bias[o] + Σ_c weights[o][c] · features[c]`, the
 /// terms added in channel order after the bias.
-pub fn head_forward(head: &Head, features: &[f32], n: usize, pixels: usize) -> Vec<f32> {
+pub(crate) fn head_forward(head: &Head, features: &[f32], n: usize, pixels: usize) -> Vec<f32> {
     let (ci_n, co_n) = (head.in_channels, head.out_channels);
     assert_eq!(head.weights.len(), ci_n * co_n, "head weights");
     assert_eq!(head.bias.len(), co_n, "head bias");
@@ -77,7 +77,7 @@ pub fn head_forward(head: &Head, features: &[f32], n: usize, pixels: usize) -> V
 
 /// The backward pass of [`head_forward`] from the gradient of the loss
 /// with respect to its output (`[n, out_channels, pixels]`).
-pub fn head_backward(
+pub(crate) fn head_backward(
     head: &Head,
     features: &[f32],
     output_grad: &[f32],
@@ -187,7 +187,7 @@ fn combine<T: Copy + AddAssign>(mut partial: [T; LANES]) -> T {
 /// A fixed-order sum of any number of f32 values into f64 (the loss's
 /// reported terms), in [`LANES`] interleaved partial sums: the same bits
 /// on every CPU, unlike a backend's reduction.
-pub fn fixed_order_sum(values: &[f32]) -> f64 {
+pub(crate) fn fixed_order_sum(values: &[f32]) -> f64 {
     let mut partial = [0.0f64; LANES];
     for chunk in values.chunks(LANES) {
         for (s, &v) in partial.iter_mut().zip(chunk) {

@@ -24,22 +24,22 @@
 //! finite (squared deviations beyond f32's range) make the layer's output
 //! NaN, so a training that blows up ends in a non-finite loss.
 
-pub mod body;
+pub(crate) mod body;
 mod conv;
 mod head;
 mod norm;
 
-pub use conv::{Conv3x3, conv3x3_forward, conv3x3_weight_grad};
-pub use head::{Head, HeadGradients, fixed_order_sum, head_backward, head_forward};
-pub use norm::{
-    NormGradients, NormStatistics, ReluGate, bn_relu_backward, bn_relu_forward, channel_statistics,
-};
+pub(crate) use conv::{Conv3x3, conv3x3_forward, conv3x3_weight_grad};
+pub(crate) use head::{Head, fixed_order_sum, head_backward, head_forward};
+pub(crate) use norm::channel_statistics;
+#[cfg(test)]
+pub(crate) use norm::{ReluGate, bn_relu_backward, bn_relu_forward};
 
 /// The shape of a zero-padded channels-last batch of maps (see the module
 /// docs): `n` maps of `height × width` interior pixels, each surrounded by
 /// `pad` zero pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Geometry {
+pub(crate) struct Geometry {
     pub n: usize,
     pub height: usize,
     pub width: usize,
@@ -48,38 +48,38 @@ pub struct Geometry {
 
 impl Geometry {
     /// Pixels per padded row.
-    pub fn padded_width(&self) -> usize {
+    pub(crate) fn padded_width(&self) -> usize {
         self.width + 2 * self.pad
     }
 
     /// Rows per padded map.
-    pub fn padded_height(&self) -> usize {
+    pub(crate) fn padded_height(&self) -> usize {
         self.height + 2 * self.pad
     }
 
     /// Pixels per padded map.
-    pub fn map_pixels(&self) -> usize {
+    pub(crate) fn map_pixels(&self) -> usize {
         self.padded_width() * self.padded_height()
     }
 
     /// Pixels of the whole padded batch.
-    pub fn pixels(&self) -> usize {
+    pub(crate) fn pixels(&self) -> usize {
         self.n * self.map_pixels()
     }
 
     /// Interior pixels of the whole batch (what batch norm averages over).
-    pub fn interior_pixels(&self) -> usize {
+    pub(crate) fn interior_pixels(&self) -> usize {
         self.n * self.height * self.width
     }
 
     /// Index of interior pixel (`row`, `col`) of map `map` in the padded
     /// batch, in pixels (multiply by the channel count for floats).
-    pub fn pixel(&self, map: usize, row: usize, col: usize) -> usize {
+    pub(crate) fn pixel(&self, map: usize, row: usize, col: usize) -> usize {
         map * self.map_pixels() + (row + self.pad) * self.padded_width() + col + self.pad
     }
 
     /// A zeroed padded buffer of `channels` per pixel.
-    pub fn zeros(&self, channels: usize) -> Vec<f32> {
+    pub(crate) fn zeros(&self, channels: usize) -> Vec<f32> {
         vec![0.0; self.pixels() * channels]
     }
 
@@ -89,7 +89,7 @@ impl Geometry {
     /// zeroed one. For outputs of which every interior value is written
     /// (as every kernel here does); reusing buffers spares the page
     /// faults of fresh large allocations at every training step.
-    pub fn buffer(&self, channels: usize) -> Vec<f32> {
+    pub(crate) fn buffer(&self, channels: usize) -> Vec<f32> {
         let mut pool = BUFFER_POOL.lock().unwrap_or_else(|e| e.into_inner());
         match pool
             .iter()
@@ -106,7 +106,7 @@ impl Geometry {
     /// Gives back a buffer of this shape whose border is still zero (one
     /// from [`buffer`](Self::buffer) or [`zeros`](Self::zeros) written only
     /// in its interior) for reuse.
-    pub fn recycle(&self, channels: usize, buffer: Vec<f32>) {
+    pub(crate) fn recycle(&self, channels: usize, buffer: Vec<f32>) {
         debug_assert_eq!(buffer.len(), self.pixels() * channels);
         let mut pool = BUFFER_POOL.lock().unwrap_or_else(|e| e.into_inner());
         if pool.len() == POOL_BUFFERS {
@@ -148,7 +148,7 @@ fn for_each_interior_pixel(geometry: &Geometry, channels: usize, mut f: impl FnM
 
 /// Row-major `[n, channels, height, width]` values as a zero-padded
 /// channels-last buffer of `geometry`.
-pub fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
+pub(crate) fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
     assert_eq!(values.len(), geometry.interior_pixels() * channels);
     let plane = geometry.height * geometry.width;
     let mut out = geometry.buffer(channels);
@@ -162,7 +162,7 @@ pub fn padded_from_nchw(values: &[f32], channels: usize, geometry: &Geometry) ->
 
 /// The interior of a zero-padded channels-last buffer as row-major
 /// `[n, channels, height, width]` values.
-pub fn nchw_from_padded(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
+pub(crate) fn nchw_from_padded(values: &[f32], channels: usize, geometry: &Geometry) -> Vec<f32> {
     assert_eq!(values.len(), geometry.pixels() * channels);
     let plane = geometry.height * geometry.width;
     let mut out = vec![0.0; geometry.interior_pixels() * channels];
@@ -178,7 +178,7 @@ pub fn nchw_from_padded(values: &[f32], channels: usize, geometry: &Geometry) ->
 /// reaches the loss instead of being clamped to 0): `0 > v ? 0 : v`, the
 /// semantics of the `vmaxps(0, v)` instruction the vector kernels use.
 #[inline(always)]
-pub fn relu(v: f32) -> f32 {
+pub(crate) fn relu(v: f32) -> f32 {
     if 0.0 > v { 0.0 } else { v }
 }
 

@@ -74,7 +74,7 @@ enum RowKernel<'d, 'o> {
 /// The backward pass reads this from `z`, which it reads anyway, instead of
 /// reading the activations too: the loops are bound by memory.
 #[derive(Clone, Copy)]
-pub struct ReluGate<'a> {
+pub(crate) struct ReluGate<'a> {
     pub scale: &'a [f32],
     pub shift: &'a [f32],
 }
@@ -324,7 +324,7 @@ fn bn_relu_grad_row(
 /// Per-channel statistics of one batch: the mean and the biased variance
 /// over the batch's interior pixels.
 #[derive(Debug, Clone, PartialEq)]
-pub struct NormStatistics {
+pub(crate) struct NormStatistics {
     pub mean: Vec<f32>,
     pub variance: Vec<f32>,
 }
@@ -394,7 +394,11 @@ fn for_each_output_row<'d>(
 }
 
 /// The batch statistics of `values` (padded, `channels` per pixel).
-pub fn channel_statistics(values: &[f32], channels: usize, geometry: &Geometry) -> NormStatistics {
+pub(crate) fn channel_statistics(
+    values: &[f32],
+    channels: usize,
+    geometry: &Geometry,
+) -> NormStatistics {
     assert_eq!(values.len(), geometry.pixels() * channels);
     let count = geometry.interior_pixels().max(1) as f64;
     let [sum] = batch_sums::<1>(geometry, channels, |row, [sum]| RowKernel::Sum {
@@ -413,7 +417,7 @@ pub fn channel_statistics(values: &[f32], channels: usize, geometry: &Geometry) 
 
 /// `output` interior ← max(z · scale + shift, 0) per channel (`z` and
 /// `output` padded with `channels` per pixel; the border is left alone).
-pub fn bn_relu_forward(
+pub(crate) fn bn_relu_forward(
     z: &[f32],
     output: &mut [f32],
     channels: usize,
@@ -433,7 +437,7 @@ pub fn bn_relu_forward(
 
 /// Gradients of [`bn_relu_forward`] with the batch's statistics.
 #[derive(Debug, Clone, PartialEq)]
-pub struct NormGradients {
+pub(crate) struct NormGradients {
     /// Gradient with respect to `z` (padded, border zero).
     pub z_grad: Vec<f32>,
     /// With respect to gamma (empty without batch norm).
@@ -449,7 +453,7 @@ pub struct NormGradients {
 /// `scale` and `shift` (those given to [`bn_relu_forward`]). `z_grad` is
 /// written into `z_grad_buffer` (padded, border zero; every interior value
 /// is overwritten).
-pub fn bn_relu_backward(
+pub(crate) fn bn_relu_backward(
     output_grad: &[f32],
     z: &[f32],
     gate: ReluGate,
