@@ -359,7 +359,7 @@ impl Mask {
 #[derive(Default)]
 struct Buffers {
     filters: filters::Buffers,
-    scaled: Vec<u64>,
+    scaled: Vec<u32>,
     peaks: Vec<(usize, usize)>,
 }
 
@@ -415,7 +415,7 @@ fn integer_range<P: Pixel>(values: &[P]) -> u64 {
 fn rescale_to_integers(
     values: impl Iterator<Item = f64> + Clone,
     integer_max: u64,
-    scaled: &mut Vec<u64>,
+    scaled: &mut Vec<u32>,
 ) -> f64 {
     let max = values.clone().fold(0.0f64, f64::max);
     let scale = if max == 0.0 {
@@ -424,7 +424,8 @@ fn rescale_to_integers(
         integer_max as f64 / max
     };
     scaled.clear();
-    scaled.extend(values.map(|v| (scale * v.max(0.0)) as u64));
+    // At most `integer_max` (a `u32`): `scale · max` rounds to it.
+    scaled.extend(values.map(|v| (scale * v.max(0.0)) as u32));
     scale
 }
 
@@ -514,7 +515,7 @@ fn integer_image<P: Pixel>(
     } else if P::INTEGER {
         // An integer image is used as it is.
         buffers.scaled.clear();
-        buffers.scaled.extend(raw.iter().map(|&v| v.value() as u64));
+        buffers.scaled.extend(raw.iter().map(|&v| v.value() as u32));
         1.0
     } else {
         rescale_to_integers(
@@ -572,7 +573,7 @@ fn filter_features(
 #[allow(clippy::too_many_arguments)]
 fn refine<P: Pixel>(
     raw: &[P],
-    image: &[u64],
+    image: &[u32],
     height: usize,
     width: usize,
     mask: &Mask,
@@ -592,7 +593,7 @@ fn refine<P: Pixel>(
         let (mut sum_row, mut sum_column) = (0.0, 0.0);
         for p in &mask.points {
             let value = image[(top.0 + p.row) * width + top.1 + p.column];
-            mass += value;
+            mass += u64::from(value);
             sum_row += value as f64 * p.row as f64;
             sum_column += value as f64 * p.column as f64;
         }
@@ -629,7 +630,7 @@ fn refine<P: Pixel>(
         r2_sum += p.r2 * value as f64;
         cos_sum += p.cos2 * value as f64;
         sin_sum += p.sin2 * value as f64;
-        signal = signal.max(value);
+        signal = signal.max(u64::from(value));
     }
     let raw_mass = raw_mass(raw, width, mask, top);
     let mass = mass as f64;
@@ -776,8 +777,13 @@ pub fn locate_frames_in_range<P: Pixel>(
     params.validate()?;
     crate::limits::check_frame_not_empty(height, width)?;
     check_frame_data(data.len(), n, height, width)?;
-    if integer_max == 0 {
-        return Err(input_error("integer_max: must be ≥ 1"));
+    // The image the peaks are found in holds `u32`s (the widest dtype
+    // the locator takes).
+    if integer_max == 0 || integer_max > u64::from(u32::MAX) {
+        return Err(input_error(format!(
+            "integer_max: must be between 1 and {}, got {integer_max}",
+            u32::MAX
+        )));
     }
     let frame_len = height * width;
     let frame = |index: usize| &data[index * frame_len..(index + 1) * frame_len];
