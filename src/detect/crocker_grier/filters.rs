@@ -85,16 +85,33 @@ pub fn bandpass<'a, P: super::Pixel>(
     lowpass
 }
 
+/// 2⁵²: from here up every float is a whole number.
+const TWO_52: f64 = 4_503_599_627_370_496.0;
+
+/// `x` truncated towards zero, for `0 ≤ x < 2⁵²`: `x + 2⁵² − 2⁵²` rounds
+/// to a whole number (exactly), one less when that rounded up. Float
+/// arithmetic only, so it vectorises (no libm call, no integer cast).
+#[inline(always)]
+fn truncate_small(x: f64) -> f64 {
+    let rounded = (x + TWO_52) - TWO_52;
+    if rounded > x { rounded - 1.0 } else { rounded }
+}
+
+/// `x as u32` for `0 ≤ x ≤ u32::MAX`: the whole number `t` below `x`
+/// is the low bits of `t + 2⁵²`.
+#[inline(always)]
+pub fn small_to_u32(x: f64) -> u32 {
+    (truncate_small(x) + TWO_52).to_bits() as u32
+}
+
 /// Integer arrays keep each filter pass as integers (C truncation towards
-/// zero; the averages are never negative and below 2³², so 2⁵² and up
-/// are whole already): `x + 2⁵² − 2⁵²` rounds to an integer, one less when
-/// that rounded up.
+/// zero; the averages are never negative and below 2³², and 2⁵² and up
+/// are whole already).
 fn truncate_to_integers(values: &mut [f64]) {
-    const TWO_52: f64 = 4_503_599_627_370_496.0;
     for value in values {
         let v = *value;
-        let rounded = (v + TWO_52) - TWO_52;
-        let truncated = if rounded > v { rounded - 1.0 } else { rounded };
+        // Both computed, then one picked: a select, which vectorises.
+        let truncated = truncate_small(v);
         *value = if v < TWO_52 { truncated } else { v };
     }
 }

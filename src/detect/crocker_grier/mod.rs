@@ -401,31 +401,64 @@ fn integer_range<P: Pixel>(values: &[P]) -> u64 {
     if !P::INTEGER {
         return u8::MAX as u64;
     }
-    let max_count = values.iter().map(|v| v.value()).fold(0.0, f64::max);
-    if max_count <= u16::MAX as f64 {
+    if largest(values) <= u16::MAX as f64 {
         u16::MAX as u64
     } else {
         u32::MAX as u64
     }
 }
 
+/// The largest of `values` and 0, a NaN passed over (as a fold of
+/// `f64::max` from 0): the maximum does not depend on the order, so it is
+/// taken in eight lanes, which vectorises.
+fn largest<P: Pixel>(values: &[P]) -> f64 {
+    const LANES: usize = 8;
+    let mut lanes = [0.0f64; LANES];
+    let chunks = values.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for chunk in chunks {
+        for (lane, v) in lanes.iter_mut().zip(chunk) {
+            let v = v.value();
+            *lane = if v > *lane { v } else { *lane };
+        }
+    }
+    for (lane, v) in lanes.iter_mut().zip(rest) {
+        let v = v.value();
+        *lane = if v > *lane { v } else { *lane };
+    }
+    lanes
+        .into_iter()
+        .fold(0.0, |max, v| if v > max { v } else { max })
+}
+
 /// TrackPy's `convert_to_int`: `values` (negatives as 0) scaled so their
 /// maximum is `integer_max` and truncated to integers, into `scaled`;
 /// returns the scale factor (1 when the maximum is not positive).
-fn rescale_to_integers(
-    values: impl Iterator<Item = f64> + Clone,
-    integer_max: u64,
-    scaled: &mut Vec<u32>,
-) -> f64 {
-    let max = values.clone().fold(0.0f64, f64::max);
+fn rescale_to_integers<P: Pixel>(values: &[P], integer_max: u64, scaled: &mut Vec<u32>) -> f64 {
+    let max = largest(values);
     let scale = if max == 0.0 {
         1.0
     } else {
         integer_max as f64 / max
     };
     scaled.clear();
-    // At most `integer_max` (a `u32`): `scale · max` rounds to it.
-    scaled.extend(values.map(|v| (scale * v.max(0.0)) as u32));
+    // A NaN is taken as 0, as `f64::max(v, 0)` does.
+    let positive = |v: P| {
+        let v = v.value();
+        if v > 0.0 { v } else { 0.0 }
+    };
+    if max.is_finite() {
+        // Every scaled value is then in `0..=integer_max` (`scale · max`
+        // rounds to it), below 2⁵²: truncated and converted by float
+        // arithmetic, which vectorises (a cast saturates, which does not).
+        scaled.extend(
+            values
+                .iter()
+                .map(|&v| filters::small_to_u32(scale * positive(v))),
+        );
+    } else {
+        scaled.extend(values.iter().map(|&v| (scale * positive(v)) as u32));
+    }
     scale
 }
 
@@ -511,18 +544,14 @@ fn integer_image<P: Pixel>(
             threshold,
             &mut buffers.filters,
         );
-        rescale_to_integers(band.iter().copied(), integer_max, &mut buffers.scaled)
+        rescale_to_integers(band, integer_max, &mut buffers.scaled)
     } else if P::INTEGER {
         // An integer image is used as it is.
         buffers.scaled.clear();
         buffers.scaled.extend(raw.iter().map(|&v| v.value() as u32));
         1.0
     } else {
-        rescale_to_integers(
-            raw.iter().map(|v| v.value()),
-            integer_max,
-            &mut buffers.scaled,
-        )
+        rescale_to_integers(raw, integer_max, &mut buffers.scaled)
     }
 }
 
@@ -539,7 +568,7 @@ fn filter_features(
         let dropped = close_pairs_to_drop(&features, separation);
         let mut index = 0;
         features.retain(|_| {
-            let keep = !dropped.contains(&index);
+            let keep = dropped.binary_search(&index).is_err();
             index += 1;
             keep
         });
@@ -672,8 +701,18 @@ fn raw_mass<P: Pixel>(raw: &[P], width: usize, mask: &Mask, top: (usize, usize))
 fn close_pairs_to_drop(features: &[Feature], separation: f64) -> Vec<usize> {
     let mut dropped = Vec::new();
     let limit = (1.0 - 1e-7) * (1.0 - 1e-7);
-    for i in 0..features.len() {
-        for j in i + 1..features.len() {
+    // Only pairs less than `separation` apart in y can be close: once
+    // `y_b − y_a ≥ separation`, `|y_a − y_b| / separation ≥ 1` (rounding is
+    // monotone), above the limit. So the features are swept in order of y.
+    let mut by_y: Vec<usize> = (0..features.len()).collect();
+    by_y.sort_unstable_by(|&a, &b| features[a].y.total_cmp(&features[b].y).then(a.cmp(&b)));
+    for (k, &first) in by_y.iter().enumerate() {
+        for &second in &by_y[k + 1..] {
+            if features[second].y - features[first].y >= separation {
+                break;
+            }
+            // The pair as TrackPy sees it: the earlier feature first.
+            let (i, j) = (first.min(second), first.max(second));
             let (a, b) = (&features[i], &features[j]);
             let dy = (a.y - b.y) / separation;
             let dx = (a.x - b.x) / separation;
