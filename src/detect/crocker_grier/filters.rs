@@ -32,6 +32,7 @@ pub struct Buffers {
 /// in scipy; the passes are written as operations on whole rows (or, for
 /// the running sums along rows, on all rows at each column) so they
 /// vectorise.
+#[inline(always)]
 pub fn bandpass<'a, P: super::Pixel>(
     raw: &[P],
     height: usize,
@@ -107,6 +108,7 @@ pub fn small_to_u32(x: f64) -> u32 {
 /// Integer arrays keep each filter pass as integers (C truncation towards
 /// zero; the averages are never negative and below 2³², and 2⁵² and up
 /// are whole already).
+#[inline(always)]
 fn truncate_to_integers(values: &mut [f64]) {
     for value in values {
         let v = *value;
@@ -122,6 +124,7 @@ fn truncate_to_integers(values: &mut [f64]) {
 /// inputs the sums are exact, so the truncation that follows lands where
 /// scipy's does. Rows go [`ROWS_AT_ONCE`] at a time, their (independent)
 /// running sums advanced together so the additions overlap.
+#[inline(always)]
 fn boxcar_rows(image: &mut [f64], width: usize, size: usize, padded: &mut Vec<f64>) {
     let before = size / 2;
     let after = size - before - 1;
@@ -157,6 +160,7 @@ const ROWS_AT_ONCE: usize = 4;
 
 /// [`boxcar_rows`] down every column at once (numpy axis 0), from
 /// `source` into `out`.
+#[inline(always)]
 fn boxcar_columns(
     source: &[f64],
     height: usize,
@@ -192,6 +196,7 @@ fn boxcar_columns(
 /// scipy's `correlate1d(mode='constant', cval=0)` with a symmetric odd
 /// kernel along one row, in place: `x·w₀ + Σ_(outermost first) (x₋ⱼ + x₊ⱼ)·wⱼ`,
 /// each term added to the whole row in turn.
+#[inline(always)]
 fn correlate_line(line: &mut [f64], kernel: &[f64], padded: &mut Vec<f64>) {
     let half = kernel.len() / 2;
     let length = line.len();
@@ -214,6 +219,7 @@ fn correlate_line(line: &mut [f64], kernel: &[f64], padded: &mut Vec<f64>) {
 
 /// [`correlate_line`] down every column at once (numpy axis 0), from
 /// `source` into `out`.
+#[inline(always)]
 fn correlate_columns(
     source: &[f64],
     height: usize,
@@ -292,6 +298,7 @@ pub fn numpy_sum(values: &[f64]) -> f64 {
 }
 
 /// numpy's `percentile(values, q)` with linear interpolation.
+#[inline(always)]
 fn percentile(values: &mut [u32], q: f64) -> f64 {
     let position = (q / 100.0) * (values.len() - 1) as f64;
     let below = position.floor();
@@ -315,6 +322,7 @@ fn percentile(values: &mut [u32], q: f64) -> f64 {
 /// `⌊2·separation/√2⌋` (zero outside the frame), above the percentile of
 /// the non-zero pixels, and not within `margin` of an edge. Row-major order.
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 pub fn local_maxima(
     image: &[u32],
     height: usize,
@@ -374,6 +382,7 @@ pub fn local_maxima(
 /// of the largest power of two `p ≤ size`, and windows of `p` come from
 /// `log₂ p` doublings (`m₂ₛ[i] = max(mₛ[i], mₛ[i + s])`): a few
 /// operations per pixel whatever the size, each a whole row at a time.
+#[inline(always)]
 fn dilate<'a>(
     image: &[u32],
     height: usize,
@@ -445,6 +454,7 @@ fn dilate<'a>(
 /// TrackPy's `measure_noise`: the mean and (population) standard deviation
 /// of the raw pixels farther than the mask radius from every non-zero pixel
 /// of the band-passed image. NaN where too few such pixels exist.
+#[inline(always)]
 pub fn measure_noise<P: super::Pixel>(
     image: &[u32],
     raw: &[P],

@@ -411,6 +411,7 @@ fn integer_range<P: Pixel>(values: &[P]) -> u64 {
 /// The largest of `values` and 0, a NaN passed over (as a fold of
 /// `f64::max` from 0): the maximum does not depend on the order, so it is
 /// taken in eight lanes, which vectorises.
+#[inline(always)]
 fn largest<P: Pixel>(values: &[P]) -> f64 {
     const LANES: usize = 8;
     let mut lanes = [0.0f64; LANES];
@@ -434,6 +435,7 @@ fn largest<P: Pixel>(values: &[P]) -> f64 {
 /// TrackPy's `convert_to_int`: `values` (negatives as 0) scaled so their
 /// maximum is `integer_max` and truncated to integers, into `scaled`;
 /// returns the scale factor (1 when the maximum is not positive).
+#[inline(always)]
 fn rescale_to_integers<P: Pixel>(values: &[P], integer_max: u64, scaled: &mut Vec<u32>) -> f64 {
     let max = largest(values);
     let scale = if max == 0.0 {
@@ -462,7 +464,44 @@ fn rescale_to_integers<P: Pixel>(values: &[P], integer_max: u64, scaled: &mut Ve
     scale
 }
 
+/// Locates features in one frame: with AVX2 where the CPU has it (wider
+/// vectors for the same operations: the same bits), else the baseline
+/// build.
 fn locate_with<P: Pixel>(
+    raw: &[P],
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    mask: &Mask,
+    integer_max: u64,
+    buffers: &mut Buffers,
+) -> Vec<Feature> {
+    #[cfg(target_arch = "x86_64")]
+    if crate::detect::cpu::has_avx2() {
+        // SAFETY: the CPU has AVX2 (checked at run time).
+        return unsafe { locate_with_avx2(raw, height, width, params, mask, integer_max, buffers) };
+    }
+    locate_portable(raw, height, width, params, mask, integer_max, buffers)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn locate_with_avx2<P: Pixel>(
+    raw: &[P],
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    mask: &Mask,
+    integer_max: u64,
+    buffers: &mut Buffers,
+) -> Vec<Feature> {
+    locate_portable(raw, height, width, params, mask, integer_max, buffers)
+}
+
+/// [`locate_with`]'s work, inlined into each build (as are the filters
+/// it calls), so that each is compiled for its instruction set.
+#[inline(always)]
+fn locate_portable<P: Pixel>(
     raw: &[P],
     height: usize,
     width: usize,
@@ -525,6 +564,7 @@ fn locate_with<P: Pixel>(
 
 /// Steps 1–2: the band-passed (or raw) image as integers in
 /// `buffers.scaled`; returns the factor it was scaled by.
+#[inline(always)]
 fn integer_image<P: Pixel>(
     raw: &[P],
     height: usize,
@@ -558,6 +598,7 @@ fn integer_image<P: Pixel>(
 /// Step 6: drops the dimmer of close pairs (TrackPy's `where_close`, on
 /// unscaled masses), then rescales masses and signals by `scale` and keeps
 /// the features `minmass`, `maxsize` and `topn` allow, in their order.
+#[inline(always)]
 fn filter_features(
     mut features: Vec<Feature>,
     params: &CrockerGrierParams,
@@ -600,6 +641,7 @@ fn filter_features(
 /// Centroid refinement and characterisation of one peak (TrackPy's
 /// `_refine`, Python engine).
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn refine<P: Pixel>(
     raw: &[P],
     image: &[u32],
@@ -698,6 +740,7 @@ fn raw_mass<P: Pixel>(raw: &[P], width: usize, mask: &Mask, top: (usize, usize))
 /// (strictly, to within 1e−7), the one with the smaller mass, or on equal
 /// masses the one whose rescaled `y + x` is not larger (TrackPy's
 /// `where_close`). Pairs are judged independently, as TrackPy does.
+#[inline(always)]
 fn close_pairs_to_drop(features: &[Feature], separation: f64) -> Vec<usize> {
     let mut dropped = Vec::new();
     let limit = (1.0 - 1e-7) * (1.0 - 1e-7);
