@@ -843,7 +843,8 @@ fn _link<'py>(
         bar.inc(1);
         Ok(linking)
     })?;
-    let particle: Vec<i64> = linking.particle.iter().map(|&p| p as i64).collect();
+    // Converted in place (same size): no second array of labels.
+    let particle: Vec<i64> = linking.particle.into_iter().map(|p| p as i64).collect();
     let gates = match &linking.gates {
         Some(gates) => {
             let out = PyDict::new(py);

@@ -4,11 +4,11 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Args, ValueEnum};
 use crate::error::input_error;
 use crate::io::{PendingFile, localisation_table};
 use crate::track::linker::{LinkerKind, LinkerRequest, Naming};
 use crate::track::{self, trackpy::TrackpyParams};
+use clap::{Args, ValueEnum};
 
 /// Link localisations into trajectories (docs/tracking.md#linking).
 ///

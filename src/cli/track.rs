@@ -5,7 +5,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use clap::Args;
 use crate::error::input_error;
 use crate::run::track_recording::outputs::FILES;
 use crate::run::track_recording::{
@@ -13,6 +12,7 @@ use crate::run::track_recording::{
     track_named_recording,
 };
 use crate::track::pipeline::StoredEstimate;
+use clap::Args;
 
 use super::microscope::MicroscopeArgs;
 

@@ -359,7 +359,7 @@ impl Mask {
 #[derive(Default)]
 struct Buffers {
     filters: filters::Buffers,
-    scaled: Vec<u64>,
+    scaled: Vec<u32>,
     peaks: Vec<(usize, usize)>,
 }
 
@@ -401,34 +401,107 @@ fn integer_range<P: Pixel>(values: &[P]) -> u64 {
     if !P::INTEGER {
         return u8::MAX as u64;
     }
-    let max_count = values.iter().map(|v| v.value()).fold(0.0, f64::max);
-    if max_count <= u16::MAX as f64 {
+    if largest(values) <= u16::MAX as f64 {
         u16::MAX as u64
     } else {
         u32::MAX as u64
     }
 }
 
+/// The largest of `values` and 0, a NaN passed over (as a fold of
+/// `f64::max` from 0): the maximum does not depend on the order, so it is
+/// taken in eight lanes, which vectorises.
+#[inline(always)]
+fn largest<P: Pixel>(values: &[P]) -> f64 {
+    const LANES: usize = 8;
+    let mut lanes = [0.0f64; LANES];
+    let chunks = values.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for chunk in chunks {
+        for (lane, v) in lanes.iter_mut().zip(chunk) {
+            let v = v.value();
+            *lane = if v > *lane { v } else { *lane };
+        }
+    }
+    for (lane, v) in lanes.iter_mut().zip(rest) {
+        let v = v.value();
+        *lane = if v > *lane { v } else { *lane };
+    }
+    lanes
+        .into_iter()
+        .fold(0.0, |max, v| if v > max { v } else { max })
+}
+
 /// TrackPy's `convert_to_int`: `values` (negatives as 0) scaled so their
 /// maximum is `integer_max` and truncated to integers, into `scaled`;
 /// returns the scale factor (1 when the maximum is not positive).
-fn rescale_to_integers(
-    values: impl Iterator<Item = f64> + Clone,
-    integer_max: u64,
-    scaled: &mut Vec<u64>,
-) -> f64 {
-    let max = values.clone().fold(0.0f64, f64::max);
+#[inline(always)]
+fn rescale_to_integers<P: Pixel>(values: &[P], integer_max: u64, scaled: &mut Vec<u32>) -> f64 {
+    let max = largest(values);
     let scale = if max == 0.0 {
         1.0
     } else {
         integer_max as f64 / max
     };
     scaled.clear();
-    scaled.extend(values.map(|v| (scale * v.max(0.0)) as u64));
+    // A NaN is taken as 0, as `f64::max(v, 0)` does.
+    let positive = |v: P| {
+        let v = v.value();
+        if v > 0.0 { v } else { 0.0 }
+    };
+    if max.is_finite() {
+        // Every scaled value is then in `0..=integer_max` (`scale · max`
+        // rounds to it), below 2⁵²: truncated and converted by float
+        // arithmetic, which vectorises (a cast saturates, which does not).
+        scaled.extend(
+            values
+                .iter()
+                .map(|&v| filters::small_to_u32(scale * positive(v))),
+        );
+    } else {
+        scaled.extend(values.iter().map(|&v| (scale * positive(v)) as u32));
+    }
     scale
 }
 
+/// Locates features in one frame: with AVX2 where the CPU has it (wider
+/// vectors for the same operations: the same bits), else the baseline
+/// build.
 fn locate_with<P: Pixel>(
+    raw: &[P],
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    mask: &Mask,
+    integer_max: u64,
+    buffers: &mut Buffers,
+) -> Vec<Feature> {
+    #[cfg(target_arch = "x86_64")]
+    if crate::detect::cpu::has_avx2() {
+        // SAFETY: the CPU has AVX2 (checked at run time).
+        return unsafe { locate_with_avx2(raw, height, width, params, mask, integer_max, buffers) };
+    }
+    locate_portable(raw, height, width, params, mask, integer_max, buffers)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn locate_with_avx2<P: Pixel>(
+    raw: &[P],
+    height: usize,
+    width: usize,
+    params: &CrockerGrierParams,
+    mask: &Mask,
+    integer_max: u64,
+    buffers: &mut Buffers,
+) -> Vec<Feature> {
+    locate_portable(raw, height, width, params, mask, integer_max, buffers)
+}
+
+/// [`locate_with`]'s work, inlined into each build (as are the filters
+/// it calls), so that each is compiled for its instruction set.
+#[inline(always)]
+fn locate_portable<P: Pixel>(
     raw: &[P],
     height: usize,
     width: usize,
@@ -491,6 +564,7 @@ fn locate_with<P: Pixel>(
 
 /// Steps 1–2: the band-passed (or raw) image as integers in
 /// `buffers.scaled`; returns the factor it was scaled by.
+#[inline(always)]
 fn integer_image<P: Pixel>(
     raw: &[P],
     height: usize,
@@ -510,24 +584,21 @@ fn integer_image<P: Pixel>(
             threshold,
             &mut buffers.filters,
         );
-        rescale_to_integers(band.iter().copied(), integer_max, &mut buffers.scaled)
+        rescale_to_integers(band, integer_max, &mut buffers.scaled)
     } else if P::INTEGER {
         // An integer image is used as it is.
         buffers.scaled.clear();
-        buffers.scaled.extend(raw.iter().map(|&v| v.value() as u64));
+        buffers.scaled.extend(raw.iter().map(|&v| v.value() as u32));
         1.0
     } else {
-        rescale_to_integers(
-            raw.iter().map(|v| v.value()),
-            integer_max,
-            &mut buffers.scaled,
-        )
+        rescale_to_integers(raw, integer_max, &mut buffers.scaled)
     }
 }
 
 /// Step 6: drops the dimmer of close pairs (TrackPy's `where_close`, on
 /// unscaled masses), then rescales masses and signals by `scale` and keeps
 /// the features `minmass`, `maxsize` and `topn` allow, in their order.
+#[inline(always)]
 fn filter_features(
     mut features: Vec<Feature>,
     params: &CrockerGrierParams,
@@ -538,7 +609,7 @@ fn filter_features(
         let dropped = close_pairs_to_drop(&features, separation);
         let mut index = 0;
         features.retain(|_| {
-            let keep = !dropped.contains(&index);
+            let keep = dropped.binary_search(&index).is_err();
             index += 1;
             keep
         });
@@ -570,9 +641,10 @@ fn filter_features(
 /// Centroid refinement and characterisation of one peak (TrackPy's
 /// `_refine`, Python engine).
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn refine<P: Pixel>(
     raw: &[P],
-    image: &[u64],
+    image: &[u32],
     height: usize,
     width: usize,
     mask: &Mask,
@@ -592,7 +664,7 @@ fn refine<P: Pixel>(
         let (mut sum_row, mut sum_column) = (0.0, 0.0);
         for p in &mask.points {
             let value = image[(top.0 + p.row) * width + top.1 + p.column];
-            mass += value;
+            mass += u64::from(value);
             sum_row += value as f64 * p.row as f64;
             sum_column += value as f64 * p.column as f64;
         }
@@ -629,7 +701,7 @@ fn refine<P: Pixel>(
         r2_sum += p.r2 * value as f64;
         cos_sum += p.cos2 * value as f64;
         sin_sum += p.sin2 * value as f64;
-        signal = signal.max(value);
+        signal = signal.max(u64::from(value));
     }
     let raw_mass = raw_mass(raw, width, mask, top);
     let mass = mass as f64;
@@ -668,11 +740,22 @@ fn raw_mass<P: Pixel>(raw: &[P], width: usize, mask: &Mask, top: (usize, usize))
 /// (strictly, to within 1e−7), the one with the smaller mass, or on equal
 /// masses the one whose rescaled `y + x` is not larger (TrackPy's
 /// `where_close`). Pairs are judged independently, as TrackPy does.
+#[inline(always)]
 fn close_pairs_to_drop(features: &[Feature], separation: f64) -> Vec<usize> {
     let mut dropped = Vec::new();
     let limit = (1.0 - 1e-7) * (1.0 - 1e-7);
-    for i in 0..features.len() {
-        for j in i + 1..features.len() {
+    // Only pairs less than `separation` apart in y can be close: once
+    // `y_b − y_a ≥ separation`, `|y_a − y_b| / separation ≥ 1` (rounding is
+    // monotone), above the limit. So the features are swept in order of y.
+    let mut by_y: Vec<usize> = (0..features.len()).collect();
+    by_y.sort_unstable_by(|&a, &b| features[a].y.total_cmp(&features[b].y).then(a.cmp(&b)));
+    for (k, &first) in by_y.iter().enumerate() {
+        for &second in &by_y[k + 1..] {
+            if features[second].y - features[first].y >= separation {
+                break;
+            }
+            // The pair as TrackPy sees it: the earlier feature first.
+            let (i, j) = (first.min(second), first.max(second));
             let (a, b) = (&features[i], &features[j]);
             let dy = (a.y - b.y) / separation;
             let dx = (a.x - b.x) / separation;
@@ -776,8 +859,13 @@ pub fn locate_frames_in_range<P: Pixel>(
     params.validate()?;
     crate::limits::check_frame_not_empty(height, width)?;
     check_frame_data(data.len(), n, height, width)?;
-    if integer_max == 0 {
-        return Err(input_error("integer_max: must be ≥ 1"));
+    // The image the peaks are found in holds `u32`s (the widest dtype
+    // the locator takes).
+    if integer_max == 0 || integer_max > u64::from(u32::MAX) {
+        return Err(input_error(format!(
+            "integer_max: must be between 1 and {}, got {integer_max}",
+            u32::MAX
+        )));
     }
     let frame_len = height * width;
     let frame = |index: usize| &data[index * frame_len..(index + 1) * frame_len];
