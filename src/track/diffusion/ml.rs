@@ -201,11 +201,10 @@ fn scales(series: &[&Series]) -> Option<(f64, f64, usize, Option<f64>)> {
             }
         }
     }
-    let (mean_sq, mean_dt) = (sum_sq / count as f64, sum_dt / count as f64);
-    let covariance_guess = (mean_sq + 2.0 * sum_lag / lags.max(1) as f64) / (2.0 * mean_dt);
     (count > 0 && sum_dt > 0.0 && sum_sq > 0.0).then(|| {
-        let guess =
-            (covariance_guess > 0.0 && covariance_guess.is_finite()).then_some(covariance_guess);
+        let (mean_sq, mean_dt) = (sum_sq / count as f64, sum_dt / count as f64);
+        let guess = (mean_sq + 2.0 * sum_lag / lags.max(1) as f64) / (2.0 * mean_dt);
+        let guess = (guess > 0.0 && guess.is_finite()).then_some(guess);
         (mean_sq, mean_dt, count / 2, guess)
     })
 }
@@ -259,9 +258,10 @@ impl Problem<'_> {
                     }
                     _ => last.1,
                 };
+                let start = predicted.clamp(low, high);
                 minimise_near(
                     at,
-                    predicted,
+                    (start, at(start)),
                     WARM_START_SHARE * (high - low),
                     (low, high),
                     tolerance,
@@ -285,14 +285,8 @@ impl Problem<'_> {
     fn minimum(&self, guess: f64, lowest: f64, highest: f64) -> Option<(f64, f64, f64)> {
         // The lowest point evaluated, with its σ̂²: the search's result.
         let best = Cell::new((f64::NAN, f64::INFINITY, f64::NAN));
-        let last = Cell::new((f64::NAN, f64::NAN));
         let at = |log_d: f64| {
-            // The search starts where the guess was evaluated.
-            if last.get().0 == log_d {
-                return last.get().1;
-            }
             let (value, variance) = self.profile(log_d.exp());
-            last.set((log_d, value));
             if value < best.get().1 {
                 best.set((log_d, value, variance));
             }
@@ -305,7 +299,8 @@ impl Problem<'_> {
                 .min_by(|a, b| a.1.total_cmp(&b.1))?;
             value.is_finite().then_some(start)
         };
-        match self.v_max == 0.0 || !at(guess).is_finite() {
+        let at_guess = at(guess);
+        match self.v_max == 0.0 || !at_guess.is_finite() {
             // Where a value is one evaluation of the cost (every σ² given),
             // or the guess is not finite: the best point of a unit grid
             // over the whole search, then the unit either side of it (a
@@ -323,7 +318,13 @@ impl Problem<'_> {
             // guess, which is within the ensemble's standard error or a
             // few of it (the likelihood of D is unimodal in practice).
             false => {
-                minimise_near(at, guess, FIRST_REACH, (lowest, highest), LOG_D_TOLERANCE);
+                minimise_near(
+                    at,
+                    (guess, at_guess),
+                    FIRST_REACH,
+                    (lowest, highest),
+                    LOG_D_TOLERANCE,
+                );
             }
         }
         let best = best.get();
@@ -346,11 +347,7 @@ pub(crate) fn estimate(series: &[&Series]) -> Option<Estimate> {
 /// them), without the interval of D that [`estimate`] also searches for;
 /// `None` as for [`estimate`].
 pub(crate) fn localisation_variance(series: &[&Series]) -> Option<f64> {
-    let fit = Fit::new(series, Steps::All)?;
-    Some(match fit.known {
-        true => mean_given_variance(series),
-        false => fit.variance,
-    })
+    Some(Fit::new(series, Steps::All)?.localisation_variance())
 }
 
 /// [`estimate`] with the interval widened for a dispersion `phi` (≥ 1):
@@ -413,6 +410,15 @@ impl<'a> Fit<'a> {
         })
     }
 
+    /// σ̂² at the minimum: the given variances' mean where every series
+    /// has them.
+    fn localisation_variance(&self) -> f64 {
+        match self.known {
+            true => mean_given_variance(self.problem.series),
+            false => self.variance,
+        }
+    }
+
     /// The estimate, its interval the D within `phi` × 3.84 of the minimum.
     fn estimate(&self, phi: f64) -> Estimate {
         let Fit {
@@ -436,11 +442,7 @@ impl<'a> Fit<'a> {
             .crossing_towards(*highest, level, &rise)
             .map_or(f64::INFINITY, f64::exp);
         let d = log_d.exp();
-        let localisation_variance = if self.known {
-            mean_given_variance(problem.series)
-        } else {
-            self.variance
-        };
+        let localisation_variance = self.localisation_variance();
         Estimate {
             d,
             standard_error: (high - low) / (2.0 * super::Z_95),

@@ -31,8 +31,9 @@ pub(crate) fn minimise(f: impl Fn(f64) -> f64, low: f64, high: f64, tolerance: f
     brent(&f, (low, high), [(x, fx); 3], 0.0, tolerance)
 }
 
-/// [`minimise`] starting from `start`, where the minimum is expected
-/// within `reach`: `f` at `start` and `reach` either side, the bracket
+/// [`minimise`] starting from `start` (a point in `[low, high]` and `f`
+/// there), where the minimum is expected within `reach`: `f` at `reach`
+/// either side of the start, the bracket
 /// widened fourfold downhill (within `[low, high]`) until the middle point
 /// is the lowest, then Brent's method from those three points, whose first
 /// step is already a parabola's. For a sequence of searches whose minima
@@ -40,13 +41,12 @@ pub(crate) fn minimise(f: impl Fn(f64) -> f64, low: f64, high: f64, tolerance: f
 /// search of the whole bracket takes 12–16.
 pub(crate) fn minimise_near(
     f: impl Fn(f64) -> f64,
-    start: f64,
+    (start, at_start): (f64, f64),
     reach: f64,
     (low, high): (f64, f64),
     tolerance: f64,
 ) -> (f64, f64) {
-    let start = start.clamp(low, high);
-    let mut middle = (start, f(start));
+    let mut middle = (start, at_start);
     let mut left = ((start - reach).max(low), f((start - reach).max(low)));
     let mut right = ((start + reach).min(high), f((start + reach).min(high)));
     let mut reach = reach;
@@ -253,7 +253,7 @@ mod tests {
     fn a_minimum_at_the_bracket_end_is_approached() {
         let (x, _) = minimise(|x| x, 1.0, 2.0, 1e-9);
         assert!((x - 1.0).abs() < 1e-7, "{x}");
-        let (x, _) = minimise_near(|x| -x, 1.0, 0.01, (0.0, 2.0), 1e-9);
+        let (x, _) = minimise_near(|x| -x, (1.0, -1.0), 0.01, (0.0, 2.0), 1e-9);
         assert_eq!(x, 2.0);
     }
 
@@ -265,7 +265,7 @@ mod tests {
                 calls.set(calls.get() + 1);
                 (x - 0.3).powi(2) * (1.0 + 0.2 * x) + (x - 0.3).powi(4)
             };
-            let (x, _) = minimise_near(f, start, reach, (-2.0, 3.0), 1e-7);
+            let (x, _) = minimise_near(f, (start, f(start)), reach, (-2.0, 3.0), 1e-7);
             assert!((x - 0.3).abs() < 1e-6, "{x} from {start}");
             let most = if start == 0.31 { 8 } else { 16 };
             assert!(
