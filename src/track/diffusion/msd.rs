@@ -3,8 +3,10 @@
 //!
 //! `MSD(n)` is the mean of `Δx² + Δy²` over all pairs of localisations `n`
 //! frames apart (pooled over the series given), at the pairs' mean time lag
-//! `tₙ`, each axis's mean weighted by [`super::fit_weight`] of the pair's
-//! displacement (the field's selection of pairs, see there). An unweighted straight line through lags `1..=p`,
+//! `tₙ`, each axis's mean weighted by [`super::fit_weight`] of the extent
+//! of the localisations from the pair's first to its last (the stretch of
+//! path the field had to hold for the pair to be seen; see there). An
+//! unweighted straight line through lags `1..=p`,
 //! `MSD = 4D·t + b`, gives `D̂` (slope / 4) and the localisation variance
 //! `σ̂² = (b + 8D̂τ̄)/4` (for Brownian motion `MSD(t) = 4D(t − 2τ) + 4σ²`).
 //!
@@ -20,13 +22,22 @@
 //! The 95 % interval is `D̂ ± 1.96·SE`, stated valid as the CVE's (at least
 //! [`super::cve::MIN_STEPS`] steps, both axes counted).
 
-use super::{Estimate, Series, Z_95, fit_weight};
+use super::{Estimate, Series, Z_95, extent, fit_weight};
 
 /// Most lags fitted.
 pub(crate) const MAX_LAGS: usize = 10;
 
 /// A pair of localisations of one series: indices `i < j`.
 type Pair = (usize, usize);
+
+/// The field weight of pair `(i, j)` along `axis`: the inverse chance that
+/// the field holds the stretch of path between them, whose extent is that
+/// of the localisations `i..=j` (not only the end-to-end distance: a pair
+/// is seen only if every localisation between its ends is).
+fn field_weight(series: &Series, axis: usize, (i, j): Pair) -> f64 {
+    let (low, high) = series.field[axis];
+    fit_weight(extent(series.axes[axis][i..=j].iter().copied()), high - low)
+}
 
 /// The pairs of each lag `1..=max_lag` (frames) of one series.
 fn pairs_by_lag(series: &Series, max_lag: usize) -> Vec<Vec<Pair>> {
@@ -63,8 +74,7 @@ fn fit(series: &[&Series], pairs: &[Vec<Vec<Pair>>], p: usize) -> Option<Fit> {
             for &(i, j) in lags.get(lag).into_iter().flatten() {
                 for axis in 0..2 {
                     let delta = s.axes[axis][j] - s.axes[axis][i];
-                    let (low, high) = s.field[axis];
-                    let weight = fit_weight(delta.abs(), high - low);
+                    let weight = field_weight(s, axis, (i, j));
                     sums[axis] += weight * delta * delta;
                     weights[axis] += weight;
                 }
@@ -151,7 +161,6 @@ fn axis_variance(series: &Series, axis: usize, lags: &[Vec<Pair>], fit: &Fit, v:
     let steps = series.len() - 1;
     let w = lags.len().max(1);
     let mut a = Band::new(steps, w);
-    let (low, high) = series.field[axis];
     for (lag, pairs) in lags.iter().enumerate().skip(1) {
         let coefficient = fit.pair_weight.get(lag).map_or(0.0, |c| c[axis]);
         if coefficient == 0.0 {
@@ -160,8 +169,7 @@ fn axis_variance(series: &Series, axis: usize, lags: &[Vec<Pair>], fit: &Fit, v:
         // Pair (i, j) covers steps i..j: (Σ Δ)² adds its weight to each
         // entry (the field weights taken as given).
         for &(i, j) in pairs {
-            let delta = series.axes[axis][j] - series.axes[axis][i];
-            let weight = coefficient * fit_weight(delta.abs(), high - low);
+            let weight = coefficient * field_weight(series, axis, (i, j));
             for k in i..j {
                 for l in i..j {
                     if l >= k {

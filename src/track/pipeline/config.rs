@@ -15,7 +15,7 @@ pub const LINK_VERSION: &str = "scanloc-link/5";
 /// Version of the scoring of tracks ([`evaluate`](super::evaluate()) and its JSON).
 /// 7: the maximum-likelihood fit searches D and σ² by Brent's method, its
 /// estimates moved by about 10⁻⁶ of their standard errors.
-pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/7";
+pub const TRACK_METRIC_VERSION: &str = "scanloc-track-metric/8";
 
 /// A linker as a manifest names it: `{trackpy: {search_range: 10, memory:
 /// 2}}` or `{lap: {search_range: 10, max_gap: 2}}` (or `{lap:
