@@ -32,7 +32,9 @@
 //!
 //! For speed (docs/tracking.md, "Speed"): the detections are gathered in
 //! frame order once, each frame's sources are bucketed in a uniform grid
-//! (cells at least the search range wide) for the neighbour search,
+//! (cells at least the search range wide) for the neighbour search, the
+//! candidates among the previous frame's detections are found a block of
+//! frames ahead, on a second thread, while the linking goes on,
 //! subnetworks are grouped by a counting sort on their key, and the
 //! per-frame buffers are kept from frame to frame.
 
@@ -68,8 +70,25 @@ impl TrackpyParams {
     }
 }
 
+/// Detections per block of frames: the candidates of one block are found
+/// (on a second thread where there is one) while an earlier block is
+/// linked; at most four blocks' candidates are held at a time.
+const BLOCK_DETECTIONS: usize = 4096;
+
 /// Links `detections` (any order) as TrackPy 0.7's `link` does.
 pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<Linking> {
+    let threaded = rayon::current_num_threads() > 1;
+    link_in_blocks(detections, params, BLOCK_DETECTIONS, threaded)
+}
+
+/// [`link`] in blocks of about `block_detections`, searched ahead on a
+/// second thread if `threaded`: the same result for any of them.
+fn link_in_blocks(
+    detections: &[Detection],
+    params: &TrackpyParams,
+    block_detections: usize,
+    threaded: bool,
+) -> anyhow::Result<Linking> {
     params.validate()?;
     // The linker works on the detections in frame order, gathered once
     // into contiguous arrays: a frame's detections are then a range, and
@@ -80,54 +99,269 @@ pub fn link(detections: &[Detection], params: &TrackpyParams) -> anyhow::Result<
         .iter()
         .map(|&i| [detections[i].x, detections[i].y])
         .collect();
+    let runs = frame_runs(&frames);
     let mut state = State::new(&frames, &positions, params);
-    let Some(&first) = frames.first() else {
+    let Some((_, first)) = runs.first() else {
         return Ok(state.finish(&order));
     };
-    let (mut at, mut frame) = (0, first);
-    loop {
-        let start = at;
-        while at < frames.len() && frames[at] == frame {
-            at += 1;
+    state.start(first.clone());
+    // The candidates among the previous frame's detections need nothing
+    // the linking decides (unlike those among remembered ones), so they
+    // are found a block ahead: the two halves of the work overlap, and the
+    // result is the same on any number of threads.
+    let limit = params.search_range + RANGE_SLACK;
+    let blocks = blocks_of(&runs, block_detections);
+    let mut before = SourceGrid::default();
+    before.build(&positions[first.clone()], limit);
+    let search = |block: &Range<usize>, ahead: &mut Lookahead, before: &mut SourceGrid| {
+        ahead.search(&runs, block.clone(), &positions, limit, before);
+        if let Some(last) = ahead.last_grid() {
+            before.clone_from(last);
         }
-        if frame == first {
-            state.start(start..at);
-        } else {
-            state.step(frame, start..at)?;
+    };
+    if blocks.len() < 2 || !threaded {
+        let mut ahead = Lookahead::default();
+        for block in &blocks {
+            search(block, &mut ahead, &mut before);
+            state.link_block(&runs, block.clone(), &ahead)?;
         }
-        if at == frames.len() {
-            break;
-        }
-        // Every frame counts for memory, but a run of frames without
-        // detections only loses the previous frame's detections (at its
-        // first frame) and lets remembered ones expire: step the first
-        // empty frame, then go straight to the next frame with detections
-        // and expire what that run of frames would have (frame numbers may
-        // be far apart, and `memory` may exceed them).
-        let next = frames[at];
-        frame = if next == frame + 1 {
-            next
-        } else if state.has_previous() {
-            frame + 1
-        } else {
-            state.expire_before(next);
-            next
-        };
+    } else {
+        // A second thread searches up to two blocks ahead; the buffers
+        // go back to it once linked.
+        std::thread::scope(|scope| -> anyhow::Result<()> {
+            let (ready, searched) = std::sync::mpsc::sync_channel::<Lookahead>(1);
+            let (done, spent) = std::sync::mpsc::channel::<Lookahead>();
+            let blocks = &blocks;
+            scope.spawn(move || {
+                for block in blocks {
+                    let mut ahead = spent.try_recv().unwrap_or_default();
+                    search(block, &mut ahead, &mut before);
+                    if ready.send(ahead).is_err() {
+                        return; // The linking stopped (an error).
+                    }
+                }
+            });
+            for block in blocks {
+                let ahead = searched
+                    .recv()
+                    .map_err(|_| anyhow::anyhow!("linking: the candidate search stopped"))?;
+                state.link_block(&runs, block.clone(), &ahead)?;
+                let _ = done.send(ahead);
+            }
+            Ok(())
+        })?;
     }
     Ok(state.finish(&order))
+}
+
+/// Each frame with detections and their range, in frame order.
+fn frame_runs(frames: &[usize]) -> Vec<(usize, Range<usize>)> {
+    let mut runs: Vec<(usize, Range<usize>)> = Vec::new();
+    for (at, &frame) in frames.iter().enumerate() {
+        match runs.last_mut() {
+            Some((last, range)) if *last == frame => range.end = at + 1,
+            _ => runs.push((frame, at..at + 1)),
+        }
+    }
+    runs
+}
+
+/// The runs after the first in blocks of about `block_detections`.
+fn blocks_of(runs: &[(usize, Range<usize>)], block_detections: usize) -> Vec<Range<usize>> {
+    let mut blocks = Vec::new();
+    let (mut start, mut count) = (1, 0);
+    for (i, (_, range)) in runs.iter().enumerate().skip(1) {
+        count += range.len();
+        if count >= block_detections {
+            blocks.push(start..i + 1);
+            (start, count) = (i + 1, 0);
+        }
+    }
+    if start < runs.len() {
+        blocks.push(start..runs.len());
+    }
+    blocks
+}
+
+/// The candidates of a block's destinations among the previous frame's
+/// detections, and each of its frames' detections bucketed: the grid of
+/// one frame finds the candidates of the next among its detections, and
+/// the remembered sources' destinations in its own.
+#[derive(Default)]
+struct Lookahead {
+    candidates: Candidates,
+    /// `grids[k]`: the detections of the block's `k`-th frame (kept
+    /// beyond the block's frames: their buffers are reused).
+    grids: Vec<SourceGrid>,
+    /// The frames of the block searched last.
+    frames: usize,
+}
+
+impl Lookahead {
+    /// For every destination of `runs[block]` in frame order, its
+    /// candidates among the detections of the frame before (none where
+    /// that frame has none), source indices counted from that frame's
+    /// first detection; `before` holds the detections of the run before
+    /// the block bucketed.
+    fn search(
+        &mut self,
+        runs: &[(usize, Range<usize>)],
+        block: Range<usize>,
+        positions: &[[f64; 2]],
+        limit: f64,
+        before: &SourceGrid,
+    ) {
+        self.candidates.clear();
+        self.frames = block.len();
+        if self.grids.len() < block.len() {
+            self.grids.resize_with(block.len(), SourceGrid::default);
+        }
+        for (k, i) in block.enumerate() {
+            let (frame, destinations) = &runs[i];
+            let (previous_frame, previous) = &runs[i - 1];
+            let destinations = &positions[destinations.clone()];
+            let (built, rest) = self.grids.split_at_mut(k);
+            if previous_frame + 1 == *frame {
+                let grid = built.last().unwrap_or(before);
+                let sources = &positions[previous.clone()];
+                search_sources(grid, sources, destinations, limit, &mut self.candidates);
+            } else {
+                self.candidates.push_empty(destinations.len());
+            }
+            rest[0].build(destinations, limit);
+        }
+    }
+
+    /// The grid of the block's last frame.
+    fn last_grid(&self) -> Option<&SourceGrid> {
+        self.grids[..self.frames].last()
+    }
+}
+
+/// Appends to `out` each destination's up to [`MAX_NEIGHBORS`] nearest
+/// of `sources` (bucketed in `grid`) within `limit`, nearest first, ties
+/// by source index.
+fn search_sources(
+    grid: &SourceGrid,
+    sources: &[[f64; 2]],
+    destinations: &[[f64; 2]],
+    limit: f64,
+    out: &mut Candidates,
+) {
+    for &[px, py] in destinations {
+        let start = out.list.len();
+        grid.near(px, py, limit, |s| {
+            let [x, y] = sources[s];
+            let d2 = (x - px) * (x - px) + (y - py) * (y - py);
+            // TrackPy's bound is strict.
+            if d2 < limit * limit {
+                out.list.push((s, d2));
+            }
+        });
+        let found = &mut out.list[start..];
+        if found.len() > 1 {
+            found.sort_unstable_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+        }
+        let kept = found.len().min(MAX_NEIGHBORS);
+        out.list.truncate(start + kept);
+        out.offsets.push(out.list.len());
+    }
+}
+
+/// Each destination's candidates merged from the previous frame's
+/// (`ahead`) and the remembered sources' (`remembered`: (destination,
+/// squared distance, source) sorted, source indices shifted by `shift`,
+/// after the previous frame's): the nearest [`MAX_NEIGHBORS`], ties by
+/// source index.
+fn merge(
+    ahead: CandidatesView<'_>,
+    remembered: &[(usize, f64, usize)],
+    shift: usize,
+    out: &mut Candidates,
+) {
+    out.clear();
+    let mut next = 0;
+    for d in 0..ahead.destinations() {
+        let a = ahead.of(d);
+        let first = next;
+        while next < remembered.len() && remembered[next].0 == d {
+            next += 1;
+        }
+        let r = &remembered[first..next];
+        let (mut i, mut j) = (0, 0);
+        while i + j < MAX_NEIGHBORS && (i < a.len() || j < r.len()) {
+            // Previous-frame sources have the smaller indices: first on ties.
+            if j == r.len() || (i < a.len() && a[i].1.total_cmp(&r[j].1).is_le()) {
+                out.list.push(a[i]);
+                i += 1;
+            } else {
+                out.list.push((r[j].2 + shift, r[j].1));
+                j += 1;
+            }
+        }
+        out.offsets.push(out.list.len());
+    }
 }
 
 /// Each destination's candidate sources, flat: those of destination `d`
 /// are `list[offsets[d]..offsets[d + 1]]`, (source index, squared
 /// distance), nearest first.
-#[derive(Default)]
 struct Candidates {
     list: Vec<(usize, f64)>,
     offsets: Vec<usize>,
 }
 
+impl Default for Candidates {
+    fn default() -> Self {
+        Self {
+            list: Vec::new(),
+            offsets: vec![0],
+        }
+    }
+}
+
 impl Candidates {
-    fn of(&self, destination: usize) -> &[(usize, f64)] {
+    fn clear(&mut self) {
+        self.list.clear();
+        self.offsets.clear();
+        self.offsets.push(0);
+    }
+
+    /// Appends `count` destinations without candidates.
+    fn push_empty(&mut self, count: usize) {
+        let end = self.list.len();
+        self.offsets.extend(std::iter::repeat_n(end, count));
+    }
+
+    fn view(&self) -> CandidatesView<'_> {
+        self.slice(0, self.offsets.len() - 1)
+    }
+
+    /// Destinations `first..first + count`.
+    fn slice(&self, first: usize, count: usize) -> CandidatesView<'_> {
+        CandidatesView {
+            list: &self.list,
+            offsets: &self.offsets[first..=first + count],
+        }
+    }
+}
+
+/// Some destinations' candidates in a [`Candidates`]: destination `d`'s
+/// are `list[offsets[d]..offsets[d + 1]]`.
+#[derive(Clone, Copy)]
+struct CandidatesView<'c> {
+    list: &'c [(usize, f64)],
+    offsets: &'c [usize],
+}
+
+impl<'c> CandidatesView<'c> {
+    /// No destinations.
+    const NONE: Self = Self {
+        list: &[],
+        offsets: &[0],
+    };
+
+    fn of(&self, destination: usize) -> &'c [(usize, f64)] {
         &self.list[self.offsets[destination]..self.offsets[destination + 1]]
     }
 
@@ -162,10 +396,11 @@ struct FrameBuffers {
     /// The frame's sources (detections: the previous frame's, then the
     /// remembered ones) and their positions.
     sources: Vec<usize>,
-    source_positions: Vec<[f64; 2]>,
-    grid: SourceGrid,
-    /// One destination's sources in range: (squared distance, source).
-    near: Vec<(f64, usize)>,
+    /// The remembered sources in range of a destination: (destination,
+    /// squared distance, remembered index).
+    remembered_pairs: Vec<(usize, f64, usize)>,
+    /// The candidates merged from the previous frame's and the
+    /// remembered sources.
     candidates: Candidates,
     sets: KeyedSets,
     subnets: Subnets,
@@ -234,12 +469,6 @@ impl<'a> State<'a> {
         self.next_label += 1;
     }
 
-    /// Whether the last frame stepped had detections (they become the
-    /// next frame's sources, or are lost there).
-    fn has_previous(&self) -> bool {
-        !self.previous.is_empty()
-    }
-
     /// Forgets the remembered detections that the frames before `frame`
     /// (stepped or skipped) let expire.
     fn expire_before(&mut self, frame: usize) {
@@ -254,16 +483,69 @@ impl<'a> State<'a> {
         self.previous = destinations;
     }
 
+    /// The frames of `runs[block]` (each after the run before it), with
+    /// `ahead` the candidates of their destinations among the previous
+    /// frame's ([`Lookahead::search`]).
+    fn link_block(
+        &mut self,
+        runs: &[(usize, Range<usize>)],
+        block: Range<usize>,
+        ahead: &Lookahead,
+    ) -> anyhow::Result<()> {
+        let mut first = 0;
+        for (k, i) in block.enumerate() {
+            let (frame, destinations) = runs[i].clone();
+            let previous_frame = runs[i - 1].0;
+            // Every frame counts for memory, but a run of frames without
+            // detections only loses the previous frame's detections (at
+            // its first frame) and lets remembered ones expire: step the
+            // first empty frame, then expire what the rest would have
+            // (frame numbers may be far apart, and `memory` may exceed
+            // them).
+            if frame != previous_frame + 1 {
+                let none = destinations.start..destinations.start;
+                self.step(previous_frame + 1, none, CandidatesView::NONE, None)?;
+                if frame != previous_frame + 2 {
+                    self.expire_before(frame);
+                }
+            }
+            let count = destinations.len();
+            let grid = ahead.grids.get(k).filter(|_| k < ahead.frames);
+            self.step(
+                frame,
+                destinations,
+                ahead.candidates.slice(first, count),
+                grid,
+            )?;
+            first += count;
+        }
+        Ok(())
+    }
+
     /// One frame: candidates, subnetworks, their solutions, memory.
-    fn step(&mut self, frame: usize, destinations: Range<usize>) -> anyhow::Result<()> {
+    /// `ahead` holds the destinations' candidates among the previous
+    /// frame's detections, `grid` (with memory) the destinations bucketed.
+    fn step(
+        &mut self,
+        frame: usize,
+        destinations: Range<usize>,
+        ahead: CandidatesView<'_>,
+        grid: Option<&SourceGrid>,
+    ) -> anyhow::Result<()> {
         // The buffers leave `self` for the frame so that linking (which
         // needs `self`) can read them.
         let mut b = std::mem::take(&mut self.buffers);
         b.sources.clear();
         b.sources.extend(self.previous.clone());
         b.sources.extend(self.remembered.iter().map(|&(d, _)| d));
-        self.find_candidates(destinations.clone(), &mut b);
-        find_subnets(b.sources.len(), &b.candidates, &mut b.sets, &mut b.subnets);
+        let candidates = match grid {
+            Some(grid) if !self.remembered.is_empty() && !destinations.is_empty() => {
+                self.add_remembered(destinations.clone(), grid, ahead, &mut b);
+                b.candidates.view()
+            }
+            _ => ahead,
+        };
+        find_subnets(b.sources.len(), candidates, &mut b.sets, &mut b.subnets);
         b.source_linked.clear();
         b.source_linked.resize(b.sources.len(), false);
         b.destination_linked.clear();
@@ -272,7 +554,7 @@ impl<'a> State<'a> {
             self.solve(
                 subnet_sources,
                 subnet_destinations,
-                &b.candidates,
+                candidates,
                 &mut b.local,
                 &mut b.death,
                 &mut b.birth,
@@ -305,39 +587,39 @@ impl<'a> State<'a> {
         Ok(())
     }
 
-    /// For each destination, its up to [`MAX_NEIGHBORS`] nearest sources
-    /// within the search range (ties by source index), into
-    /// `b.candidates`.
-    fn find_candidates(&self, destinations: Range<usize>, b: &mut FrameBuffers) {
-        b.source_positions.clear();
-        b.source_positions
-            .extend(b.sources.iter().map(|&d| self.positions[d]));
+    /// Each destination's candidates among the previous frame's (`ahead`)
+    /// and the remembered sources, into `b.candidates`: the few remembered
+    /// sources look for destinations in `grid` (the frame's bucketed).
+    fn add_remembered(
+        &self,
+        destinations: Range<usize>,
+        grid: &SourceGrid,
+        ahead: CandidatesView<'_>,
+        b: &mut FrameBuffers,
+    ) {
         let limit = self.search_range + RANGE_SLACK;
-        b.grid.build(&b.source_positions, limit);
-        let candidates = &mut b.candidates;
-        candidates.list.clear();
-        candidates.offsets.clear();
-        candidates.offsets.push(0);
-        for &[px, py] in &self.positions[destinations] {
-            b.near.clear();
-            b.grid.near(px, py, limit, |s| {
-                let [x, y] = b.source_positions[s];
+        let frame_positions = &self.positions[destinations];
+        b.remembered_pairs.clear();
+        for (j, &(source, _)) in self.remembered.iter().enumerate() {
+            let [x, y] = self.positions[source];
+            grid.near(x, y, limit, |d| {
+                let [px, py] = frame_positions[d];
+                // As from the destination (the same bits): TrackPy's
+                // strict bound.
                 let d2 = (x - px) * (x - px) + (y - py) * (y - py);
-                // TrackPy's bound is strict.
                 if d2 < limit * limit {
-                    b.near.push((d2, s));
+                    b.remembered_pairs.push((d, d2, j));
                 }
             });
-            if b.near.len() > 1 {
-                b.near
-                    .sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            }
-            let kept = b.near.len().min(MAX_NEIGHBORS);
-            candidates
-                .list
-                .extend(b.near[..kept].iter().map(|&(d2, s)| (s, d2)));
-            candidates.offsets.push(candidates.list.len());
         }
+        b.remembered_pairs
+            .sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(a.2.cmp(&b.2)));
+        merge(
+            ahead,
+            &b.remembered_pairs,
+            self.previous.len(),
+            &mut b.candidates,
+        );
     }
 
     /// The links of one subnetwork (sources and destinations as indices
@@ -348,7 +630,7 @@ impl<'a> State<'a> {
         &mut self,
         sources: &[usize],
         destinations: &[usize],
-        candidates: &Candidates,
+        candidates: CandidatesView<'_>,
         local: &mut Vec<Candidate>,
         death: &mut Vec<f64>,
         birth: &mut Vec<f64>,
@@ -421,7 +703,7 @@ impl<'a> State<'a> {
 /// keeps its key). Sources without candidates are in none.
 fn find_subnets(
     sources: usize,
-    candidates: &Candidates,
+    candidates: CandidatesView<'_>,
     sets: &mut KeyedSets,
     subnets: &mut Subnets,
 ) {
@@ -550,19 +832,20 @@ impl KeyedSets {
 /// a destination looks only at the cells its search square overlaps (two
 /// or three per axis with cells as wide as the search range) instead of
 /// a tree rebuilt every frame.
-#[derive(Default)]
+#[derive(Default, Clone)]
 struct SourceGrid {
     origin: [f64; 2],
     cell: f64,
+    /// `1 / cell`: a coordinate's cell by a product, not a division.
+    scale: f64,
     columns: usize,
     rows: usize,
     /// The sources of cell `c` (row-major), ascending:
     /// `members[starts[c]..starts[c + 1]]`.
     starts: Vec<usize>,
     members: Vec<usize>,
-    /// Each source's cell, and a cursor per cell while filling.
+    /// Each source's cell.
     cells: Vec<usize>,
-    cursor: Vec<usize>,
 }
 
 impl SourceGrid {
@@ -586,12 +869,15 @@ impl SourceGrid {
         while count(width, self.cell).saturating_mul(count(height, self.cell)) > most {
             self.cell *= 2.0;
         }
+        self.scale = 1.0 / self.cell;
         (self.columns, self.rows) = (count(width, self.cell), count(height, self.cell));
         if positions.is_empty() {
             (self.columns, self.rows) = (0, 0);
         }
         let cells = self.columns * self.rows;
-        // A counting sort of the sources by cell.
+        // A counting sort of the sources by cell: counts at starts[c + 2],
+        // running sums, then starts[c + 1] is a cursor through cell c's
+        // members that ends where cell c + 1's begin.
         let mut source_cells = std::mem::take(&mut self.cells);
         source_cells.clear();
         source_cells.extend(positions.iter().map(|p| {
@@ -601,37 +887,38 @@ impl SourceGrid {
         }));
         self.cells = source_cells;
         self.starts.clear();
-        self.starts.resize(cells + 1, 0);
+        self.starts.resize(cells + 2, 0);
         for &c in &self.cells {
-            self.starts[c + 1] += 1;
+            self.starts[c + 2] += 1;
         }
-        for c in 1..=cells {
+        for c in 2..cells + 2 {
             self.starts[c] += self.starts[c - 1];
         }
         self.members.clear();
         self.members.resize(positions.len(), 0);
-        self.cursor.clear();
-        self.cursor.extend_from_slice(&self.starts[..cells]);
         for (s, &c) in self.cells.iter().enumerate() {
-            self.members[self.cursor[c]] = s;
-            self.cursor[c] += 1;
+            let at = &mut self.starts[c + 1];
+            self.members[*at] = s;
+            *at += 1;
         }
+        self.starts.truncate(cells + 1);
     }
 
     /// The cell index along `axis` of coordinate `v` (0 below the grid;
     /// not clamped above). Truncation is the floor here (≥ 0), and
     /// cheaper: `floor` is a library call on baseline x86-64.
     fn index(&self, v: f64, axis: usize) -> usize {
-        ((v - self.origin[axis]) / self.cell).max(0.0) as usize
+        ((v - self.origin[axis]) * self.scale).max(0.0) as usize
     }
 
     /// The cells along `axis` that hold coordinates in `[v - limit, v +
-    /// limit]`. Rounding is monotone, so a source within the search
+    /// limit]`. Rounding is monotone (the same product by `scale` as
+    /// [`Self::index`]), so a source within the search
     /// range of `v` is always in one of them.
     fn span(&self, v: f64, limit: f64, axis: usize) -> std::ops::Range<usize> {
         let n = [self.columns, self.rows][axis];
-        let from = (v - limit - self.origin[axis]) / self.cell;
-        let to = (v + limit - self.origin[axis]) / self.cell;
+        let from = (v - limit - self.origin[axis]) * self.scale;
+        let to = (v + limit - self.origin[axis]) * self.scale;
         // Both ends in the grid once clamped (negated so that NaN gives an
         // empty span); then truncation is the floor.
         if !(to >= 0.0 && from < n as f64) {
@@ -745,6 +1032,43 @@ mod tests {
         ];
         let linked = link(&detections, &params(1.0, 0)).unwrap();
         assert_eq!(linked.particle, [0, 0, 0, 1, 1]);
+    }
+
+    #[test]
+    fn blocks_and_threads_do_not_change_the_trajectories() {
+        use rand::{RngExt as _, SeedableRng as _};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        // Dense walks with blinks and runs of empty frames, so that memory,
+        // remembered sources and gaps cross the blocks' edges.
+        let mut detections = Vec::new();
+        for _ in 0..60 {
+            let (mut x, mut y) = (rng.random_range(0.0..30.0), rng.random_range(0.0..30.0));
+            for frame in 0..80 {
+                x += rng.random_range(-1.0..1.0);
+                y += rng.random_range(-1.0..1.0);
+                if rng.random::<f64>() > 0.2 && !(30..34).contains(&frame) {
+                    detections.push(Detection::new(frame, x, y));
+                }
+            }
+        }
+        for memory in [0, 1, 3] {
+            let params = params(1.5, memory);
+            let whole = link_in_blocks(&detections, &params, usize::MAX, false).unwrap();
+            assert!(whole.stats.contested > 10, "{:?}", whole.stats);
+            if memory > 0 {
+                assert!(whole.stats.gap_links > 10, "{:?}", whole.stats);
+            }
+            for block in [1, 7, 100, 1000] {
+                for threaded in [false, true] {
+                    let linked = link_in_blocks(&detections, &params, block, threaded).unwrap();
+                    assert_eq!(
+                        linked.particle, whole.particle,
+                        "{memory} {block} {threaded}"
+                    );
+                    assert_eq!(linked.stats, whole.stats);
+                }
+            }
+        }
     }
 
     #[test]
