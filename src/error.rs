@@ -13,6 +13,19 @@
 
 use std::fmt;
 
+/// Long work stopped early because its caller asked it to (Ctrl-C in
+/// Python, a monitor's stop request).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Stopped;
+
+impl fmt::Display for Stopped {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("stopped at the caller's request")
+    }
+}
+
+impl std::error::Error for Stopped {}
+
 /// Bad input from the user: a flag, a file or a manifest field. Exit code 2.
 ///
 /// The message is one line and names the file and/or the parameter at fault.

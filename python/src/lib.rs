@@ -26,7 +26,7 @@ use pyo3::types::PyDict;
 use scanloc::detect::cnn::TrainedCnn;
 use scanloc::detect::crocker_grier::{self, CrockerGrierParams, Feature, Pixel};
 use scanloc::detect::likelihood::{self, LikelihoodParams};
-use scanloc::error::InputError;
+use scanloc::error::{InputError, Stopped};
 use scanloc::sim::SimParams;
 use scanloc::sim::recording::{Blinking, RecordingParams};
 use scanloc::track::Detection;
@@ -68,18 +68,6 @@ fn to_py(error: anyhow::Error) -> PyErr {
 fn value_error(message: impl Into<String>) -> PyErr {
     PyValueError::new_err(message.into())
 }
-
-/// Why a worker stopped early: the caller asked it to.
-#[derive(Debug)]
-struct Cancelled;
-
-impl std::fmt::Display for Cancelled {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("interrupted")
-    }
-}
-
-impl std::error::Error for Cancelled {}
 
 /// Runs `work` on a worker thread with the GIL released, `total` steps of
 /// progress shown by a `tqdm` bar labelled `desc` when `progress` is true
@@ -158,9 +146,7 @@ where
     }
     match outcome {
         Ok(Ok(value)) => Ok(value),
-        Ok(Err(error)) if error.is::<Cancelled>() => {
-            Err(PyKeyboardInterrupt::new_err("interrupted"))
-        }
+        Ok(Err(error)) if error.is::<Stopped>() => Err(PyKeyboardInterrupt::new_err("interrupted")),
         Ok(Err(error)) => Err(to_py(error)),
         Err(_) => Err(PyRuntimeError::new_err(
             "internal error: the scanloc worker panicked (please report it)",
@@ -255,7 +241,7 @@ fn locate_cg<P: Pixel + numpy::Element>(
         let mut start = 0;
         while start < n {
             if cancel.load(Ordering::SeqCst) {
-                return Err(anyhow::Error::new(Cancelled));
+                return Err(anyhow::Error::new(Stopped));
             }
             let end = (start + chunk).min(n);
             let values = &data[start * frame_len..end * frame_len];
@@ -486,7 +472,7 @@ fn _locate_cnn<'py>(
         let mut all = Vec::new();
         for start in (0..stack.n).step_by(chunk) {
             if cancel.load(Ordering::SeqCst) {
-                return Err(anyhow::Error::new(Cancelled));
+                return Err(anyhow::Error::new(Stopped));
             }
             let end = (start + chunk).min(stack.n);
             let part = FrameStack {
@@ -556,7 +542,7 @@ fn _locate_likelihood<'py>(
         // Frame i draws from stream i of the seed whatever the chunk.
         for which in indices.chunks(4) {
             if cancel.load(Ordering::SeqCst) {
-                return Err(anyhow::Error::new(Cancelled));
+                return Err(anyhow::Error::new(Stopped));
             }
             all.extend(likelihood::locate_frames(
                 &stack, which, &params, &settings, seed, bar,
@@ -646,7 +632,7 @@ fn _simulate<'py>(
         };
         for start in (0..frames).step_by(chunk) {
             if cancel.load(Ordering::SeqCst) {
-                return Err(anyhow::Error::new(Cancelled));
+                return Err(anyhow::Error::new(Stopped));
             }
             // Frame i depends only on (parameters, seed, i).
             let part =
@@ -730,9 +716,10 @@ fn _simulate_recording<'py>(
         scanloc::limits::available_memory_bytes(),
     )
     .map_err(|e| to_py(e.into()))?;
-    // One walk that cannot be split: interrupted only between calls.
-    let recording = interruptible(py, frames as u64, "simulating", progress, |bar, _| {
-        scanloc::sim::recording::simulate_recording_with_progress(&params, seed, true, bar)
+    // One walk that cannot be split: it asks for a stop before each frame.
+    let recording = interruptible(py, frames as u64, "simulating", progress, |bar, cancel| {
+        let stop = || cancel.load(Ordering::SeqCst);
+        scanloc::sim::recording::simulate_recording_stoppable(&params, seed, true, bar, &stop)
     })?;
     let mut truth = Vec::new();
     scanloc::io::tracks::write_recording_truth_to(&mut truth, &recording.truth).map_err(to_py)?;

@@ -96,3 +96,28 @@ def test_ctrl_c_stops_a_long_locate_within_a_second():
     latency = stopped - pressed["at"]
     print(f"Ctrl-C latency: {latency:.3f} s")
     assert latency < 1.0, latency
+
+
+def test_ctrl_c_stops_a_long_simulated_recording_within_a_second():
+    # About a minute of work if it ran on: one walk of 3,000 frames of
+    # 128 × 128, which cannot be split, so it must stop from within.
+    microscope = scanloc.Microscope(height=128, width=128)
+    pressed = {}
+
+    def press():
+        pressed["at"] = time.monotonic()
+        _thread.interrupt_main()
+
+    timer = threading.Timer(0.5, press)
+    started = time.monotonic()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            scanloc.simulate_recording(3000, seed=1, microscope=microscope, qd_density=0.05, progress=False)
+    finally:
+        timer.cancel()
+    stopped = time.monotonic()
+    assert "at" in pressed, f"the simulation ended in {stopped - started:.2f} s, before Ctrl-C"
+    latency = stopped - pressed["at"]
+    print(f"Ctrl-C latency: {latency:.3f} s")
+    assert latency < 1.0, latency

@@ -178,8 +178,8 @@ def test_ctrl_c_stops_a_track(cli, tmp_path):
     # Tolerance: the call returns within a poll (25 ms) and the time to
     # take the GIL on a loaded 2-core machine.
     assert latency < 1.0, latency
-    # The run itself stops at its next stop point: after the simulation
-    # under way (a few seconds here), the process is idle.
+    # The run itself stops at its next stop point (a phase, a stack of
+    # frames, a simulated frame): then the process is idle.
     deadline = time.perf_counter() + 60
     while True:
         cpu = time.process_time()

@@ -23,7 +23,7 @@ use crate::detect::crocker_grier::{CrockerGrierParams, locate_stack, to_predicti
 use crate::error::input_error;
 use crate::io::StackSelection;
 use crate::sim::SimParams;
-use crate::sim::recording::{RecordingParams, simulate_recording_with_progress};
+use crate::sim::recording::{RecordingParams, simulate_recording_stoppable};
 use crate::track::diffusion::{Method, ScanGeometry, estimate_recording};
 use crate::track::pipeline::evaluate::track_estimates;
 use crate::track::pipeline::{
@@ -184,16 +184,7 @@ impl TrackMonitor for OnStderr {
 }
 
 /// Why [`track_recording`] stopped early: its monitor asked it to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Stopped;
-
-impl std::fmt::Display for Stopped {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("stopped at the caller's request")
-    }
-}
-
-impl std::error::Error for Stopped {}
+pub use crate::error::Stopped;
 
 /// The microscope's fields a recording cannot be tracked without: its
 /// frame size and its scan's timing (no default fits another microscope).
@@ -591,7 +582,8 @@ impl<'a> Plan<'a> {
         let progress = self
             .monitor
             .bar(params.frames as u64, &format!("simulating {name}"));
-        let made = simulate_recording_with_progress(&params, seed, true, &progress)
+        let stop = || self.monitor.stop_requested();
+        let made = simulate_recording_stoppable(&params, seed, true, &progress, &stop)
             .with_context(|| format!("simulating {name}"))?;
         progress.finish_and_clear();
         let predictions = self.locate(&format!("locating {name}"), &made.frames)?;

@@ -42,7 +42,7 @@ use rand_chacha::ChaCha8Rng;
 use super::gaussian::standard_normal_from_bits;
 use super::noise::Detector;
 use super::{Precomputed, SimParams, frame_rng, record_counts};
-use crate::error::{FieldError, input_error};
+use crate::error::{FieldError, Stopped, input_error};
 use crate::types::{FrameStack, RecordingTruthRow};
 
 /// Version of the recording simulator (its walk, truth and frames); part
@@ -594,6 +594,19 @@ pub fn simulate_recording_with_progress(
     render: bool,
     progress: &ProgressBar,
 ) -> anyhow::Result<SimulatedRecording> {
+    simulate_recording_stoppable(params, seed, render, progress, &|| false)
+}
+
+/// [`simulate_recording_with_progress`], asking `stop` before each frame
+/// and failing with [`Stopped`] once it says yes (Ctrl-C in Python: the
+/// walk cannot be split, so it is stopped from within).
+pub fn simulate_recording_stoppable(
+    params: &RecordingParams,
+    seed: u64,
+    render: bool,
+    progress: &ProgressBar,
+    stop: &dyn Fn() -> bool,
+) -> anyhow::Result<SimulatedRecording> {
     params
         .validate()
         .map_err(|e| input_error(format!("invalid recording parameter: {e}")))?;
@@ -613,6 +626,9 @@ pub fn simulate_recording_with_progress(
     );
     progress.set_length(params.frames as u64);
     for frame in 0..params.frames {
+        if stop() {
+            return Err(anyhow::Error::new(Stopped));
+        }
         progress.inc(1);
         if !render {
             walk.scan_frame(frame, None, &mut truth);
@@ -702,5 +718,28 @@ mod tests {
         };
         let error = params.validate().unwrap_err();
         assert!(error.to_string().contains("dead_time_ms"), "{error}");
+    }
+
+    #[test]
+    fn a_stop_request_ends_the_walk_before_the_next_frame() {
+        let params = RecordingParams {
+            microscope: SimParams::default(),
+            frames: 50,
+            density_per_um3: 1.0,
+            qd_count: None,
+            lateral_margin_um: 1.0,
+            half_depth_um: 2.0,
+            blinking: None,
+            dead_time_ms: 0.0,
+        };
+        let progress = ProgressBar::hidden();
+        let stop = || progress.position() >= 3;
+        let Err(error) = simulate_recording_stoppable(&params, 1, true, &progress, &stop) else {
+            panic!("the walk did not stop");
+        };
+        assert!(error.is::<Stopped>(), "{error}");
+        assert_eq!(progress.position(), 3);
+        let whole = simulate_recording_stoppable(&params, 1, true, &progress, &|| false).unwrap();
+        assert_eq!(whole.frames.n, 50);
     }
 }
