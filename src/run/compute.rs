@@ -142,6 +142,8 @@ pub(super) fn compute(
                     min_score: bias.min_score,
                     linker: &bias.linker.spec,
                     scoring,
+                    bar: &|len, label| crate::progress::bar(len, label),
+                    stop: &|| false,
                 };
                 evaluation.corrected_ensemble =
                     correct_bias(step, &setup, bias, &evaluation, &mut read_input)

@@ -363,14 +363,14 @@ pub fn track_recording(
 /// recording of `frames` frames under `options` when every phase runs
 /// (the recording located; the two calibration recordings simulated and
 /// located; the linking; the bias correction's pilot and recordings
-/// located): a front end's one bar for the whole run.
+/// simulated and located): a front end's one bar for the whole run.
 pub fn planned_steps(frames: usize, options: &TrackOptions) -> u64 {
     let calibration = match options.min_score {
         Some(_) => 0,
         None => 4 * calibration_frames(options, frames),
     };
     let bias = match options.bias_correction {
-        true => frames.div_ceil(4) + options.bias_recordings * frames,
+        true => 2 * (frames.div_ceil(4) + options.bias_recordings * frames),
         false => 0,
     };
     (frames + calibration + 1 + bias) as u64
@@ -533,6 +533,8 @@ impl<'a> Plan<'a> {
             min_score: Some(min_score),
             linker: &self.linker,
             scoring: &self.scoring,
+            bar: &|len, label| self.monitor.bar(len, label),
+            stop: &|| self.monitor.stop_requested(),
         };
         let mut localise = |label: &str, frames: &FrameStack| self.locate(label, frames);
         correct_ensemble(

@@ -17,11 +17,12 @@
 //! trained model, or `scanloc track`'s).
 
 use anyhow::Context;
+use indicatif::ProgressBar;
 
 use super::config::{LinkerSpec, TrackScoring};
 use super::link::{link_predictions, scores_at_least};
 use super::records::{CorrectedEnsemble, StoredEstimate};
-use crate::sim::recording::{MAX_RECORDING_QDS, RecordingParams, simulate_recording_with_progress};
+use crate::sim::recording::{MAX_RECORDING_QDS, RecordingParams, simulate_recording_stoppable};
 use crate::track::diffusion::ScanGeometry;
 use crate::types::{FrameStack, Prediction, derive_seed};
 
@@ -38,8 +39,9 @@ const PILOT_SHARE: usize = 4;
 /// the label it is given.
 pub type Localiser<'a> = dyn FnMut(&str, &FrameStack) -> anyhow::Result<Vec<Prediction>> + 'a;
 
-/// What a bias correction simulates and how it reads D there.
-#[derive(Debug, Clone, Copy)]
+/// What a bias correction simulates, how it reads D there, and how it
+/// shows its simulations' progress.
+#[derive(Clone, Copy)]
 pub struct BiasSetup<'a> {
     /// The recording as the simulator would make it: microscope, frames,
     /// volume, blinking, dead time (its D and QD count are replaced).
@@ -53,6 +55,11 @@ pub struct BiasSetup<'a> {
     pub linker: &'a LinkerSpec,
     /// The ML ensemble's gate share and margin.
     pub scoring: &'a TrackScoring,
+    /// The progress bar of a simulation of `len` frames labelled `label`.
+    pub bar: &'a dyn Fn(u64, &str) -> ProgressBar,
+    /// Asked before each simulated frame; yes stops the correction with
+    /// [`crate::error::Stopped`].
+    pub stop: &'a dyn Fn() -> bool,
 }
 
 /// The scan geometry of a recording made with `params`.
@@ -115,6 +122,7 @@ pub fn measure_bias(
         .clamp(1, MAX_RECORDING_QDS / 2);
     let pilot_frames = frames.div_ceil(PILOT_SHARE);
     let pilot = simulate(
+        setup,
         spec,
         recorded_d,
         pilot_qds,
@@ -146,7 +154,7 @@ pub fn measure_bias(
     for index in 1..=setup.recordings {
         let name = format!("{label}: bias recording {index}/{}", setup.recordings);
         let seed = derive_seed(setup.seed, "bias-correction", &format!("recording-{index}"));
-        let simulated = simulate(spec, recorded_d, qds, frames, seed, &name)?;
+        let simulated = simulate(setup, spec, recorded_d, qds, frames, seed, &name)?;
         let localisations = kept(&format!("{name}, locating"), &simulated)?;
         drop(simulated);
         let progress = crate::progress::heartbeat(&format!("{name}, linking"));
@@ -197,8 +205,10 @@ pub fn correct_ensemble(
 }
 
 /// The frames of a recording like `spec` at D = `d` with `qds` QDs and
-/// `frames` frames, drawn from `seed`.
+/// `frames` frames, drawn from `seed`, its progress and stop through
+/// `setup`.
 fn simulate(
+    setup: &BiasSetup,
     spec: &RecordingParams,
     d: f64,
     qds: u64,
@@ -214,8 +224,8 @@ fn simulate(
         qd_count: Some(qds),
         ..spec.clone()
     };
-    let progress = crate::progress::bar(frames as u64, label);
-    let made = simulate_recording_with_progress(&params, seed, true, &progress)
+    let progress = (setup.bar)(frames as u64, label);
+    let made = simulate_recording_stoppable(&params, seed, true, &progress, setup.stop)
         .with_context(|| format!("simulating {label}"))?;
     progress.finish_and_clear();
     Ok(made.frames)
@@ -280,6 +290,8 @@ mod tests {
             min_score: None,
             linker: &linker,
             scoring: &scoring,
+            bar: &|_, _| ProgressBar::hidden(),
+            stop: &|| false,
         };
         let corrected = correct_ensemble(
             "test",
