@@ -875,15 +875,7 @@ fn _diffusion(
             "dead_time_ms: must be a finite number ≥ 0, got {dead_time_ms}"
         )));
     }
-    let geometry = ScanGeometry {
-        height: params.height,
-        width: params.width,
-        pixel_size_um: params.pixel_size_um,
-        dwell_us: params.dwell_us,
-        retrace_ms: params.retrace_ms,
-        dead_time_ms,
-        sigma_xy_um: params.sigma_xy_um,
-    };
+    let geometry = ScanGeometry::of(&params, dead_time_ms);
     let exposure = match exposure {
         "auto" => geometry.auto_exposure(),
         "whole-frame" => Exposure::WholeFrame,

@@ -170,16 +170,7 @@ impl RecordingSpec {
 
     /// The scan as the D estimators see it.
     pub fn geometry(&self) -> crate::track::diffusion::ScanGeometry {
-        let m = &self.params.microscope;
-        crate::track::diffusion::ScanGeometry {
-            height: m.height,
-            width: m.width,
-            pixel_size_um: m.pixel_size_um,
-            dwell_us: m.dwell_us,
-            retrace_ms: m.retrace_ms,
-            dead_time_ms: self.params.dead_time_ms,
-            sigma_xy_um: m.sigma_xy_um,
-        }
+        crate::track::diffusion::ScanGeometry::of(&self.params.microscope, self.params.dead_time_ms)
     }
 }
 

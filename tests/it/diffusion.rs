@@ -47,16 +47,7 @@ fn recording(height: usize, width: usize, d: f64, frames: usize, qds: f64) -> Re
 }
 
 fn geometry(params: &RecordingParams) -> ScanGeometry {
-    let m = &params.microscope;
-    ScanGeometry {
-        height: m.height,
-        width: m.width,
-        pixel_size_um: m.pixel_size_um,
-        dwell_us: m.dwell_us,
-        retrace_ms: m.retrace_ms,
-        dead_time_ms: params.dead_time_ms,
-        sigma_xy_um: m.sigma_xy_um,
-    }
+    ScanGeometry::of(&params.microscope, params.dead_time_ms)
 }
 
 /// Ground-truth tracks: each QD's rows (those with `keep`), at the

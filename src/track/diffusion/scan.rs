@@ -62,6 +62,21 @@ const ROWS_CUTOFF_SIGMA: f64 = 6.0;
 pub(crate) const SMALL_FIELD_SIGMAS: f64 = 10.0;
 
 impl ScanGeometry {
+    /// The scan of `microscope` (the simulator's parameters, the
+    /// manifest's `microscope` section), with `dead_time_ms` between
+    /// frames: the one place its fields are taken from them.
+    pub fn of(microscope: &crate::sim::SimParams, dead_time_ms: f64) -> Self {
+        Self {
+            height: microscope.height,
+            width: microscope.width,
+            pixel_size_um: microscope.pixel_size_um,
+            dwell_us: microscope.dwell_us,
+            retrace_ms: microscope.retrace_ms,
+            dead_time_ms,
+            sigma_xy_um: microscope.sigma_xy_um,
+        }
+    }
+
     /// Line time `L = W·δt + t_retrace`, s.
     pub fn line_time_s(&self) -> f64 {
         self.width as f64 * self.dwell_us * 1e-6 + self.retrace_ms * 1e-3

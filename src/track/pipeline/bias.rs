@@ -64,16 +64,7 @@ pub struct BiasSetup<'a> {
 
 /// The scan geometry of a recording made with `params`.
 pub fn recording_geometry(params: &RecordingParams) -> ScanGeometry {
-    let m = &params.microscope;
-    ScanGeometry {
-        height: m.height,
-        width: m.width,
-        pixel_size_um: m.pixel_size_um,
-        dwell_us: m.dwell_us,
-        retrace_ms: m.retrace_ms,
-        dead_time_ms: params.dead_time_ms,
-        sigma_xy_um: m.sigma_xy_um,
-    }
+    ScanGeometry::of(&params.microscope, params.dead_time_ms)
 }
 
 /// What the pipeline read on the recordings simulated at its own D̂.

@@ -110,15 +110,7 @@ mod tests {
     use crate::types::Prediction;
 
     fn geometry(params: &SimParams) -> ScanGeometry {
-        ScanGeometry {
-            height: params.height,
-            width: params.width,
-            pixel_size_um: params.pixel_size_um,
-            dwell_us: params.dwell_us,
-            retrace_ms: params.retrace_ms,
-            dead_time_ms: 0.0,
-            sigma_xy_um: params.sigma_xy_um,
-        }
+        ScanGeometry::of(params, 0.0)
     }
 
     #[test]
