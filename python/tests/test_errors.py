@@ -73,51 +73,45 @@ def test_microscope_defaults_are_the_clis():
     assert scanloc.Microscope(m) == m
 
 
+def _ctrl_c_latency(call, what):
+    """Seconds from a Ctrl-C sent 0.5 s into ``call`` to its
+    ``KeyboardInterrupt``."""
+    pressed = {}
+
+    def press():
+        pressed["at"] = time.monotonic()
+        _thread.interrupt_main()
+
+    timer = threading.Timer(0.5, press)
+    started = time.monotonic()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            call()
+    finally:
+        timer.cancel()
+    stopped = time.monotonic()
+    assert "at" in pressed, f"the {what} ended in {stopped - started:.2f} s, before Ctrl-C"
+    latency = stopped - pressed["at"]
+    print(f"Ctrl-C latency: {latency:.3f} s")
+    return latency
+
+
 def test_ctrl_c_stops_a_long_locate_within_a_second():
     # Seconds of work on 2 cores: 3,000 frames of 256 × 256 (390 MB).
     base = np.random.default_rng(1).poisson(8, (10, 256, 256)).astype(np.uint16)
     stack = np.tile(base, (300, 1, 1))
-    pressed = {}
-
-    def press():
-        pressed["at"] = time.monotonic()
-        _thread.interrupt_main()
-
-    timer = threading.Timer(0.5, press)
-    started = time.monotonic()
-    timer.start()
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            scanloc.locate(stack, 7, progress=False)
-    finally:
-        timer.cancel()
-    stopped = time.monotonic()
-    assert "at" in pressed, f"the locate ended in {stopped - started:.2f} s, before Ctrl-C"
-    latency = stopped - pressed["at"]
-    print(f"Ctrl-C latency: {latency:.3f} s")
+    latency = _ctrl_c_latency(lambda: scanloc.locate(stack, 7, progress=False), "locate")
     assert latency < 1.0, latency
 
 
 def test_ctrl_c_stops_a_long_simulated_recording_within_a_second():
-    # About a minute of work if it ran on: one walk of 3,000 frames of
+    # About 40 s of work if it ran on: one walk of 3,000 frames of
     # 128 × 128, which cannot be split, so it must stop from within.
     microscope = scanloc.Microscope(height=128, width=128)
-    pressed = {}
 
-    def press():
-        pressed["at"] = time.monotonic()
-        _thread.interrupt_main()
+    def simulate():
+        scanloc.simulate_recording(3000, seed=1, microscope=microscope, qd_density=0.05, progress=False)
 
-    timer = threading.Timer(0.5, press)
-    started = time.monotonic()
-    timer.start()
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            scanloc.simulate_recording(3000, seed=1, microscope=microscope, qd_density=0.05, progress=False)
-    finally:
-        timer.cancel()
-    stopped = time.monotonic()
-    assert "at" in pressed, f"the simulation ended in {stopped - started:.2f} s, before Ctrl-C"
-    latency = stopped - pressed["at"]
-    print(f"Ctrl-C latency: {latency:.3f} s")
+    latency = _ctrl_c_latency(simulate, "simulation")
     assert latency < 1.0, latency
