@@ -30,7 +30,7 @@
 //!   set; this uses destination order, so labels may differ there and the
 //!   trajectories do not.
 //!
-//! For speed (docs/tracking.md, "Speed"): the detections are gathered in
+//! For speed (docs/linking.md, "Speed"): the detections are gathered in
 //! frame order once, each frame's sources are bucketed in a uniform grid
 //! (cells at least the search range wide) for the neighbour search, the
 //! candidates among the previous frame's detections are found a block of
