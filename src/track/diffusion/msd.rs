@@ -27,28 +27,34 @@ use super::{Estimate, Series, Z_95, extent, fit_weight};
 /// Most lags fitted.
 pub(crate) const MAX_LAGS: usize = 10;
 
-/// A pair of localisations of one series: indices `i < j`.
-type Pair = (usize, usize);
-
-/// The field weight of pair `(i, j)` along `axis`: the inverse chance that
-/// the field holds the stretch of path between them, whose extent is that
-/// of the localisations `i..=j` (not only the end-to-end distance: a pair
-/// is seen only if every localisation between its ends is).
-fn field_weight(series: &Series, axis: usize, (i, j): Pair) -> f64 {
-    let (low, high) = series.field[axis];
-    fit_weight(extent(series.axes[axis][i..=j].iter().copied()), high - low)
+/// A pair of localisations of one series, `i < j`, with its field weight
+/// per axis: the inverse chance that the field holds the stretch of path
+/// between them, whose extent is that of the localisations `i..=j` (not
+/// only the end-to-end distance: a pair is seen only if every localisation
+/// between its ends is).
+#[derive(Debug, Clone, Copy)]
+struct Pair {
+    i: usize,
+    j: usize,
+    weight: [f64; 2],
 }
 
-/// The pairs of each lag `1..=max_lag` (frames) of one series.
+/// The pairs of each lag `1..=max_lag` (frames) of one series, each
+/// weighed once for every fit and variance that reads it.
 fn pairs_by_lag(series: &Series, max_lag: usize) -> Vec<Vec<Pair>> {
     let mut lags = vec![Vec::new(); max_lag + 1];
+    let weight = |axis: usize, i: usize, j: usize| {
+        let (low, high) = series.field[axis];
+        fit_weight(extent(series.axes[axis][i..=j].iter().copied()), high - low)
+    };
     for i in 0..series.len() {
         for j in i + 1..series.len() {
             let lag = series.frames[j] - series.frames[i];
             if lag > max_lag {
                 break;
             }
-            lags[lag].push((i, j));
+            let weight = [weight(0, i, j), weight(1, i, j)];
+            lags[lag].push(Pair { i, j, weight });
         }
     }
     lags
@@ -71,12 +77,11 @@ fn fit(series: &[&Series], pairs: &[Vec<Vec<Pair>>], p: usize) -> Option<Fit> {
     for lag in 1..=p {
         let (mut sums, mut weights, mut time, mut count) = ([0.0; 2], [0.0; 2], 0.0, 0usize);
         for (s, lags) in series.iter().zip(pairs) {
-            for &(i, j) in lags.get(lag).into_iter().flatten() {
+            for &Pair { i, j, weight } in lags.get(lag).into_iter().flatten() {
                 for axis in 0..2 {
                     let delta = s.axes[axis][j] - s.axes[axis][i];
-                    let weight = field_weight(s, axis, (i, j));
-                    sums[axis] += weight * delta * delta;
-                    weights[axis] += weight;
+                    sums[axis] += weight[axis] * delta * delta;
+                    weights[axis] += weight[axis];
                 }
                 time += s.times[j] - s.times[i];
                 count += 1;
@@ -168,8 +173,8 @@ fn axis_variance(series: &Series, axis: usize, lags: &[Vec<Pair>], fit: &Fit, v:
         }
         // Pair (i, j) covers steps i..j: (Σ Δ)² adds its weight to each
         // entry (the field weights taken as given).
-        for &(i, j) in pairs {
-            let weight = coefficient * field_weight(series, axis, (i, j));
+        for &Pair { i, j, weight } in pairs {
+            let weight = coefficient * weight[axis];
             for k in i..j {
                 for l in i..j {
                     if l >= k {
