@@ -704,17 +704,25 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_dead_time_beyond_a_minute_is_refused() {
-        let params = RecordingParams {
+    /// A recording of the paper's microscope, `frames` long.
+    fn small(frames: usize) -> RecordingParams {
+        RecordingParams {
             microscope: SimParams::default(),
-            frames: 2,
+            frames,
             density_per_um3: 1.0,
             qd_count: None,
             lateral_margin_um: 1.0,
             half_depth_um: 2.0,
             blinking: None,
+            dead_time_ms: 0.0,
+        }
+    }
+
+    #[test]
+    fn a_dead_time_beyond_a_minute_is_refused() {
+        let params = RecordingParams {
             dead_time_ms: MAX_DEAD_TIME_MS * 2.0,
+            ..small(2)
         };
         let error = params.validate().unwrap_err();
         assert!(error.to_string().contains("dead_time_ms"), "{error}");
@@ -722,16 +730,7 @@ mod tests {
 
     #[test]
     fn a_stop_request_ends_the_walk_before_the_next_frame() {
-        let params = RecordingParams {
-            microscope: SimParams::default(),
-            frames: 50,
-            density_per_um3: 1.0,
-            qd_count: None,
-            lateral_margin_um: 1.0,
-            half_depth_um: 2.0,
-            blinking: None,
-            dead_time_ms: 0.0,
-        };
+        let params = small(50);
         let progress = ProgressBar::hidden();
         let stop = || progress.position() >= 3;
         let Err(error) = simulate_recording_stoppable(&params, 1, true, &progress, &stop) else {

@@ -394,7 +394,7 @@ impl Subnets {
 #[derive(Default)]
 struct FrameBuffers {
     /// The frame's sources (detections: the previous frame's, then the
-    /// remembered ones) and their positions.
+    /// remembered ones).
     sources: Vec<usize>,
     /// The remembered sources in range of a destination: (destination,
     /// squared distance, remembered index).
@@ -510,7 +510,7 @@ impl<'a> State<'a> {
                 }
             }
             let count = destinations.len();
-            let grid = ahead.grids.get(k).filter(|_| k < ahead.frames);
+            let grid = ahead.grids.get(k);
             self.step(
                 frame,
                 destinations,
